@@ -1,0 +1,20 @@
+# parammap workflow: bracketed photos -> HDR frames -> calibrated poses -> observation
+# map -> parameter maps and reports. All logic lives in the parammap package; rules
+# call its CLI. Paths follow ../shared/docs/outputs.md (see README).
+
+from snakemake.utils import min_version
+
+min_version("9.0")
+
+
+configfile: "config/config.yaml"
+
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/capture.smk"
+
+
+rule all:
+    input:
+        all_targets(),
+    default_target: True

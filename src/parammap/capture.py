@@ -1,0 +1,300 @@
+"""Loading and validating a capture directory (``capture-format.md``).
+
+Every problem stops the run before any work with one line naming the file and the
+key, e.g. ``capture.yaml: views[3].exposures[0].exposure_s: must be positive (got -1)``.
+"""
+
+from __future__ import annotations
+
+import glob
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import yaml
+
+from .imageio import ImageReadError, exif_exposure_time, read_image
+
+__all__ = [
+    "Capture",
+    "CaptureError",
+    "Exposure",
+    "View",
+    "aruco_dictionary",
+    "load_capture",
+    "validate_capture",
+]
+
+
+class CaptureError(ValueError):
+    """An invalid capture directory; the message names the file and key."""
+
+
+@dataclass(frozen=True)
+class Exposure:
+    path: Path
+    exposure_s: float
+
+
+@dataclass(frozen=True)
+class View:
+    id: str
+    holdout: bool
+    exposures: tuple[Exposure, ...]
+
+
+@dataclass
+class Capture:
+    """A parsed capture. Paths are absolute; lengths are millimetres."""
+
+    root: Path
+    surface_id: str
+    width_mm: float
+    height_mm: float
+    marker_dictionary: str
+    marker_ids: np.ndarray  # (M,) int
+    marker_corners: np.ndarray  # (M, 4, 2) float, surface frame, OpenCV corner order
+    calibration: dict[str, Any]
+    calibration_images: list[Path]
+    intrinsics_path: Path | None
+    response: str  # "auto", "linear" or a path
+    views: list[View]
+    raw: dict[str, Any] = field(repr=False, default_factory=dict)
+
+    def view(self, view_id: str) -> View:
+        for v in self.views:
+            if v.id == view_id:
+                return v
+        raise KeyError(view_id)
+
+    @property
+    def fitted_views(self) -> list[View]:
+        return [v for v in self.views if not v.holdout]
+
+
+def aruco_dictionary(name: str) -> cv2.aruco.Dictionary:
+    """OpenCV ArUco dictionary by name (``DICT_4X4_50``...); ValueError if unknown."""
+    code = getattr(cv2.aruco, str(name), None)
+    if not str(name).startswith("DICT_") or not isinstance(code, int):
+        raise ValueError(f"unknown ArUco dictionary {name!r}")
+    return cv2.aruco.getPredefinedDictionary(code)
+
+
+class _Ctx:
+    def __init__(self, yaml_path: Path):
+        self.yaml_path = yaml_path
+        self.root = yaml_path.parent.resolve()
+
+    def fail(self, key: str, problem: str) -> None:
+        raise CaptureError(f"{self.yaml_path}: {key}: {problem}")
+
+    def get(self, d: Any, key: str, where: str, kind=None, required: bool = True):
+        full = f"{where}.{key}" if where else key
+        if not isinstance(d, dict):
+            self.fail(where or "<top>", "must be a mapping")
+        if key not in d or d[key] is None:
+            if required:
+                self.fail(full, "missing key")
+            return None
+        value = d[key]
+        if kind is not None:
+            kinds = kind if isinstance(kind, tuple) else (kind,)
+            # YAML's true/false are ints to Python; never accept them as numbers.
+            if not isinstance(value, kinds) or (isinstance(value, bool) and bool not in kinds):
+                self.fail(full, f"must be {_kind_name(kind)} (got {value!r})")
+        return value
+
+    def positive(self, d: Any, key: str, where: str) -> float:
+        v = float(self.get(d, key, where, (int, float)))
+        if not np.isfinite(v) or v <= 0:
+            self.fail(f"{where}.{key}", f"must be positive (got {v:g})")
+        return v
+
+    def path(self, rel: Any, key: str, must_exist: bool = True) -> Path:
+        if not isinstance(rel, str) or not rel:
+            self.fail(key, f"must be a relative path (got {rel!r})")
+        p = (self.root / rel).resolve()
+        if not p.is_relative_to(self.root):
+            self.fail(key, f"path {rel!r} leaves the capture directory")
+        if must_exist and not p.is_file():
+            self.fail(key, f"file {rel!r} does not exist")
+        return p
+
+
+def _kind_name(kind) -> str:
+    names = {str: "a string", list: "a list", dict: "a mapping", int: "an integer",
+             bool: "true or false"}
+    if isinstance(kind, tuple):
+        return "a number"
+    return names.get(kind, str(kind))
+
+
+def load_capture(directory: str | Path, check_images: bool = False) -> Capture:
+    """Parse and check ``<directory>/capture.yaml``.
+
+    Parameters
+    ----------
+    directory : the capture directory.
+    check_images : also decode every photo, check sizes agree within the views and
+        within the calibration set, and read EXIF exposure times.
+
+    Raises
+    ------
+    CaptureError
+        On the first problem, naming the file and key.
+    """
+    directory = Path(directory)
+    yaml_path = directory / "capture.yaml"
+    if not yaml_path.is_file():
+        raise CaptureError(f"{yaml_path}: missing (a capture directory holds capture.yaml)")
+    try:
+        raw = yaml.safe_load(yaml_path.read_text())
+    except yaml.YAMLError as exc:
+        raise CaptureError(f"{yaml_path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    c = _Ctx(yaml_path)
+    if not isinstance(raw, dict):
+        c.fail("<top>", "must be a mapping")
+
+    surface = c.get(raw, "surface", "", dict)
+    sid = c.get(surface, "id", "surface", (str, int))
+    width = c.positive(surface, "width_mm", "surface")
+    height = c.positive(surface, "height_mm", "surface")
+
+    markers = c.get(raw, "markers", "", dict)
+    dict_name = c.get(markers, "dictionary", "markers", str)
+    try:
+        dictionary = aruco_dictionary(dict_name)
+    except ValueError as exc:
+        c.fail("markers.dictionary", str(exc))
+    items = c.get(markers, "items", "markers", list)
+    if len(items) < 4:
+        c.fail("markers.items", f"needs at least 4 markers (got {len(items)})")
+    ids, corners = [], []
+    n_dict = dictionary.bytesList.shape[0]
+    for k, item in enumerate(items):
+        where = f"markers.items[{k}]"
+        mid = c.get(item, "id", where, int)
+        if not 0 <= mid < n_dict:
+            c.fail(f"{where}.id", f"{mid} is not in {dict_name} (ids 0..{n_dict - 1})")
+        if mid in ids:
+            c.fail(f"{where}.id", f"duplicate marker id {mid}")
+        cm = c.get(item, "corners_mm", where, list)
+        try:
+            arr = np.asarray(cm, float)
+        except (TypeError, ValueError):
+            arr = np.zeros(0)
+        if arr.shape != (4, 2) or not np.all(np.isfinite(arr)):
+            c.fail(f"{where}.corners_mm", "must be 4 corners of [x, y] in mm")
+        ids.append(mid)
+        corners.append(arr)
+
+    calib = c.get(raw, "calibration", "", dict)
+    board = c.get(calib, "board", "calibration", str)
+    if board not in ("charuco", "chessboard"):
+        c.fail("calibration.board", f"must be charuco or chessboard (got {board!r})")
+    for key in ("squares_x", "squares_y"):
+        v = c.get(calib, key, "calibration", int)
+        if v < 2:
+            c.fail(f"calibration.{key}", f"must be at least 2 (got {v})")
+    c.positive(calib, "square_mm", "calibration")
+    if board == "charuco":
+        mm = c.positive(calib, "marker_mm", "calibration")
+        if mm >= float(calib["square_mm"]):
+            c.fail("calibration.marker_mm", "must be smaller than square_mm")
+        try:
+            aruco_dictionary(c.get(calib, "dictionary", "calibration", str))
+        except ValueError as exc:
+            c.fail("calibration.dictionary", str(exc))
+    intr = calib.get("intrinsics")
+    intr_path = c.path(intr, "calibration.intrinsics") if intr else None
+    calib_images: list[Path] = []
+    pattern = calib.get("images")
+    if intr_path is None:
+        pattern = c.get(calib, "images", "calibration", str)
+    if pattern:
+        if Path(pattern).is_absolute() or ".." in Path(pattern).parts:
+            c.fail("calibration.images", f"pattern {pattern!r} leaves the capture directory")
+        calib_images = sorted(Path(p).resolve() for p in glob.glob(str(c.root / pattern)))
+        if not calib_images and intr_path is None:
+            c.fail("calibration.images", f"pattern {pattern!r} matches no file")
+
+    camera = raw.get("camera") or {}
+    response = camera.get("response", "auto") if isinstance(camera, dict) else None
+    if not isinstance(response, str):
+        c.fail("camera.response", f"must be auto, linear or a path (got {response!r})")
+    if response not in ("auto", "linear"):
+        response = str(c.path(response, "camera.response"))
+
+    views_raw = c.get(raw, "views", "", list)
+    if not views_raw:
+        c.fail("views", "no views")
+    views, seen = [], set()
+    for k, v in enumerate(views_raw):
+        where = f"views[{k}]"
+        vid = str(c.get(v, "id", where, (str, int)))
+        if vid in seen:
+            c.fail(f"{where}.id", f"duplicate view id {vid!r}")
+        seen.add(vid)
+        holdout = v.get("holdout", False) if isinstance(v, dict) else False
+        if not isinstance(holdout, bool):
+            c.fail(f"{where}.holdout", f"must be true or false (got {holdout!r})")
+        exps_raw = c.get(v, "exposures", where, list)
+        if not exps_raw:
+            c.fail(f"{where}.exposures", "no exposures")
+        exps = []
+        for e, ex in enumerate(exps_raw):
+            ew = f"{where}.exposures[{e}]"
+            p = c.path(c.get(ex, "file", ew, str), f"{ew}.file")
+            t = ex.get("exposure_s")
+            if t is None:
+                t = exif_exposure_time(p) if check_images else float("nan")
+                if t is None:
+                    c.fail(f"{ew}.exposure_s", f"missing, and {p.name} has no EXIF ExposureTime")
+            else:
+                t = c.positive(ex, "exposure_s", ew)
+            exps.append(Exposure(p, float(t)))
+        views.append(View(vid, holdout, tuple(exps)))
+
+    cap = Capture(
+        root=c.root, surface_id=str(sid), width_mm=width, height_mm=height,
+        marker_dictionary=dict_name, marker_ids=np.asarray(ids, int),
+        marker_corners=np.asarray(corners, float), calibration=dict(calib),
+        calibration_images=calib_images, intrinsics_path=intr_path,
+        response=response, views=views, raw=raw,
+    )
+    if check_images:
+        _check_images(c, cap, views_raw)
+    return cap
+
+
+def _check_images(c: _Ctx, cap: Capture, views_raw: list) -> None:
+    view_size = None
+    for k, v in enumerate(cap.views):
+        for e, ex in enumerate(v.exposures):
+            key = f"views[{k}].exposures[{e}].file"
+            try:
+                img = read_image(ex.path)
+            except ImageReadError as exc:
+                c.fail(key, str(exc))
+            if view_size is None:
+                view_size, first = img.shape[:2], key
+            elif img.shape[:2] != view_size:
+                c.fail(key, f"image size {img.shape[1]}x{img.shape[0]} differs from "
+                            f"{view_size[1]}x{view_size[0]} of {first}")
+    calib_size = None
+    for p in cap.calibration_images:
+        try:
+            img = read_image(p)
+        except ImageReadError as exc:
+            c.fail("calibration.images", str(exc))
+        if calib_size is None:
+            calib_size, first = img.shape[:2], p.name
+        elif img.shape[:2] != calib_size:
+            c.fail("calibration.images", f"{p.name}: image size differs from {first}")
+
+
+def validate_capture(directory: str | Path) -> Capture:
+    """Full check of a capture, images included (``parammap validate-capture``)."""
+    return load_capture(directory, check_images=True)

@@ -1,0 +1,74 @@
+"""Workflow configuration: load, fill defaults and validate against the JSON schema.
+
+The schema lives in ``parammap/schemas/config.schema.yaml`` (``workflow/schemas`` links to
+it), so the Snakefile and the CLI check the same rules.
+"""
+
+from __future__ import annotations
+
+import copy
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import jsonschema
+import yaml
+
+__all__ = ["ConfigError", "load_config", "schema", "validate_config"]
+
+
+class ConfigError(ValueError):
+    """A configuration value that breaks the schema; the message names the key."""
+
+
+def schema() -> dict[str, Any]:
+    """The configuration schema as a dict."""
+    text = resources.files("parammap").joinpath("schemas/config.schema.yaml").read_text()
+    return yaml.safe_load(text)
+
+
+def _fill_defaults(instance: Any, sch: dict[str, Any]) -> None:
+    if not isinstance(instance, dict):
+        return
+    for key, sub in sch.get("properties", {}).items():
+        if key not in instance and "default" in sub:
+            instance[key] = copy.deepcopy(sub["default"])
+        if key in instance:
+            _fill_defaults(instance[key], sub)
+    extra = sch.get("additionalProperties")
+    if isinstance(extra, dict):
+        for key, value in instance.items():
+            if key not in sch.get("properties", {}):
+                _fill_defaults(value, extra)
+
+
+def validate_config(config: dict[str, Any]) -> dict[str, Any]:
+    """Return a validated copy of ``config`` with defaults filled in.
+
+    Raises
+    ------
+    ConfigError
+        Naming the first offending key, e.g. ``config: hdr.samples: 3 is less than
+        the minimum of 20``.
+    """
+    sch = schema()
+    cfg = copy.deepcopy(dict(config))
+    _fill_defaults(cfg, sch)
+    validator = jsonschema.Draft202012Validator(sch)
+    errors = sorted(validator.iter_errors(cfg), key=lambda e: list(e.absolute_path))
+    if errors:
+        err = errors[0]
+        key = ".".join(str(p) for p in err.absolute_path) or "<top>"
+        raise ConfigError(f"config: {key}: {err.message}")
+    return cfg
+
+
+def load_config(path: str | Path, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Read a YAML config file, apply top-level ``overrides`` and validate it."""
+    path = Path(path)
+    try:
+        cfg = yaml.safe_load(path.read_text()) or {}
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(f"{path}: cannot read config ({exc})") from None
+    cfg.update(overrides or {})
+    return validate_config(cfg)

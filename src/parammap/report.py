@@ -1,0 +1,81 @@
+"""Report figures built from capture files and stage outputs (never from ground truth)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from .capture import Capture  # noqa: E402
+from .imageio import read_image  # noqa: E402
+
+__all__ = ["contact_sheet", "plot_hemisphere", "save_figure"]
+
+
+def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
+    """Save a matplotlib figure through a temporary name and close it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
+    plt.close(fig)
+    tmp.replace(path)
+    return path
+
+
+def contact_sheet(cap: Capture, path: str | Path, thumb: int = 160, cols: int = 10) -> Path:
+    """Thumbnails of every view (middle exposure), labelled, held-out views in red."""
+    views = cap.views
+    rows = int(np.ceil(len(views) / cols))
+    first = read_image(views[0].exposures[0].path)
+    h, w = first.shape[:2]
+    th = int(thumb * h / w)
+    fig, axes = plt.subplots(rows, cols, figsize=(cols * 1.6, rows * 1.6 * th / thumb + 0.3),
+                             squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    for ax, v in zip(axes.ravel(), views, strict=False):
+        img = read_image(v.exposures[len(v.exposures) // 2].path)
+        if img.dtype == np.uint16:
+            img = (img >> 8).astype(np.uint8)
+        step = max(1, w // thumb)
+        ax.imshow(img[::step, ::step])
+        ax.set_title(v.id + (" (held out)" if v.holdout else ""), fontsize=6,
+                     color="red" if v.holdout else "black")
+    fig.suptitle(f"{cap.surface_id}: {len(views)} views", fontsize=9)
+    return save_figure(fig, path)
+
+
+def plot_hemisphere(
+    directions: np.ndarray, path: str | Path, labels: list[str] | None = None,
+    holdout: np.ndarray | None = None, title: str = "view directions",
+) -> Path:
+    """View directions (N, 3) on the hemisphere: a 3-D scatter and the polar
+    projection (zenith as radius), like 004 fig. 8.2/8.3."""
+    d = np.asarray(directions, float)
+    hold = np.zeros(len(d), bool) if holdout is None else np.asarray(holdout, bool)
+    fig = plt.figure(figsize=(9, 4.2))
+    ax = fig.add_subplot(1, 2, 1, projection="3d")
+    u, v = np.meshgrid(np.linspace(0, 2 * np.pi, 37), np.linspace(0, np.pi / 2, 10))
+    ax.plot_wireframe(np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v), color="0.85",
+                      linewidth=0.5)
+    ax.scatter(*d[~hold].T, s=10, c="tab:blue", label="fitted")
+    if hold.any():
+        ax.scatter(*d[hold].T, s=18, c="tab:red", marker="^", label="held out")
+    ax.set_box_aspect((1, 1, 0.5))
+    ax.set_xlabel("x")
+    ax.set_ylabel("y")
+    ax.legend(fontsize=7, loc="upper left")
+    ax2 = fig.add_subplot(1, 2, 2, projection="polar")
+    theta = np.degrees(np.arccos(np.clip(d[:, 2], -1, 1)))
+    phi = np.arctan2(d[:, 1], d[:, 0])
+    ax2.scatter(phi[~hold], theta[~hold], s=10, c="tab:blue")
+    ax2.scatter(phi[hold], theta[hold], s=18, c="tab:red", marker="^")
+    ax2.set_ylim(0, 90)
+    ax2.set_title("zenith (deg) vs azimuth", fontsize=8)
+    fig.suptitle(f"{title} ({len(d)})", fontsize=9)
+    return save_figure(fig, path)

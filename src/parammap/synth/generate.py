@@ -1,0 +1,432 @@
+"""Synthetic capture generator (``parammap synth``).
+
+Writes exactly the layout of ``capture-format.md`` into ``out`` and the ground truth
+(response curve, intrinsics, poses, scene) into a separate ``truth`` folder that the
+pipeline never reads. Seeded and deterministic: the same preset and seed give the
+same bytes.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from ..capture import aruco_dictionary
+from ..geometry import look_at, pixel_to_plane, plane_to_texel, project_points, unit
+from ..imageio import write_image_atomic
+from .sampling import sample_directions
+from .scene import Scene, build_scene, mh_truth, true_radiance
+
+__all__ = ["PRESETS", "Preset", "Response", "generate", "render_radiance"]
+
+
+@dataclass(frozen=True)
+class Preset:
+    texels: int = 64
+    width_mm: float = 160.0
+    height_mm: float = 160.0
+    image_size: tuple[int, int] = (640, 480)  # width, height (px)
+    focal_px: float = 560.0
+    dist: tuple[float, ...] = (-0.12, 0.06, 0.0008, -0.0006, 0.0)
+    scheme: str = "icosahedron"
+    scheme_args: tuple[tuple[str, float], ...] = (("level", 2),)
+    max_zenith_deg: float = 70.0
+    holdout: int = 4
+    exposures: int = 3
+    calib_images: int = 14
+    supersample: int = 2
+    marker_dictionary: str = "DICT_4X4_50"
+    shot_noise: float = 3e-5  # variance per unit of normalised exposure
+    read_noise: float = 3e-4  # std, normalised exposure units
+    image_format: str = "png"
+
+
+PRESETS = {
+    "tiny": Preset(texels=24, width_mm=96.0, height_mm=96.0, image_size=(320, 240),
+                   focal_px=290.0, scheme="icosahedron", scheme_args=(("level", 1),),
+                   max_zenith_deg=65.0, holdout=2, exposures=2, calib_images=8),
+    "demo": Preset(scheme="icosahedron", scheme_args=(("level", 2),), max_zenith_deg=70.0),
+    "paper": Preset(texels=512, width_mm=300.0, height_mm=300.0, image_size=(1600, 1200),
+                    focal_px=1400.0, scheme="icosahedron", scheme_args=(("level", 3),),
+                    max_zenith_deg=88.0, holdout=8, supersample=1, calib_images=20),
+}
+
+
+@dataclass(frozen=True)
+class Response:
+    """A camera response: normalised exposure X (>= 0) to 8-bit level.
+
+    ``level = 255 * clip((1 + a) y / (1 + a y), 0, 1)`` with ``y = X ** (1 / gamma)``,
+    per channel: a monotonic gamma curve with a soft shoulder.
+    """
+
+    gamma: tuple[float, float, float] = (2.1, 2.2, 2.35)
+    shoulder: tuple[float, float, float] = (0.25, 0.3, 0.35)
+
+    def __call__(self, X: np.ndarray) -> np.ndarray:
+        y = np.clip(X, 0, None) ** (1 / np.asarray(self.gamma))
+        a = np.asarray(self.shoulder)
+        return 255.0 * np.clip((1 + a) * y / (1 + a * y), 0, 1)
+
+    def inverse(self, level: np.ndarray) -> np.ndarray:
+        """Normalised exposure at a (real-valued) level in [0, 255]."""
+        a = np.asarray(self.shoulder)
+        f = np.clip(np.asarray(level, float) / 255.0, 0, 1)
+        y = f / (1 + a - a * f)
+        return y ** np.asarray(self.gamma)
+
+
+def _rays(size: tuple[int, int], K: np.ndarray, dist, ss: int, rows: slice) -> np.ndarray:
+    """Pixel sample coordinates (n_rows, W, ss*ss, 2) for a block of image rows."""
+    w = size[0]
+    off = (np.arange(ss) + 0.5) / ss - 0.5
+    r = np.arange(rows.start, rows.stop)
+    ou, ov = np.meshgrid(off, off)
+    u = np.arange(w)[None, :, None] + ou.ravel()[None, None, :]
+    v = r[:, None, None] + ov.ravel()[None, None, :]
+    u, v = np.broadcast_arrays(u, v)
+    return np.stack([u, v], axis=-1)
+
+
+@dataclass
+class _World:
+    scene: Scene
+    marker_img: list[np.ndarray]  # uint8 marker images, 1 = white
+    marker_H: list[np.ndarray]  # homographies surface mm -> marker image px
+    marker_bbox: np.ndarray  # (M, 4) xmin, xmax, ymin, ymax
+    paper: float
+    marker_white: float
+    marker_black: float
+
+
+def _shade_surface(world: _World, P: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """Radiance at plane points P (N, 3) seen from camera centre C."""
+    sc = world.scene
+    T, S = sc.shape
+    out = np.full(P.shape[:-1] + (3,), world.paper)
+    inside = (P[:, 0] >= 0) & (P[:, 0] < sc.width_mm) & (P[:, 1] > 0) & (P[:, 1] <= sc.height_mm)
+    if inside.any():
+        r, c = plane_to_texel(P[inside, 0], P[inside, 1], S, T, sc.width_mm, sc.height_mm)
+        r = np.clip(np.floor(r).astype(int), 0, T - 1)
+        c = np.clip(np.floor(c).astype(int), 0, S - 1)
+        v = unit(C - P[inside])
+        out[inside] = true_radiance(sc, r, c, v)
+    for img, H, bb in zip(world.marker_img, world.marker_H, world.marker_bbox, strict=True):
+        sel = (P[:, 0] >= bb[0]) & (P[:, 0] <= bb[1]) & (P[:, 1] >= bb[2]) & (P[:, 1] <= bb[3])
+        if not sel.any():
+            continue
+        q = cv2.perspectiveTransform(P[sel, None, :2].astype(np.float64), H)[:, 0]
+        n = img.shape[0]
+        ok = (q[:, 0] >= 0) & (q[:, 0] < n) & (q[:, 1] >= 0) & (q[:, 1] < n)
+        idx = np.flatnonzero(sel)[ok]
+        val = img[q[ok, 1].astype(int), q[ok, 0].astype(int)]
+        out[idx] = np.where(val[:, None] > 0, world.marker_white, world.marker_black)
+    return out
+
+
+def render_radiance(shade, size, K, dist, R, t, ss: int = 2, block: int = 64) -> np.ndarray:
+    """Render a plane z = 0 as a camera sees it, box-filtering ``ss x ss`` samples.
+
+    Parameters
+    ----------
+    shade : callable(points (N, 3), camera centre (3,)) -> (N, 3) radiance.
+    size : (width, height) in pixels.
+
+    Returns
+    -------
+    (H, W, 3) float32 linear radiance; 0 where a ray misses the plane.
+    """
+    w, h = size
+    out = np.zeros((h, w, 3), np.float32)
+    C = -np.asarray(R).T @ np.asarray(t).ravel()
+    for r0 in range(0, h, block):
+        rows = slice(r0, min(h, r0 + block))
+        uv = _rays(size, K, dist, ss, rows)
+        P, hit = pixel_to_plane(uv.reshape(-1, 2), K, dist, R, t)
+        rad = np.zeros((P.shape[0], 3))
+        if hit.any():
+            rad[hit] = shade(P[hit], C)
+        out[rows] = rad.reshape(uv.shape[0], w, ss * ss, 3).mean(axis=2)
+    return out
+
+
+def _expose(radiance, t_s, response: Response, preset: Preset, rng) -> np.ndarray:
+    X = radiance * t_s
+    sigma = np.sqrt(preset.shot_noise * np.clip(X, 0, None) + preset.read_noise**2)
+    X = X + sigma * rng.standard_normal(X.shape)
+    return np.clip(np.round(response(X)), 0, 255).astype(np.uint8)
+
+
+def _marker_layout(preset: Preset) -> list[dict]:
+    """Eight markers around the sampled region: corners and edge midpoints."""
+    W, H = preset.width_mm, preset.height_mm
+    s = 0.2 * min(W, H)
+    g = 0.05 * min(W, H)
+    lo_x, mid_x, hi_x = -g - s, W / 2 - s / 2, W + g
+    lo_y, mid_y, hi_y = -g - s, H / 2 - s / 2, H + g
+    origins = [(lo_x, hi_y), (mid_x, hi_y), (hi_x, hi_y), (hi_x, mid_y),
+               (hi_x, lo_y), (mid_x, lo_y), (lo_x, lo_y), (lo_x, mid_y)]
+    items = []
+    for k, (x0, y0) in enumerate(origins):
+        corners = [[x0, y0 + s], [x0 + s, y0 + s], [x0 + s, y0], [x0, y0]]
+        items.append({"id": k, "corners_mm": [[round(a, 4), round(b, 4)] for a, b in corners]})
+    return items
+
+
+def _world(scene: Scene, preset: Preset, items: list[dict]) -> _World:
+    dictionary = aruco_dictionary(preset.marker_dictionary)
+    n = 6 * 20
+    imgs, Hs, bbs = [], [], []
+    for it in items:
+        img = cv2.aruco.generateImageMarker(dictionary, it["id"], n, borderBits=1)
+        imgs.append((img > 127).astype(np.uint8))
+        c = np.asarray(it["corners_mm"], np.float64)
+        Hs.append(cv2.getPerspectiveTransform(
+            c.astype(np.float32), np.float32([[0, 0], [n, 0], [n, n], [0, n]])).astype(np.float64))
+        bbs.append([c[:, 0].min(), c[:, 0].max(), c[:, 1].min(), c[:, 1].max()])
+    irr = float(np.sum(scene.light_int * unit(scene.light_pos - [
+        scene.width_mm / 2, scene.height_mm / 2, 0])[:, 2]))
+    return _World(scene, imgs, Hs, np.array(bbs), paper=0.55 * irr, marker_white=0.8 * irr,
+                  marker_black=0.04 * irr)
+
+
+def _view_pose(direction, preset: Preset, K, items, rng):
+    """Camera pose for a view direction at a varying distance, framing all markers."""
+    W, H = preset.width_mm, preset.height_mm
+    pts = np.array([c for it in items for c in it["corners_mm"]], float)
+    extent = max(np.ptp(pts[:, 0]), np.ptp(pts[:, 1]))
+    d = preset.focal_px * extent / (0.75 * min(preset.image_size)) * rng.uniform(0.95, 1.2)
+    target = np.array([W / 2, H / 2, 0.0]) + np.r_[rng.uniform(-0.04, 0.04, 2) * [W, H], 0]
+    roll = np.radians(rng.uniform(-8, 8))
+    corners3 = np.c_[pts, np.zeros(len(pts))]
+    margin = 0.04 * min(preset.image_size)
+    for _ in range(40):
+        R, t = look_at(target + d * np.asarray(direction), target, roll)
+        uv = project_points(corners3, K, preset.dist, R, t)
+        if (uv.min() > margin and uv[:, 0].max() < preset.image_size[0] - margin
+                and uv[:, 1].max() < preset.image_size[1] - margin):
+            break
+        d *= 1.06
+    return R, t
+
+
+def _board(calib: dict) -> cv2.aruco.CharucoBoard:
+    return cv2.aruco.CharucoBoard(
+        (calib["squares_x"], calib["squares_y"]), float(calib["square_mm"]),
+        float(calib["marker_mm"]), aruco_dictionary(calib["dictionary"]))
+
+
+def _render_view_job(args):
+    (world, preset, K, R, t, exposures_s, response, seed) = args
+    rad = render_radiance(lambda P, C: _shade_surface(world, P, C), preset.image_size, K,
+                          preset.dist, R, t, ss=preset.supersample)
+    rng = np.random.default_rng(seed)
+    return [_expose(rad, te, response, preset, rng) for te in exposures_s]
+
+
+def _render_board_job(args):
+    (tex, ppmm, preset, K, R, t, exposure_s, response, seed, white, black) = args
+    h, w = tex.shape
+
+    def shade(P, C):
+        u = P[:, 0] * ppmm
+        v = P[:, 1] * ppmm
+        ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        val = np.full(len(P), 0.55 * white)
+        val[ok] = np.where(tex[v[ok].astype(int), u[ok].astype(int)] > 127, white, black)
+        return np.repeat(val[:, None], 3, axis=1)
+
+    rad = render_radiance(shade, preset.image_size, K, preset.dist, R, t,
+                          ss=max(2, preset.supersample))
+    return _expose(rad, exposure_s, response, preset, np.random.default_rng(seed))
+
+
+def _radiance_range(scene: Scene, rng) -> tuple[float, float]:
+    """Smallest and largest true radiance over the region (dense direction grid)."""
+    T, S = scene.shape
+    step = max(1, S // 64)
+    rr, cc = np.meshgrid(np.arange(0, T, step), np.arange(0, S, step), indexing="ij")
+    dirs = sample_directions("icosahedron", 89.0, level=4)
+    lo, hi = np.inf, 0.0
+    for r, c in zip(rr.ravel(), cc.ravel(), strict=True):
+        L = true_radiance(scene, np.full(len(dirs), r), np.full(len(dirs), c), dirs)
+        lo, hi = min(lo, L.min()), max(hi, L.max())
+    return float(lo), float(hi)
+
+
+def _exposure_times(lo: float, hi: float, n: int, response: Response) -> list[float]:
+    """Exposure times (s) from long to short so the brightest radiance stays below
+    saturation in the shortest and the darkest reaches level ~50 in the longest."""
+    t_short = 0.8 / hi
+    t_long = float(np.max(response.inverse(50.0))) / max(lo, 1e-6)
+    if n == 1:
+        return [t_short]
+    t_long = max(t_long, t_short * 4.0 ** (n - 1))
+    ts = np.geomspace(t_long, t_short, n)
+    return [float(f"{x:.6g}") for x in ts]
+
+
+def generate(
+    out: str | Path,
+    truth: str | Path | None = None,
+    preset: str | Preset = "demo",
+    seed: int = 0,
+    workers: int = 1,
+    surface_id: str | None = None,
+    log=print,
+) -> Path:
+    """Write a synthetic capture to ``out`` and its ground truth to ``truth``.
+
+    Parameters
+    ----------
+    out : capture directory to create (replaced atomically when complete).
+    truth : ground-truth directory; default ``<out>.truth`` beside it.
+    preset : a name in :data:`PRESETS` or a :class:`Preset`.
+    seed : random seed; same seed, same bytes.
+    workers : processes used to render views.
+
+    Returns
+    -------
+    Path of the capture directory.
+    """
+    name = preset if isinstance(preset, str) else "custom"
+    if isinstance(preset, str):
+        try:
+            preset = PRESETS[preset]
+        except KeyError:
+            raise ValueError(f"unknown preset {preset!r}; one of {sorted(PRESETS)}") from None
+    out = Path(out)
+    truth = Path(truth) if truth else out.with_name(out.name + ".truth")
+    tmp_out = out.with_name(f".{out.name}.partial")
+    tmp_truth = truth.with_name(f".{truth.name}.partial")
+    for p in (tmp_out, tmp_truth):
+        shutil.rmtree(p, ignore_errors=True)
+        p.mkdir(parents=True)
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    sid = surface_id or f"synth-{name}"
+
+    scene = build_scene(preset.texels, preset.texels, preset.width_mm, preset.height_mm,
+                        seed=seed)
+    w, h = preset.image_size
+    K = np.array([[preset.focal_px, 0, w / 2 - 0.5 + 0.03 * w],
+                  [0, preset.focal_px * 1.002, h / 2 - 0.5 - 0.02 * h], [0, 0, 1]])
+    response = Response()
+    lo, hi = _radiance_range(scene, rng)
+    items = _marker_layout(preset)
+    world = _world(scene, preset, items)
+    lo = min(lo, world.marker_black)
+    times = _exposure_times(lo, max(hi, world.marker_white), preset.exposures, response)
+
+    dirs = sample_directions(preset.scheme, preset.max_zenith_deg, **dict(preset.scheme_args))
+    hold = sample_directions("stratified", preset.max_zenith_deg - 5, n_side=8,
+                             seed=seed + 1)[rng.choice(64, preset.holdout, replace=False)]
+    all_dirs = np.concatenate([dirs, hold])
+    is_hold = np.r_[np.zeros(len(dirs), bool), np.ones(len(hold), bool)]
+    poses = [_view_pose(d, preset, K, items, rng) for d in all_dirs]
+    view_ids = [f"v{k:03d}" for k in range(len(all_dirs))]
+    seeds = rng.integers(0, 2**31, len(all_dirs) + preset.calib_images)
+
+    log(f"synth {name}: {len(dirs)} views + {len(hold)} held out, {preset.exposures} "
+        f"exposures {times} s, {preset.texels}x{preset.texels} texels, {w}x{h} px")
+    jobs = [(world, preset, K, R, t, times, response, int(seeds[k]))
+            for k, (R, t) in enumerate(poses)]
+    views_yaml = []
+    ext = preset.image_format
+    with ProcessPoolExecutor(max_workers=workers) if workers > 1 else _Serial() as ex:
+        for k, photos in enumerate(ex.map(_render_view_job, jobs)):
+            exps = []
+            for e, img in enumerate(photos):
+                rel = f"views/{view_ids[k]}_{e}.{ext}"
+                write_image_atomic(tmp_out / rel, img)
+                exps.append({"file": rel, "exposure_s": times[e]})
+            views_yaml.append({"id": view_ids[k], "holdout": bool(is_hold[k]), "exposures": exps})
+            if (k + 1) % 10 == 0 or k + 1 == len(jobs):
+                log(f"  rendered {k + 1}/{len(jobs)} views")
+
+        # Calibration board photos from varied poses.
+        sq = round(0.125 * preset.width_mm, 3)
+        calib = {"board": "charuco", "squares_x": 7, "squares_y": 5, "square_mm": sq,
+                 "marker_mm": round(0.72 * sq, 3), "dictionary": "DICT_5X5_100"}
+        board = _board(calib)
+        ppmm = 8.0
+        bw, bh = calib["squares_x"] * sq, calib["squares_y"] * sq
+        tex = board.generateImage((int(bw * ppmm), int(bh * ppmm)), marginSize=0)
+        bjobs, cposes = [], []
+        for k in range(preset.calib_images):
+            # Board frame: x right, y down, z into the board; the camera sits at z < 0.
+            tilt = np.radians(rng.uniform(5, 42))
+            az = rng.uniform(0, 2 * np.pi)
+            dvec = np.array([np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), -np.cos(tilt)])
+            d = preset.focal_px * max(bw, bh) / (rng.uniform(0.55, 0.85) * min(w, h))
+            target = np.array([bw / 2, bh / 2, 0]) + np.r_[rng.uniform(-0.1, 0.1, 2) * [bw, bh], 0]
+            R, t = look_at(target + d * dvec, target, np.radians(rng.uniform(-180, 180)))
+            cposes.append((R, t))
+            bjobs.append((tex, ppmm, preset, K, R, t, 0.7 / 0.8,
+                response, int(seeds[len(all_dirs) + k]), 0.8, 0.04))
+        for k, img in enumerate(ex.map(_render_board_job, bjobs)):
+            write_image_atomic(tmp_out / f"calibration/board_{k:02d}.{ext}", img)
+
+    cap = {
+        "surface": {"id": sid, "width_mm": preset.width_mm, "height_mm": preset.height_mm},
+        "markers": {"dictionary": preset.marker_dictionary, "items": items},
+        "calibration": {**calib, "images": f"calibration/*.{ext}", "intrinsics": None},
+        "camera": {"response": "auto"},
+        "views": views_yaml,
+    }
+    (tmp_out / "capture.yaml").write_text(
+        f"# Synthetic capture written by parammap synth (preset {name}, seed {seed})\n"
+        + yaml.safe_dump(cap, sort_keys=False, default_flow_style=None, width=100))
+
+    # Ground truth, never read by the pipeline.
+    scene.save(tmp_truth / "scene.npz")
+    params, mask = mh_truth(scene)
+    np.savez_compressed(tmp_truth / "mh_params.npz", params=params, mask=mask)
+    np.savez_compressed(
+        tmp_truth / "response.npz", levels=np.arange(256),
+        exposure=response.inverse(np.arange(256)[:, None]),
+        gamma=np.array(response.gamma), shoulder=np.array(response.shoulder))
+    np.savez_compressed(
+        tmp_truth / "poses.npz", view_ids=np.array(view_ids), holdout=is_hold,
+        R=np.array([p[0] for p in poses]), t=np.array([p[1] for p in poses]),
+        directions=all_dirs, calib_R=np.array([p[0] for p in cposes]),
+        calib_t=np.array([p[1] for p in cposes]))
+    (tmp_truth / "camera.yaml").write_text(yaml.safe_dump({
+        "image_size": list(preset.image_size), "K": K.tolist(), "dist": list(preset.dist)}))
+    (tmp_truth / "generator.json").write_text(json.dumps(
+        {"preset": name, "seed": seed, "settings": asdict(preset), "exposure_s": times,
+         "radiance_range": [lo, hi], "shot_noise": preset.shot_noise,
+         "read_noise": preset.read_noise}, indent=1))
+    for tmp, final in ((tmp_out, out), (tmp_truth, truth)):
+        shutil.rmtree(final, ignore_errors=True)
+        final.parent.mkdir(parents=True, exist_ok=True)
+        tmp.replace(final)
+    log(f"synth {name}: wrote {out} and {truth} in {time.perf_counter() - t0:.1f} s")
+    return out
+
+
+class _Serial:
+    """Stand-in for an executor that runs jobs in this process."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    @staticmethod
+    def map(fn, jobs):
+        return map(fn, jobs)
+
+
+def preset_with(name: str, **changes) -> Preset:
+    """A named preset with some fields changed."""
+    return replace(PRESETS[name], **changes)

@@ -1,0 +1,43 @@
+# Shared helpers: validated config, capture paths, output folders.
+import re
+import sys
+
+from parammap.config import validate_config
+
+# Stops the run naming the bad key before any job starts.
+config = validate_config(config)
+
+CAPTURES = config["captures"]
+SYNTH = config["synth"]
+PROC = config["processed_dir"]
+REPORTS = config["reports_dir"]
+WORKERS = config["workers"]
+# The interpreter running Snakemake has parammap installed; no PATH lookup needed.
+PARAMMAP = f'"{sys.executable}" -m parammap'
+SYNTH_DIRS_RE = "|".join(re.escape(CAPTURES[s]) for s in SYNTH if s in CAPTURES) or "$^"
+
+
+wildcard_constraints:
+    sid="[A-Za-z0-9][A-Za-z0-9_.-]*",
+
+
+def capture_dir(wildcards):
+    return CAPTURES[wildcards.sid]
+
+
+def all_targets():
+    targets = []
+    for sid in CAPTURES:
+        targets.append(f"{REPORTS}/{sid}/contact_sheet.png")
+    return targets
+
+
+def synth_for(capdir):
+    for sid, spec in SYNTH.items():
+        if CAPTURES.get(sid) == capdir:
+            return spec
+    raise ValueError(f"no synth entry for {capdir}")
+
+
+def synth_sid(capdir):
+    return next(s for s in SYNTH if CAPTURES.get(s) == capdir)
