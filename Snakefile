@@ -12,6 +12,7 @@ configfile: "config/config.yaml"
 
 include: "workflow/rules/common.smk"
 include: "workflow/rules/capture.smk"
+include: "workflow/rules/hdr.smk"
 
 
 rule all:

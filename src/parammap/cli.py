@@ -11,6 +11,8 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
 from . import __version__
 from .capture import CaptureError
 from .config import ConfigError
@@ -65,6 +67,141 @@ def _summary(a: argparse.Namespace) -> int:
     return 0
 
 
+def _stage_config(a: argparse.Namespace) -> dict:
+    from .config import load_config, validate_config
+
+    if a.config:
+        return load_config(a.config)
+    return validate_config({"captures": {"cli": "."}})
+
+
+@_command("response")
+def _response(a: argparse.Namespace) -> int:
+    from .capture import load_capture
+    from .hdr import response_for_capture, save_response
+    from .report import plot_response
+
+    cfg = _stage_config(a)["hdr"]
+    cap = load_capture(a.capture, check_images=False)
+    out = Path(a.out)
+    g, meta = response_for_capture(cap, cfg, log=_log)
+    if g is None:
+        (out / "camera").mkdir(parents=True, exist_ok=True)
+        (out / "camera" / "response.txt").write_text("linear input: no response curve\n")
+    else:
+        save_response(out / "camera" / "response.csv", g, meta)
+        if a.figure:
+            plot_response(g, a.figure, title=f"{cap.surface_id}: recovered response")
+    _log(f"response: {meta['response']} -> {out / 'camera'}")
+    return 0
+
+
+@_command("hdr")
+def _hdr(a: argparse.Namespace) -> int:
+    import time
+
+    from .capture import load_capture
+    from .hdr import load_response, merge_view
+    from .metrics import write_metrics
+
+    cfg = _stage_config(a)["hdr"]
+    cap = load_capture(a.capture, check_images=False)
+    resp = a.response or Path(a.out) / "camera" / "response.csv"
+    g = None if cap.response == "linear" else load_response(resp)
+    views = [cap.view(v) for v in a.view] if a.view else cap.views
+    out = Path(a.out)
+    for v in views:
+        t0 = time.perf_counter()
+        stats = merge_view(v, g, out / "hdr" / f"{v.id}.exr", cfg["low"], cfg["high"])
+        stats["seconds"] = time.perf_counter() - t0
+        write_metrics(out / "hdr" / f"{v.id}.json", stats)
+        _log(f"hdr: {v.id} saturated {stats['saturated_fraction']:.4f}")
+    return 0
+
+
+@_command("calibrate")
+def _calibrate(a: argparse.Namespace) -> int:
+    from .calibration import calibrate, load_intrinsics, save_intrinsics
+    from .capture import load_capture
+    from .metrics import write_metrics
+
+    cfg = _stage_config(a)["calibration"]
+    cap = load_capture(a.capture)
+    out = Path(a.out)
+    if cap.intrinsics_path is not None:
+        intr = load_intrinsics(cap.intrinsics_path)
+        _log(f"calibrate: using saved intrinsics {cap.intrinsics_path}")
+    else:
+        intr = calibrate(cap, cfg["min_images"], cfg["min_corners"], log=_log)
+    save_intrinsics(out / "camera" / "intrinsics.yaml", intr)
+    write_metrics(out / "metrics" / "calibration.json", {
+        "rms_px": intr.rms_px, "images_used": intr.images_used,
+        "images_total": len(cap.calibration_images), "fx_px": intr.K[0, 0],
+        "fy_px": intr.K[1, 1], "cx_px": intr.K[0, 2], "cy_px": intr.K[1, 2],
+        "dist": intr.dist, "per_image_rms_px": intr.per_image_rms_px})
+    _log(f"calibrate: rms {intr.rms_px:.3f} px from {intr.images_used} photos")
+    return 0
+
+
+@_command("poses")
+def _poses(a: argparse.Namespace) -> int:
+    from .calibration import estimate_pose, load_intrinsics, to_gray8
+    from .capture import load_capture
+    from .exr import ExrError
+    from .hdr import read_hdr
+    from .metrics import write_metrics
+    from .report import plot_hemisphere, plot_reprojection
+
+    cfg = _stage_config(a)["poses"]
+    cap = load_capture(a.capture)
+    out = Path(a.out)
+    intr = load_intrinsics(out / "camera" / "intrinsics.yaml")
+    records = []
+    for v in cap.views:
+        try:
+            rad, _, _ = read_hdr(out / "hdr" / f"{v.id}.exr")
+        except ExrError as exc:
+            rec = {"ok": False, "reason": str(exc)}
+        else:
+            rec = estimate_pose(cap, intr, to_gray8(rad), cfg["min_markers"])
+            if rec["ok"] and rec["rms_px"] > cfg["max_rms_px"]:
+                rec.update(ok=False, reason=f"reprojection RMS {rec['rms_px']:.2f} px above "
+                                            f"{cfg['max_rms_px']} px")
+        if not rec["ok"]:
+            _log(f"poses: dropping view {v.id}: {rec['reason']}")
+        records.append({"id": v.id, "holdout": v.holdout, "kept": bool(rec["ok"]),
+                        **({"reason": rec["reason"]} if not rec["ok"] else {}),
+                        **{k: np.asarray(rec[k]).tolist() for k in ("R", "t", "centre_mm")
+                           if k in rec},
+                        **({"rms_px": float(rec["rms_px"])} if "rms_px" in rec else {}),
+                        "markers": rec.get("markers", [])})
+    import yaml
+
+    path = out / "camera" / "poses.yaml"
+    tmp = path.with_name(".poses.yaml.tmp")
+    tmp.write_text(yaml.safe_dump({"views": records}, sort_keys=False))
+    tmp.replace(path)
+    kept = [r for r in records if r["kept"]]
+    rms = [r["rms_px"] for r in kept]
+    write_metrics(out / "metrics" / "poses.json", {
+        "views": len(records), "kept": len(kept),
+        "dropped": {r["id"]: r["reason"] for r in records if not r["kept"]},
+        "median_rms_px": float(np.median(rms)) if rms else None,
+        "max_rms_px": float(np.max(rms)) if rms else None,
+        "rms_px": {r["id"]: r["rms_px"] for r in kept}})
+    if a.figures:
+        fig = Path(a.figures)
+        plot_reprojection(records, fig / "pose_reprojection.png")
+        if kept:
+            C = np.array([r["centre_mm"] for r in kept]) - [cap.width_mm / 2, cap.height_mm / 2, 0]
+            plot_hemisphere(C / np.linalg.norm(C, axis=1, keepdims=True),
+                            fig / "view_directions.png",
+                            holdout=np.array([r["holdout"] for r in kept]),
+                            title=f"{cap.surface_id}: camera directions from poses")
+    _log(f"poses: kept {len(kept)} of {len(records)} views")
+    return 0
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="parammap", description=__doc__.splitlines()[0])
     p.add_argument("--version", action="version", version=f"parammap {__version__}")
@@ -84,6 +221,21 @@ def _parser() -> argparse.ArgumentParser:
     s = sub.add_parser("summary", help="capture summary figures (contact sheet)")
     s.add_argument("capture")
     s.add_argument("--out", required=True, help="report folder, e.g. reports/<id>")
+    for name, helptext in (("response", "recover the camera response from the brackets"),
+                           ("hdr", "merge brackets into linear HDR frames"),
+                           ("calibrate", "intrinsics from the calibration photos"),
+                           ("poses", "pose of every view from the surface markers")):
+        s = sub.add_parser(name, help=helptext)
+        s.add_argument("capture")
+        s.add_argument("--out", required=True, help="data/processed/<id>")
+        s.add_argument("--config", help="workflow config (default: built-in defaults)")
+        if name == "response":
+            s.add_argument("--figure", help="PNG of the response curve")
+        if name == "hdr":
+            s.add_argument("--response", help="response CSV (default <out>/camera/response.csv)")
+            s.add_argument("--view", action="append", help="only this view (repeatable)")
+        if name == "poses":
+            s.add_argument("--figures", help="report folder for the pose figures")
     return p
 
 
@@ -91,6 +243,6 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
         return _COMMANDS[args.command](args)
-    except (CaptureError, ConfigError, ImageReadError, ValueError) as exc:
+    except (CaptureError, ConfigError, ImageReadError, ValueError, OSError) as exc:
         print(f"parammap {args.command}: error: {exc}", file=sys.stderr)
         return 2

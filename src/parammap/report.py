@@ -79,3 +79,39 @@ def plot_hemisphere(
     ax2.set_title("zenith (deg) vs azimuth", fontsize=8)
     fig.suptitle(f"{title} ({len(d)})", fontsize=9)
     return save_figure(fig, path)
+
+
+def plot_response(g: np.ndarray, path: str | Path, reference: np.ndarray | None = None,
+                  title: str = "camera response") -> Path:
+    """Response curves ln X against level per channel; ``reference`` (256, 3) is drawn
+    dashed after matching its offset at level 128 (e.g. a ground truth)."""
+    fig, ax = plt.subplots(figsize=(5, 3.6))
+    z = np.arange(256)
+    for c, col in enumerate("rgb"):
+        ax.plot(g[:, c], z, color=col, label=f"recovered {'RGB'[c]}")
+        if reference is not None:
+            ax.plot(reference[:, c] - reference[128, c] + g[128, c], z, "--", color=col,
+                    alpha=0.6, label=f"reference {'RGB'[c]}")
+    ax.set_xlabel("ln relative exposure")
+    ax.set_ylabel("pixel level")
+    ax.legend(fontsize=6)
+    ax.set_title(title, fontsize=9)
+    return save_figure(fig, path)
+
+
+def plot_reprojection(records: list[dict], path: str | Path) -> Path:
+    """Per-view pose reprojection RMS; dropped views marked."""
+    fig, ax = plt.subplots(figsize=(max(5, len(records) * 0.08), 3))
+    ids = [r["id"] for r in records]
+    rms = [r.get("rms_px", np.nan) for r in records]
+    kept = np.array([r["kept"] for r in records])
+    x = np.arange(len(ids))
+    ax.bar(x[kept], np.array(rms)[kept], color="tab:blue", label="kept")
+    if (~kept).any():
+        ax.bar(x[~kept], np.nan_to_num(np.array(rms)[~kept], nan=0.0), color="tab:red",
+               label="dropped")
+    ax.set_xticks(x[:: max(1, len(x) // 20)])
+    ax.set_xticklabels(ids[:: max(1, len(x) // 20)], rotation=90, fontsize=6)
+    ax.set_ylabel("reprojection RMS (px)")
+    ax.legend(fontsize=7)
+    return save_figure(fig, path)

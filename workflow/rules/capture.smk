@@ -22,7 +22,7 @@ rule synth:
         " --out {output.capture} --workers {threads} 2> {log}"
 
 
-rule validate_capture:
+checkpoint validate_capture:
     input:
         capture_dir,
     output:

@@ -25,10 +25,22 @@ def capture_dir(wildcards):
     return CAPTURES[wildcards.sid]
 
 
+def view_ids(wildcards):
+    """View ids of a capture, known once the capture exists and has validated."""
+    checkpoints.validate_capture.get(sid=wildcards.sid)
+    from parammap.capture import load_capture
+
+    return [v.id for v in load_capture(CAPTURES[wildcards.sid]).views]
+
+
 def all_targets():
     targets = []
     for sid in CAPTURES:
-        targets.append(f"{REPORTS}/{sid}/contact_sheet.png")
+        targets += [
+            f"{REPORTS}/{sid}/contact_sheet.png",
+            f"{PROC}/{sid}/camera/poses.yaml",
+            f"{PROC}/{sid}/metrics/hdr.json",
+        ]
     return targets
 
 

@@ -41,11 +41,11 @@ class Preset:
     max_zenith_deg: float = 70.0
     holdout: int = 4
     exposures: int = 3
-    calib_images: int = 14
+    calib_images: int = 24
     supersample: int = 2
     marker_dictionary: str = "DICT_4X4_50"
-    shot_noise: float = 3e-5  # variance per unit of normalised exposure
-    read_noise: float = 3e-4  # std, normalised exposure units
+    shot_noise: float = 2e-5  # variance per unit of normalised exposure
+    read_noise: float = 2e-4  # std, normalised exposure units
     image_format: str = "png"
 
 
@@ -53,7 +53,7 @@ PRESETS = {
     "tiny": Preset(texels=24, width_mm=96.0, height_mm=96.0, image_size=(320, 240),
                    focal_px=290.0, scheme="icosahedron", scheme_args=(("level", 1),),
                    max_zenith_deg=65.0, holdout=2, exposures=2, calib_images=8),
-    "demo": Preset(scheme="icosahedron", scheme_args=(("level", 2),), max_zenith_deg=70.0),
+    "demo": Preset(scheme="stratified", scheme_args=(("n_side", 9),), max_zenith_deg=72.0),
     "paper": Preset(texels=512, width_mm=300.0, height_mm=300.0, image_size=(1600, 1200),
                     focal_px=1400.0, scheme="icosahedron", scheme_args=(("level", 3),),
                     max_zenith_deg=88.0, holdout=8, supersample=1, calib_images=20),
@@ -64,24 +64,33 @@ PRESETS = {
 class Response:
     """A camera response: normalised exposure X (>= 0) to 8-bit level.
 
-    ``level = 255 * clip((1 + a) y / (1 + a y), 0, 1)`` with ``y = X ** (1 / gamma)``,
-    per channel: a monotonic gamma curve with a soft shoulder.
+    ``level = 255 * clip((1 + a) y / (1 + a y), 0, 1)`` with ``y = (k X) ** (1 / gamma)``,
+    per channel: a monotonic gamma curve with a soft shoulder. ``k`` white-balances the
+    channels at mid-grey (level 128 is the same X in every channel), the assumption
+    every response recovery needs to fix the channels' relative scale.
     """
 
     gamma: tuple[float, float, float] = (2.1, 2.2, 2.35)
     shoulder: tuple[float, float, float] = (0.25, 0.3, 0.35)
 
+    def _base_inverse(self, level):
+        a = np.asarray(self.shoulder)
+        f = np.clip(np.asarray(level, float) / 255.0, 0, 1)
+        return (f / (1 + a - a * f)) ** np.asarray(self.gamma)
+
+    @property
+    def _k(self) -> np.ndarray:
+        x128 = self._base_inverse(np.full(3, 128.0))
+        return x128 / x128[0]
+
     def __call__(self, X: np.ndarray) -> np.ndarray:
-        y = np.clip(X, 0, None) ** (1 / np.asarray(self.gamma))
+        y = np.clip(np.asarray(X) * self._k, 0, None) ** (1 / np.asarray(self.gamma))
         a = np.asarray(self.shoulder)
         return 255.0 * np.clip((1 + a) * y / (1 + a * y), 0, 1)
 
     def inverse(self, level: np.ndarray) -> np.ndarray:
         """Normalised exposure at a (real-valued) level in [0, 255]."""
-        a = np.asarray(self.shoulder)
-        f = np.clip(np.asarray(level, float) / 255.0, 0, 1)
-        y = f / (1 + a - a * f)
-        return y ** np.asarray(self.gamma)
+        return self._base_inverse(level) / self._k
 
 
 def _rays(size: tuple[int, int], K: np.ndarray, dist, ss: int, rows: slice) -> np.ndarray:
@@ -111,7 +120,18 @@ def _shade_surface(world: _World, P: np.ndarray, C: np.ndarray) -> np.ndarray:
     """Radiance at plane points P (N, 3) seen from camera centre C."""
     sc = world.scene
     T, S = sc.shape
-    out = np.full(P.shape[:-1] + (3,), world.paper)
+    # Paper and markers are lit by the point lights: cosine and inverse-square falloff,
+    # normalised to 1 at the region's centre.
+    ctr = np.array([sc.width_mm / 2, sc.height_mm / 2, 0.0])
+    irr = np.zeros(len(P))
+    irr0 = 0.0
+    for lp, inten in zip(sc.light_pos, sc.light_int, strict=True):
+        d = lp - P
+        r2 = np.sum(d * d, axis=1)
+        irr += inten * d[:, 2] / r2**1.5
+        irr0 += inten * (lp - ctr)[2] / np.sum((lp - ctr) ** 2) ** 1.5
+    shade = (irr / irr0)[:, None]
+    out = world.paper * shade * np.ones((1, 3))
     inside = (P[:, 0] >= 0) & (P[:, 0] < sc.width_mm) & (P[:, 1] > 0) & (P[:, 1] <= sc.height_mm)
     if inside.any():
         r, c = plane_to_texel(P[inside, 0], P[inside, 1], S, T, sc.width_mm, sc.height_mm)
@@ -128,7 +148,7 @@ def _shade_surface(world: _World, P: np.ndarray, C: np.ndarray) -> np.ndarray:
         ok = (q[:, 0] >= 0) & (q[:, 0] < n) & (q[:, 1] >= 0) & (q[:, 1] < n)
         idx = np.flatnonzero(sel)[ok]
         val = img[q[ok, 1].astype(int), q[ok, 0].astype(int)]
-        out[idx] = np.where(val[:, None] > 0, world.marker_white, world.marker_black)
+        out[idx] = np.where(val[:, None] > 0, world.marker_white, world.marker_black) * shade[idx]
     return out
 
 
@@ -266,7 +286,7 @@ def _exposure_times(lo: float, hi: float, n: int, response: Response) -> list[fl
     """Exposure times (s) from long to short so the brightest radiance stays below
     saturation in the shortest and the darkest reaches level ~50 in the longest."""
     t_short = 0.8 / hi
-    t_long = float(np.max(response.inverse(50.0))) / max(lo, 1e-6)
+    t_long = float(np.max(response.inverse(60.0))) / max(lo, 1e-6)
     if n == 1:
         return [t_short]
     t_long = max(t_long, t_short * 4.0 ** (n - 1))
@@ -366,8 +386,11 @@ def generate(
             tilt = np.radians(rng.uniform(5, 42))
             az = rng.uniform(0, 2 * np.pi)
             dvec = np.array([np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), -np.cos(tilt)])
-            d = preset.focal_px * max(bw, bh) / (rng.uniform(0.55, 0.85) * min(w, h))
-            target = np.array([bw / 2, bh / 2, 0]) + np.r_[rng.uniform(-0.1, 0.1, 2) * [bw, bh], 0]
+            d = preset.focal_px * max(bw, bh) / (rng.uniform(0.5, 0.8) * min(w, h))
+            # Aim off-centre so the board also covers the image's edges and corners,
+            # where distortion is strongest.
+            shift = rng.uniform(-0.45, 0.45, 2) * [bw, bh]
+            target = np.array([bw / 2 + shift[0], bh / 2 + shift[1], 0.0])
             R, t = look_at(target + d * dvec, target, np.radians(rng.uniform(-180, 180)))
             cposes.append((R, t))
             bjobs.append((tex, ppmm, preset, K, R, t, 0.7 / 0.8,
@@ -430,3 +453,23 @@ class _Serial:
 def preset_with(name: str, **changes) -> Preset:
     """A named preset with some fields changed."""
     return replace(PRESETS[name], **changes)
+
+
+def true_view_radiance(capture_dir: str | Path, truth_dir: str | Path, view_id: str,
+                       supersample: int | None = None) -> np.ndarray:
+    """Noise-free radiance image (H, W, 3) of a generated view, for tests against truth."""
+    truth_dir = Path(truth_dir)
+    gen = json.loads((truth_dir / "generator.json").read_text())
+    s = gen["settings"]
+    preset = Preset(**{k: tuple(tuple(x) if isinstance(x, list) else x for x in v)
+                       if isinstance(v, list) else v for k, v in s.items()})
+    cap = yaml.safe_load((Path(capture_dir) / "capture.yaml").read_text())
+    from .scene import load_scene
+
+    world = _world(load_scene(truth_dir / "scene.npz"), preset, cap["markers"]["items"])
+    cam = yaml.safe_load((truth_dir / "camera.yaml").read_text())
+    poses = np.load(truth_dir / "poses.npz")
+    k = list(poses["view_ids"]).index(view_id)
+    return render_radiance(lambda P, C: _shade_surface(world, P, C), preset.image_size,
+                           np.array(cam["K"]), preset.dist, poses["R"][k], poses["t"][k],
+                           ss=supersample or preset.supersample)

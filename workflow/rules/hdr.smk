@@ -1,0 +1,105 @@
+# HDR stage: one response per capture, then every view merged in its own job (memory
+# bounded by one bracket), then the per-view figures gathered into metrics/hdr.json.
+
+
+rule response:
+    input:
+        capture=capture_dir,
+        ok=f"{PROC}/{{sid}}/capture.ok",
+    output:
+        csv=f"{PROC}/{{sid}}/camera/response.csv",
+        figure=report(
+            f"{REPORTS}/{{sid}}/response.png",
+            caption="../report/response.rst",
+            category="Capture",
+            subcategory="{sid}",
+        ),
+    params:
+        cli=PARAMMAP,
+        out=lambda wc: f"{PROC}/{wc.sid}",
+    log:
+        "logs/response/{sid}.log",
+    conda:
+        "../envs/parammap.yaml"
+    shell:
+        "{params.cli} response {input.capture} --out {params.out} --config config/config.yaml"
+        " --figure {output.figure} 2> {log}"
+
+
+rule hdr_view:
+    input:
+        capture=capture_dir,
+        response=f"{PROC}/{{sid}}/camera/response.csv",
+    output:
+        exr=f"{PROC}/{{sid}}/hdr/{{view}}.exr",
+        stats=f"{PROC}/{{sid}}/hdr/{{view}}.json",
+    params:
+        cli=PARAMMAP,
+        out=lambda wc: f"{PROC}/{wc.sid}",
+    log:
+        "logs/hdr/{sid}/{view}.log",
+    conda:
+        "../envs/parammap.yaml"
+    shell:
+        "{params.cli} hdr {input.capture} --out {params.out} --response {input.response}"
+        " --view {wildcards.view} --config config/config.yaml 2> {log}"
+
+
+rule hdr_metrics:
+    input:
+        stats=lambda wc: expand(f"{PROC}/{wc.sid}/hdr/{{view}}.json", view=view_ids(wc)),
+    output:
+        f"{PROC}/{{sid}}/metrics/hdr.json",
+    log:
+        "logs/hdr/{sid}/metrics.log",
+    conda:
+        "../envs/parammap.yaml"
+    script:
+        "../scripts/gather_hdr.py"
+
+
+rule calibrate:
+    input:
+        capture=capture_dir,
+        ok=f"{PROC}/{{sid}}/capture.ok",
+    output:
+        f"{PROC}/{{sid}}/camera/intrinsics.yaml",
+        f"{PROC}/{{sid}}/metrics/calibration.json",
+    params:
+        cli=PARAMMAP,
+        out=lambda wc: f"{PROC}/{wc.sid}",
+    log:
+        "logs/calibrate/{sid}.log",
+    conda:
+        "../envs/parammap.yaml"
+    shell:
+        "{params.cli} calibrate {input.capture} --out {params.out} --config config/config.yaml"
+        " 2> {log}"
+
+
+rule poses:
+    input:
+        capture=capture_dir,
+        intrinsics=f"{PROC}/{{sid}}/camera/intrinsics.yaml",
+        hdr=lambda wc: expand(f"{PROC}/{wc.sid}/hdr/{{view}}.exr", view=view_ids(wc)),
+    output:
+        f"{PROC}/{{sid}}/camera/poses.yaml",
+        f"{PROC}/{{sid}}/metrics/poses.json",
+        report(
+            f"{REPORTS}/{{sid}}/view_directions.png",
+            caption="../report/view_directions.rst",
+            category="Capture",
+            subcategory="{sid}",
+        ),
+        f"{REPORTS}/{{sid}}/pose_reprojection.png",
+    params:
+        cli=PARAMMAP,
+        out=lambda wc: f"{PROC}/{wc.sid}",
+        figures=lambda wc: f"{REPORTS}/{wc.sid}",
+    log:
+        "logs/poses/{sid}.log",
+    conda:
+        "../envs/parammap.yaml"
+    shell:
+        "{params.cli} poses {input.capture} --out {params.out} --config config/config.yaml"
+        " --figures {params.figures} 2> {log}"
