@@ -163,18 +163,15 @@ def load_intrinsics(path: str | Path) -> Intrinsics:
 
 def detect_markers(gray: np.ndarray, dictionary_name: str) -> tuple[np.ndarray, np.ndarray]:
     """ArUco markers with sub-pixel corners: ids (M,), corners (M, 4, 2)."""
-    det = cv2.aruco.ArucoDetector(aruco_dictionary(dictionary_name),
-                                  cv2.aruco.DetectorParameters())
+    params = cv2.aruco.DetectorParameters()
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    params.cornerRefinementMinAccuracy = 0.01
+    params.cornerRefinementMaxIterations = 60
+    det = cv2.aruco.ArucoDetector(aruco_dictionary(dictionary_name), params)
     corners, ids, _ = det.detectMarkers(gray)
     if ids is None:
         return np.zeros(0, int), np.zeros((0, 4, 2))
-    # Own sub-pixel pass with an 11x11 window: on synthetic markers it halves the
-    # inward corner bias of ArUco's built-in refinement (0.24 -> 0.17 px, see README).
-    pts = np.ascontiguousarray(np.concatenate([c.reshape(4, 2) for c in corners]), np.float32)
-    pts = pts.reshape(-1, 1, 2)
-    cv2.cornerSubPix(gray, pts, (5, 5), (-1, -1),
-                     (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-4))
-    return ids.ravel().astype(int), pts.reshape(-1, 4, 2).astype(float)
+    return ids.ravel().astype(int), np.array([c.reshape(4, 2) for c in corners], float)
 
 
 def estimate_pose(

@@ -49,7 +49,14 @@ def read_exr(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     try:
         with OpenEXR.File(str(path)) as f:
             header = dict(f.header())
-            chans = {k: np.array(v.pixels) for k, v in f.channels().items()}
+            chans = {}
+            for k, v in f.channels().items():
+                px = np.array(v.pixels)
+                # The binding merges R, G, B (and A) into one "RGB"/"RGBA" channel.
+                if px.ndim == 3 and len(k) == px.shape[2]:
+                    chans.update({c: px[..., i] for i, c in enumerate(k)})
+                else:
+                    chans[k] = px
     except Exception as exc:  # the binding raises bare RuntimeError/OSError variants
         raise ExrError(f"{path}: not a readable EXR file ({exc})") from None
     return chans, header

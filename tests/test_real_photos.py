@@ -1,0 +1,95 @@
+"""Real photographs from ../shared/data/real (issue 9)."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+import yaml
+
+from parammap.calibration import calibrate
+from parammap.capture import CaptureError, load_capture
+from parammap.hdr import merge_bracket, recover_response, reexposure_error
+from parammap.imageio import ImageReadError, exif_exposure_time, read_image
+
+from .conftest import REAL
+
+FROB = REAL / "frobisher"
+CHARUCO = REAL / "charuco"
+pytestmark = pytest.mark.skipif(not REAL.is_dir(), reason="../shared/data/real not present")
+
+
+def _frob():
+    files = sorted(FROB.glob("IMG_*.jpg"))
+    return files, np.stack([read_image(f) for f in files])
+
+
+def test_exif_exposure_times():
+    files, _ = _frob()
+    np.testing.assert_allclose([exif_exposure_time(f) for f in files], [1 / 8, 1, 8])
+
+
+def test_frobisher_reexposure_and_monotonic_response():
+    files, stack = _frob()
+    t = np.array([exif_exposure_time(f) for f in files])
+    g = recover_response([stack], [t], samples=400, smoothness=30.0)
+    assert np.all(np.diff(g, axis=0) > 0)
+    rad, _, _ = merge_bracket(stack, t, g)
+    err = reexposure_error(stack, t, rad, g)
+    assert err.mean() <= 1.2, err.mean()
+    assert np.percentile(err, 95) <= 3.0, np.percentile(err, 95)
+
+
+def test_truncated_jpeg_names_file(tmp_path):
+    p = tmp_path / "cut.jpg"
+    p.write_bytes((FROB / "IMG_2600.jpg").read_bytes()[:5000])
+    with pytest.raises(ImageReadError, match="cut.jpg.*truncated"):
+        read_image(p)
+
+
+def _charuco_capture(tmp_path):
+    root = tmp_path / "cap"
+    (root / "calibration").mkdir(parents=True)
+    (root / "views").mkdir()
+    for p in CHARUCO.glob("*.jpg"):
+        shutil.copy(p, root / "calibration" / p.name)
+    for p in FROB.glob("IMG_*.jpg"):
+        shutil.copy(p, root / "views" / p.name)
+    cap = {
+        "surface": {"id": "real", "width_mm": 100, "height_mm": 100},
+        "markers": {"dictionary": "DICT_4X4_50", "items": [
+            {"id": k, "corners_mm": [[k * 30, 130], [k * 30 + 20, 130], [k * 30 + 20, 110],
+                                     [k * 30, 110]]} for k in range(4)]},
+        "calibration": {"board": "charuco", "squares_x": 5, "squares_y": 7, "square_mm": 40,
+                        "marker_mm": 20, "dictionary": "DICT_6X6_250",
+                        "images": "calibration/*.jpg"},
+        "views": [{"id": "v0", "exposures": [{"file": f"views/{p.name}"} for p in
+                                             sorted(FROB.glob("IMG_*.jpg"))]}],
+    }
+    (root / "capture.yaml").write_text(yaml.safe_dump(cap))
+    return root
+
+
+def test_charuco_calibration_matches_opencv(tmp_path):
+    cap = load_capture(_charuco_capture(tmp_path))
+    intr = calibrate(cap, min_images=4, log=lambda *_: None)
+    fx, fy, cx, cy = intr.K[0, 0], intr.K[1, 1], intr.K[0, 2], intr.K[1, 2]
+    assert abs(fx / 452.51 - 1) < 0.02 and abs(fy / 456.77 - 1) < 0.02, (fx, fy)
+    assert abs(cx - 317.70) < 5 and abs(cy - 277.75) < 5, (cx, cy)
+    assert intr.rms_px < 0.3, intr.rms_px
+
+
+def test_exif_read_when_exposure_omitted(tmp_path):
+    cap = load_capture(_charuco_capture(tmp_path), check_images=True)
+    np.testing.assert_allclose([e.exposure_s for e in cap.views[0].exposures], [1 / 8, 1, 8])
+
+
+def test_photo_without_exif_and_exposure_is_an_error(tmp_path):
+    root = _charuco_capture(tmp_path)
+    img = read_image(root / "views" / "IMG_2601.jpg")
+    import cv2
+
+    cv2.imwrite(str(root / "views" / "IMG_2601.jpg"), img[..., ::-1])  # drops EXIF
+    with pytest.raises(CaptureError, match=r"views\[0\].exposures\[1\].exposure_s.*IMG_2601"):
+        load_capture(root, check_images=True)
