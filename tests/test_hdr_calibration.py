@@ -109,3 +109,35 @@ def test_corrupt_photo_names_file(tiny_copy):
     p.write_bytes(p.read_bytes()[:100])
     with pytest.raises(ImageReadError, match="v001_0.png"):
         read_image(p)
+
+
+def test_saved_response_is_reused(tiny_copy, tiny_response, tmp_path):
+    _, g = tiny_response
+    save_response(tiny_copy / "camera_response.csv", g)
+    y = yaml.safe_load((tiny_copy / "capture.yaml").read_text())
+    y["camera"] = {"response": "camera_response.csv"}
+    (tiny_copy / "capture.yaml").write_text(yaml.safe_dump(y))
+    g2, meta = response_for_capture(load_capture(tiny_copy), HDR_CFG, log=lambda *_: None)
+    assert meta["response"] == "file"
+    np.testing.assert_allclose(g2, g, atol=1e-7)
+
+
+def test_linear_16bit_input_merges_without_a_response(tmp_path):
+    import cv2
+
+    from parammap.capture import Exposure, View
+    from parammap.hdr import merge_view, read_hdr
+
+    rng = np.random.default_rng(1)
+    L = rng.uniform(10, 4000, (12, 16, 3))
+    L[0, 0] = 1e6  # saturated in every exposure
+    exps = []
+    for k, t in enumerate((0.5, 4.0)):
+        z = np.clip(np.round(L * t), 0, 65535).astype(np.uint16)
+        p = tmp_path / f"e{k}.png"
+        cv2.imwrite(str(p), z[..., ::-1])
+        exps.append(Exposure(p, t))
+    merge_view(View("v", False, tuple(exps)), None, tmp_path / "v.exr")
+    rad, sat, _ = read_hdr(tmp_path / "v.exr")
+    assert sat[0, 0] and sat.sum() == 1
+    np.testing.assert_allclose(rad[~sat], L[~sat], rtol=0.01)

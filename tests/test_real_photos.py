@@ -93,3 +93,43 @@ def test_photo_without_exif_and_exposure_is_an_error(tmp_path):
     cv2.imwrite(str(root / "views" / "IMG_2601.jpg"), img[..., ::-1])  # drops EXIF
     with pytest.raises(CaptureError, match=r"views\[0\].exposures\[1\].exposure_s.*IMG_2601"):
         load_capture(root, check_images=True)
+
+
+def _bracket_only_capture(tmp_path):
+    """A capture with the frobisher bracket and nothing else: no markers, no board."""
+    root = tmp_path / "bracket"
+    (root / "views").mkdir(parents=True)
+    for p in FROB.glob("IMG_*.jpg"):
+        shutil.copy(p, root / "views" / p.name)
+    cap = {"surface": {"id": "frobisher", "width_mm": 100, "height_mm": 100},
+           "views": [{"id": "v0", "exposures": [{"file": f"views/{p.name}"} for p in
+                                                sorted(FROB.glob("IMG_*.jpg"))]}]}
+    (root / "capture.yaml").write_text(yaml.safe_dump(cap))
+    return root
+
+
+def test_bracket_only_capture_gets_response_hdr_and_reexposure_metrics(tmp_path):
+    from parammap.cli import main
+    from parammap.hdr import gather_hdr_metrics, load_reference_response, load_response
+
+    root = _bracket_only_capture(tmp_path)
+    out = tmp_path / "proc"
+    ref = FROB / "test_camera_response_function_Debevec1997_crfs.npy"
+    assert main(["validate-capture", str(root)]) == 0
+    assert main(["response", str(root), "--out", str(out), "--figure",
+                 str(tmp_path / "response.png"), "--reference", str(ref),
+                 "--reference-label", "colour-hdri"]) == 0
+    assert (tmp_path / "response.png").stat().st_size > 10_000
+    # The recovered curve has the shape of colour-hdri's (offset fixed at level 128).
+    g = load_response(out / "camera" / "response.csv")
+    r = load_reference_response(ref)
+    d = (g - g[128]) - (r - r[128])
+    assert np.abs(d[20:236]).max() < 0.15, np.abs(d[20:236]).max(0)
+    assert main(["hdr", str(root), "--out", str(out)]) == 0
+    m = gather_hdr_metrics([out / "hdr" / "v0.json"], out / "metrics" / "hdr.json",
+                           tmp_path / "reexposure.png")
+    assert m["reexposure_mean_levels"] <= 1.2, m
+    assert m["reexposure_p95_levels"] <= 3.0, m
+    assert (tmp_path / "reexposure.png").is_file()
+    # Poses cannot run without a board; the message says why.
+    assert main(["calibrate", str(root), "--out", str(out)]) == 2

@@ -97,6 +97,9 @@ def calibrate(cap: Capture, min_images: int = 4, min_corners: int = 8, log=print
     CalibrationError
         If fewer than ``min_images`` photos show at least ``min_corners`` corners.
     """
+    if not cap.calibration:
+        raise CalibrationError(f"{cap.root / 'capture.yaml'}: no calibration section "
+                               "(board photos or saved intrinsics are needed for poses)")
     objs, imgs, names, size = [], [], [], None
     for p in cap.calibration_images:
         try:
@@ -186,6 +189,8 @@ def estimate_pose(
     dict with ``ok``, ``reason`` (when not ok), ``R`` (3x3), ``t`` (3,), ``centre_mm``,
     ``rms_px``, ``markers`` (ids used).
     """
+    if len(cap.marker_ids) == 0:
+        return {"ok": False, "reason": "capture.yaml lists no surface markers", "markers": []}
     ids, corners = detect_markers(gray, cap.marker_dictionary)
     known = {int(i): k for k, i in enumerate(cap.marker_ids)}
     use = [k for k, i in enumerate(ids) if int(i) in known]

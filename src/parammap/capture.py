@@ -162,14 +162,24 @@ def load_capture(directory: str | Path, check_images: bool = False) -> Capture:
     width = c.positive(surface, "width_mm", "surface")
     height = c.positive(surface, "height_mm", "surface")
 
-    markers = c.get(raw, "markers", "", dict)
-    dict_name = c.get(markers, "dictionary", "markers", str)
+    # A capture may have no markers yet (a bracket alone): the HDR stage still runs and
+    # the pose stage drops every view with that reason.
+    markers = raw.get("markers")
+    if markers is None:
+        markers = {}
+    elif not isinstance(markers, dict):
+        c.fail("markers", "must be a mapping")
+    dict_name = markers.get("dictionary", "DICT_4X4_50")
+    if markers:
+        dict_name = c.get(markers, "dictionary", "markers", str)
     try:
         dictionary = aruco_dictionary(dict_name)
     except ValueError as exc:
         c.fail("markers.dictionary", str(exc))
-    items = c.get(markers, "items", "markers", list)
-    if len(items) < 4:
+    items = markers.get("items") or []
+    if not isinstance(items, list):
+        c.fail("markers.items", "must be a list")
+    if 0 < len(items) < 4:
         c.fail("markers.items", f"needs at least 4 markers (got {len(items)})")
     ids, corners = [], []
     n_dict = dictionary.bytesList.shape[0]
@@ -190,35 +200,41 @@ def load_capture(directory: str | Path, check_images: bool = False) -> Capture:
         ids.append(mid)
         corners.append(arr)
 
-    calib = c.get(raw, "calibration", "", dict)
-    board = c.get(calib, "board", "calibration", str)
-    if board not in ("charuco", "chessboard"):
-        c.fail("calibration.board", f"must be charuco or chessboard (got {board!r})")
-    for key in ("squares_x", "squares_y"):
-        v = c.get(calib, key, "calibration", int)
-        if v < 2:
-            c.fail(f"calibration.{key}", f"must be at least 2 (got {v})")
-    c.positive(calib, "square_mm", "calibration")
-    if board == "charuco":
-        mm = c.positive(calib, "marker_mm", "calibration")
-        if mm >= float(calib["square_mm"]):
-            c.fail("calibration.marker_mm", "must be smaller than square_mm")
-        try:
-            aruco_dictionary(c.get(calib, "dictionary", "calibration", str))
-        except ValueError as exc:
-            c.fail("calibration.dictionary", str(exc))
-    intr = calib.get("intrinsics")
-    intr_path = c.path(intr, "calibration.intrinsics") if intr else None
+    # Calibration may be absent for a bracket-only capture; the calibrate stage then
+    # stops with a clear message.
+    calib = raw.get("calibration") or {}
+    if not isinstance(calib, dict):
+        c.fail("calibration", "must be a mapping")
     calib_images: list[Path] = []
-    pattern = calib.get("images")
-    if intr_path is None:
-        pattern = c.get(calib, "images", "calibration", str)
-    if pattern:
-        if Path(pattern).is_absolute() or ".." in Path(pattern).parts:
-            c.fail("calibration.images", f"pattern {pattern!r} leaves the capture directory")
-        calib_images = sorted(Path(p).resolve() for p in glob.glob(str(c.root / pattern)))
-        if not calib_images and intr_path is None:
-            c.fail("calibration.images", f"pattern {pattern!r} matches no file")
+    intr_path = None
+    if calib:
+        board = c.get(calib, "board", "calibration", str)
+        if board not in ("charuco", "chessboard"):
+            c.fail("calibration.board", f"must be charuco or chessboard (got {board!r})")
+        for key in ("squares_x", "squares_y"):
+            v = c.get(calib, key, "calibration", int)
+            if v < 2:
+                c.fail(f"calibration.{key}", f"must be at least 2 (got {v})")
+        c.positive(calib, "square_mm", "calibration")
+        if board == "charuco":
+            mm = c.positive(calib, "marker_mm", "calibration")
+            if mm >= float(calib["square_mm"]):
+                c.fail("calibration.marker_mm", "must be smaller than square_mm")
+            try:
+                aruco_dictionary(c.get(calib, "dictionary", "calibration", str))
+            except ValueError as exc:
+                c.fail("calibration.dictionary", str(exc))
+        intr = calib.get("intrinsics")
+        intr_path = c.path(intr, "calibration.intrinsics") if intr else None
+        pattern = calib.get("images")
+        if intr_path is None:
+            pattern = c.get(calib, "images", "calibration", str)
+        if pattern:
+            if Path(pattern).is_absolute() or ".." in Path(pattern).parts:
+                c.fail("calibration.images", f"pattern {pattern!r} leaves the capture directory")
+            calib_images = sorted(Path(p).resolve() for p in glob.glob(str(c.root / pattern)))
+            if not calib_images and intr_path is None:
+                c.fail("calibration.images", f"pattern {pattern!r} matches no file")
 
     camera = raw.get("camera") or {}
     response = camera.get("response", "auto") if isinstance(camera, dict) else None
@@ -249,7 +265,8 @@ def load_capture(directory: str | Path, check_images: bool = False) -> Capture:
             p = c.path(c.get(ex, "file", ew, str), f"{ew}.file")
             t = ex.get("exposure_s")
             if t is None:
-                t = exif_exposure_time(p) if check_images else float("nan")
+                # EXIF is read from the header only, cheap enough for every load.
+                t = exif_exposure_time(p) if p.is_file() else None
                 if t is None:
                     c.fail(f"{ew}.exposure_s", f"missing, and {p.name} has no EXIF ExposureTime")
             else:
@@ -260,7 +277,7 @@ def load_capture(directory: str | Path, check_images: bool = False) -> Capture:
     cap = Capture(
         root=c.root, surface_id=str(sid), width_mm=width, height_mm=height,
         marker_dictionary=dict_name, marker_ids=np.asarray(ids, int),
-        marker_corners=np.asarray(corners, float), calibration=dict(calib),
+        marker_corners=np.asarray(corners, float).reshape(-1, 4, 2), calibration=dict(calib),
         calibration_images=calib_images, intrinsics_path=intr_path,
         response=response, views=views, raw=raw,
     )

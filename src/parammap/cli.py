@@ -91,7 +91,11 @@ def _response(a: argparse.Namespace) -> int:
     else:
         save_response(out / "camera" / "response.csv", g, meta)
         if a.figure:
-            plot_response(g, a.figure, title=f"{cap.surface_id}: recovered response")
+            from .hdr import load_reference_response
+
+            ref = load_reference_response(a.reference) if a.reference else None
+            plot_response(g, a.figure, reference=ref, reference_label=a.reference_label,
+                          title=f"{cap.surface_id}: recovered response")
     _log(f"response: {meta['response']} -> {out / 'camera'}")
     return 0
 
@@ -231,6 +235,9 @@ def _parser() -> argparse.ArgumentParser:
         s.add_argument("--config", help="workflow config (default: built-in defaults)")
         if name == "response":
             s.add_argument("--figure", help="PNG of the response curve")
+            s.add_argument("--reference", help="reference curve drawn beside it: colour-hdri "
+                                               "CRF .npy, truth response.npz or a CSV")
+            s.add_argument("--reference-label", default="reference")
         if name == "hdr":
             s.add_argument("--response", help="response CSV (default <out>/camera/response.csv)")
             s.add_argument("--view", action="append", help="only this view (repeatable)")

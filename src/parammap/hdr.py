@@ -272,7 +272,10 @@ def merge_view(
         t = np.array([e.exposure_s for e in view.exposures])
         stack = np.stack(imgs)
         ok = stack < full * high / 255.0
-        rad = np.where(ok, stack / t[:, None, None, None], 0).sum(0) / np.maximum(ok.sum(0), 1)
+        # sum(z) / sum(t) over unsaturated exposures: the longest exposures, with the
+        # least quantisation and relative noise, weigh most.
+        tt = t[:, None, None, None]
+        rad = np.where(ok, stack, 0).sum(0) / np.maximum(np.where(ok, tt, 0).sum(0), 1e-30)
         saturated = (~ok).all(axis=0).any(axis=2)
         rad = np.where(saturated[..., None], stack[np.argmin(t)] / t.min(), rad)
         dark = (stack <= full * low / 255.0).all(axis=0).any(axis=2)
@@ -280,12 +283,48 @@ def merge_view(
     else:
         stack, t = load_bracket(view)
         rad, saturated, dark = merge_bracket(stack, t, g, low, high)
+        err = reexposure_error(stack, t, rad, g, low, high)
     write_exr(out, {"R": rad[..., 0], "G": rad[..., 1], "B": rad[..., 2],
                     "saturated": saturated.astype(np.float32),
                     "dark": dark.astype(np.float32)},
               {"view_id": view.id, "units": "relative radiance (response exp(g)/t)"})
-    return {"view": view.id, "saturated_fraction": float(saturated.mean()),
-            "dark_fraction": float(dark.mean())}
+    stats = {"view": view.id, "saturated_fraction": float(saturated.mean()),
+             "dark_fraction": float(dark.mean())}
+    if g is not None:
+        stats["reexposure"] = reexposure_summary(err)
+    return stats
+
+
+# Re-exposure errors are pooled over views through a histogram of REEXPOSURE_BIN levels.
+REEXPOSURE_BIN = 0.05
+REEXPOSURE_BINS = int(256 / REEXPOSURE_BIN)
+
+
+def reexposure_summary(err: np.ndarray) -> dict:
+    """Mean, 95th percentile and histogram (``REEXPOSURE_BIN`` levels wide) of
+    absolute re-exposure errors in 8-bit levels."""
+    hist = np.bincount(np.minimum((err / REEXPOSURE_BIN).astype(int), REEXPOSURE_BINS - 1),
+                       minlength=REEXPOSURE_BINS)
+    last = int(np.flatnonzero(hist)[-1]) + 1 if hist.any() else 0
+    return {"mean_levels": float(err.mean()) if err.size else None,
+            "p95_levels": float(np.percentile(err, 95)) if err.size else None,
+            "pixels": int(err.size), "sum_levels": float(err.sum()),
+            "histogram": hist[:last].tolist(), "bin_levels": REEXPOSURE_BIN}
+
+
+def pool_reexposure(summaries: list[dict]) -> dict:
+    """Pooled mean and 95th percentile from per-view :func:`reexposure_summary` dicts
+    (the percentile is exact to one histogram bin)."""
+    summaries = [s for s in summaries if s and s["pixels"]]
+    if not summaries:
+        return {"mean_levels": None, "p95_levels": None, "pixels": 0}
+    n = sum(s["pixels"] for s in summaries)
+    hist = np.zeros(max(len(s["histogram"]) for s in summaries))
+    for s in summaries:
+        hist[: len(s["histogram"])] += s["histogram"]
+    k = int(np.searchsorted(np.cumsum(hist), 0.95 * n))
+    return {"mean_levels": sum(s["sum_levels"] for s in summaries) / n,
+            "p95_levels": (k + 1) * REEXPOSURE_BIN, "pixels": n}
 
 
 def read_hdr(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -341,6 +380,24 @@ def load_response(path: str | Path) -> np.ndarray:
     return arr[:, 1:]
 
 
+def load_reference_response(path: str | Path) -> np.ndarray:
+    """A reference response for plots, as ln exposure (256, 3): a colour-hdri CRF
+    ``.npy`` (linear relative exposure per level), a generator truth ``response.npz``
+    (key ``exposure``) or a response CSV of :func:`save_response`."""
+    path = Path(path)
+    if path.suffix == ".csv":
+        return load_response(path)
+    try:
+        arr = np.load(path)
+        arr = arr["exposure"] if path.suffix == ".npz" else arr
+    except (OSError, ValueError, KeyError) as exc:
+        raise HdrError(f"{path}: not a reference response ({exc})") from None
+    arr = np.asarray(arr, float)
+    if arr.shape != (256, 3):
+        raise HdrError(f"{path}: reference response must be 256x3 (got {arr.shape})")
+    return np.log(np.maximum(arr, 1e-6))
+
+
 def response_for_capture(
     cap: Capture, cfg: dict, log=print, max_views: int = 24
 ) -> tuple[np.ndarray | None, dict]:
@@ -371,3 +428,31 @@ def response_for_capture(
                          cfg["seed"], cfg["low"], cfg["high"])
     return g, {"response": cfg["method"], "views_used": used,
                "samples": cfg["samples"], "seconds": time.perf_counter() - t0}
+
+
+def gather_hdr_metrics(stats_paths: list[str | Path], out: str | Path,
+                       figure: str | Path | None = None) -> dict:
+    """Pool per-view HDR stats (``hdr/<view>.json``) into ``metrics/hdr.json``: views,
+    worst saturated fraction and the re-exposure self-check (mean and 95th percentile,
+    8-bit levels, pixels in the working range)."""
+    from .metrics import write_metrics
+
+    views = {Path(p).stem: json.loads(Path(p).read_text()) for p in stats_paths}
+    pooled = pool_reexposure([v.get("reexposure") for v in views.values()])
+    per_view = {k: {kk: vv for kk, vv in v.items() if kk != "reexposure"}
+                | ({"reexposure_mean_levels": v["reexposure"]["mean_levels"],
+                    "reexposure_p95_levels": v["reexposure"]["p95_levels"]}
+                   if v.get("reexposure") else {})
+                for k, v in views.items()}
+    data = {"views": len(views),
+            "saturated_fraction_max": max(v["saturated_fraction"] for v in views.values()),
+            "reexposure_mean_levels": pooled["mean_levels"],
+            "reexposure_p95_levels": pooled["p95_levels"],
+            "reexposure_pixels": pooled["pixels"],
+            "per_view": per_view}
+    write_metrics(out, data)
+    if figure:
+        from .report import plot_reexposure
+
+        plot_reexposure(data, figure)
+    return data

@@ -82,7 +82,7 @@ def plot_hemisphere(
 
 
 def plot_response(g: np.ndarray, path: str | Path, reference: np.ndarray | None = None,
-                  title: str = "camera response") -> Path:
+                  title: str = "camera response", reference_label: str = "reference") -> Path:
     """Response curves ln X against level per channel; ``reference`` (256, 3) is drawn
     dashed after matching its offset at level 128 (e.g. a ground truth)."""
     fig, ax = plt.subplots(figsize=(5, 3.6))
@@ -91,7 +91,7 @@ def plot_response(g: np.ndarray, path: str | Path, reference: np.ndarray | None 
         ax.plot(g[:, c], z, color=col, label=f"recovered {'RGB'[c]}")
         if reference is not None:
             ax.plot(reference[:, c] - reference[128, c] + g[128, c], z, "--", color=col,
-                    alpha=0.6, label=f"reference {'RGB'[c]}")
+                    alpha=0.6, label=f"{reference_label} {'RGB'[c]}")
     ax.set_xlabel("ln relative exposure")
     ax.set_ylabel("pixel level")
     ax.legend(fontsize=6)
@@ -113,5 +113,26 @@ def plot_reprojection(records: list[dict], path: str | Path) -> Path:
     ax.set_xticks(x[:: max(1, len(x) // 20)])
     ax.set_xticklabels(ids[:: max(1, len(x) // 20)], rotation=90, fontsize=6)
     ax.set_ylabel("reprojection RMS (px)")
+    ax.legend(fontsize=7)
+    return save_figure(fig, path)
+
+
+def plot_reexposure(hdr_metrics: dict, path: str | Path) -> Path:
+    """Re-exposure self-check per view (mean and 95th percentile, 8-bit levels)."""
+    per = hdr_metrics["per_view"]
+    ids = [k for k, v in per.items() if v.get("reexposure_mean_levels") is not None]
+    fig, ax = plt.subplots(figsize=(max(5, len(ids) * 0.08), 3))
+    x = np.arange(len(ids))
+    ax.bar(x, [per[k]["reexposure_p95_levels"] for k in ids], color="tab:orange",
+           label="95th percentile")
+    ax.bar(x, [per[k]["reexposure_mean_levels"] for k in ids], color="tab:blue", label="mean")
+    ax.set_xticks(x[:: max(1, len(x) // 20)])
+    ax.set_xticklabels(ids[:: max(1, len(x) // 20)], rotation=90, fontsize=6)
+    ax.set_ylabel("|re-exposed - photo| (levels)")
+    m, p95 = hdr_metrics["reexposure_mean_levels"], hdr_metrics["reexposure_p95_levels"]
+    if m is not None:
+        ax.set_title(f"re-exposure self-check: mean {m:.2f}, p95 {p95:.2f} levels", fontsize=9)
+    else:
+        ax.set_title("re-exposure self-check: linear input, not applicable", fontsize=9)
     ax.legend(fontsize=7)
     return save_figure(fig, path)

@@ -17,13 +17,18 @@ rule response:
     params:
         cli=PARAMMAP,
         out=lambda wc: f"{PROC}/{wc.sid}",
+        reference=lambda wc: (
+            f"--reference {CAPTURES[wc.sid]}.truth/response.npz --reference-label truth"
+            if wc.sid in SYNTH
+            else ""
+        ),
     log:
         "logs/response/{sid}.log",
     conda:
         "../envs/parammap.yaml"
     shell:
         "{params.cli} response {input.capture} --out {params.out} --config config/config.yaml"
-        " --figure {output.figure} 2> {log}"
+        " --figure {output.figure} {params.reference} 2> {log}"
 
 
 rule hdr_view:
@@ -49,7 +54,13 @@ rule hdr_metrics:
     input:
         stats=lambda wc: expand(f"{PROC}/{wc.sid}/hdr/{{view}}.json", view=view_ids(wc)),
     output:
-        f"{PROC}/{{sid}}/metrics/hdr.json",
+        metrics=f"{PROC}/{{sid}}/metrics/hdr.json",
+        figure=report(
+            f"{REPORTS}/{{sid}}/reexposure.png",
+            caption="../report/reexposure.rst",
+            category="Capture",
+            subcategory="{sid}",
+        ),
     log:
         "logs/hdr/{sid}/metrics.log",
     conda:
