@@ -13,6 +13,7 @@ configfile: "config/config.yaml"
 include: "workflow/rules/common.smk"
 include: "workflow/rules/capture.smk"
 include: "workflow/rules/hdr.smk"
+include: "workflow/rules/observation.smk"
 
 
 rule all:

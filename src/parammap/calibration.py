@@ -15,7 +15,7 @@ import numpy as np
 import yaml
 
 from .capture import Capture, aruco_dictionary
-from .geometry import camera_centre
+from .geometry import camera_centre, distort_normalized, undistort_normalized
 from .imageio import ImageReadError, read_image
 
 __all__ = [
@@ -26,6 +26,7 @@ __all__ = [
     "detect_markers",
     "estimate_pose",
     "load_intrinsics",
+    "refine_marker_corners",
     "save_intrinsics",
     "to_gray8",
 ]
@@ -177,12 +178,117 @@ def detect_markers(gray: np.ndarray, dictionary_name: str) -> tuple[np.ndarray, 
     return ids.ravel().astype(int), np.array([c.reshape(4, 2) for c in corners], float)
 
 
+def _to_normalized(uv: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    K = intr.K
+    y = (uv[..., 1] - K[1, 2]) / K[1, 1]
+    x = (uv[..., 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
+    return undistort_normalized(np.stack([x, y], -1), intr.dist)
+
+
+def _to_pixels(xy: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    d = distort_normalized(xy, intr.dist)
+    K = intr.K
+    return np.stack([K[0, 0] * d[..., 0] + K[0, 1] * d[..., 1] + K[0, 2],
+                     K[1, 1] * d[..., 1] + K[1, 2]], -1)
+
+
+def refine_marker_corners(
+    lum: np.ndarray, corners: np.ndarray, intr: Intrinsics, cells: int = 6,
+    max_shift_px: float = 1.5,
+) -> np.ndarray:
+    """Refine marker outer corners by fitting lines to the four outer edges.
+
+    ArUco's corner refinement treats the convex marker corner like a saddle point and
+    lands ~0.25 px inside it on anti-aliased edges. Here every edge is located at the
+    half-way crossing between the black border and the white surround along its normal
+    (exact for a box-filtered step in *linear* radiance), at many points away from the
+    corners; a line is fitted to them in undistorted normalised coordinates (so lens
+    distortion does not bend it) and adjacent lines are intersected.
+
+    Parameters
+    ----------
+    lum : (H, W) float linear luminance (not tone-mapped).
+    corners : (M, 4, 2) ArUco corners in pixels (clockwise from top-left).
+    intr : camera intrinsics, for the undistortion.
+    cells : marker width in cells, border included (bits + 2).
+    max_shift_px : a refined corner further than this from ArUco's is not trusted.
+
+    Returns
+    -------
+    (M, 4, 2) refined corners; a marker whose edges cannot be measured keeps its input.
+    """
+    lum = np.ascontiguousarray(lum, np.float32)
+    out = np.array(corners, float, copy=True)
+    for m, quad in enumerate(np.asarray(corners, float)):
+        centre = quad.mean(0)
+        lines = []
+        for k in range(4):
+            a, b = quad[k], quad[(k + 1) % 4]
+            length = np.linalg.norm(b - a)
+            e = (b - a) / max(length, 1e-9)
+            n = np.array([e[1], -e[0]])
+            if np.dot((a + b) / 2 - centre, n) < 0:
+                n = -n
+            w = float(np.clip(0.4 * length / cells, 1.0, 3.0))
+            f = np.linspace(0.2, 0.8, max(5, int(length * 0.6 / 1.0)))
+            o = np.arange(-w, w + 1e-9, 0.125)
+            pts = a + f[:, None] * (b - a)
+            prof_xy = pts[:, None, :] + o[None, :, None] * n
+            prof = cv2.remap(lum, prof_xy[..., 0].astype(np.float32),
+                             prof_xy[..., 1].astype(np.float32), cv2.INTER_LINEAR,
+                             borderMode=cv2.BORDER_REPLICATE)
+            lo = prof[:, o <= -w + 0.5].mean(1)
+            hi = prof[:, o >= w - 0.5].mean(1)
+            good = hi - lo > 0.25 * np.maximum(hi, 1e-12)
+            half = (lo + hi) / 2
+            edge = []
+            for i in np.flatnonzero(good):
+                above = prof[i] >= half[i]
+                cross = np.flatnonzero(~above[:-1] & above[1:])
+                if len(cross) != 1:
+                    continue
+                j = cross[0]
+                t = (half[i] - prof[i, j]) / max(prof[i, j + 1] - prof[i, j], 1e-12)
+                edge.append(pts[i] + (o[j] + t * (o[j + 1] - o[j])) * n)
+            if len(edge) < 4:
+                break
+            xy = _to_normalized(np.array(edge), intr)
+            c = xy.mean(0)
+            _, _, vt = np.linalg.svd(xy - c)
+            nrm = vt[1]
+            resid = (xy - c) @ nrm
+            keep = np.abs(resid) <= max(3 * np.median(np.abs(resid)), 1e-9)
+            if keep.sum() >= 4 and not keep.all():
+                c = xy[keep].mean(0)
+                _, _, vt = np.linalg.svd(xy[keep] - c)
+                nrm = vt[1]
+            lines.append((nrm, float(nrm @ c)))
+        if len(lines) != 4:
+            continue
+        new = []
+        for k in range(4):
+            (n1, d1), (n2, d2) = lines[(k - 1) % 4], lines[k]
+            A = np.array([n1, n2])
+            if abs(np.linalg.det(A)) < 1e-9:
+                break
+            new.append(np.linalg.solve(A, [d1, d2]))
+        if len(new) != 4:
+            continue
+        px = _to_pixels(np.array(new), intr)
+        if np.all(np.linalg.norm(px - quad, axis=1) <= max_shift_px):
+            out[m] = px
+    return out
+
+
 def estimate_pose(
-    cap: Capture, intr: Intrinsics, gray: np.ndarray, min_markers: int = 2
+    cap: Capture, intr: Intrinsics, gray: np.ndarray, min_markers: int = 2,
+    radiance: np.ndarray | None = None,
 ) -> dict:
     """Pose of one view from the surface markers.
 
-    IPPE on all detected corners (planar), then Levenberg-Marquardt refinement.
+    IPPE on all detected corners (planar), then Levenberg-Marquardt refinement. With
+    ``radiance`` (H, W, 3 linear) the corners are first refined on the marker edges
+    (:func:`refine_marker_corners`).
 
     Returns
     -------
@@ -197,6 +303,11 @@ def estimate_pose(
     if len(use) < min_markers:
         return {"ok": False, "reason": f"{len(use)} surface markers found, need {min_markers}",
                 "markers": [int(ids[k]) for k in use]}
+    if radiance is not None and len(use):
+        lum = np.asarray(radiance, np.float32) @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+        cells = aruco_dictionary(cap.marker_dictionary).markerSize + 2
+        corners = np.array(corners, float)
+        corners[use] = refine_marker_corners(lum, corners[use], intr, cells)
     obj = np.concatenate([np.c_[cap.marker_corners[known[int(ids[k])]], np.zeros(4)]
                           for k in use]).astype(np.float64)
     img = np.concatenate([corners[k] for k in use]).astype(np.float64)

@@ -68,11 +68,10 @@ def _summary(a: argparse.Namespace) -> int:
 
 
 def _stage_config(a: argparse.Namespace) -> dict:
-    from .config import load_config, validate_config
+    from .config import apply_settings, load_config, validate_config
 
-    if a.config:
-        return load_config(a.config)
-    return validate_config({"captures": {"cli": "."}})
+    cfg = load_config(a.config) if a.config else validate_config({"captures": {"cli": "."}})
+    return apply_settings(cfg, getattr(a, "set", None) or [])
 
 
 @_command("response")
@@ -167,7 +166,7 @@ def _poses(a: argparse.Namespace) -> int:
         except ExrError as exc:
             rec = {"ok": False, "reason": str(exc)}
         else:
-            rec = estimate_pose(cap, intr, to_gray8(rad), cfg["min_markers"])
+            rec = estimate_pose(cap, intr, to_gray8(rad), cfg["min_markers"], radiance=rad)
             if rec["ok"] and rec["rms_px"] > cfg["max_rms_px"]:
                 rec.update(ok=False, reason=f"reprojection RMS {rec['rms_px']:.2f} px above "
                                             f"{cfg['max_rms_px']} px")
@@ -206,6 +205,30 @@ def _poses(a: argparse.Namespace) -> int:
     return 0
 
 
+@_command("observe")
+def _observe(a: argparse.Namespace) -> int:
+    from .capture import load_capture
+    from .metrics import write_metrics
+    from .observation import build_observation_map, observation_figures
+
+    full = _stage_config(a)
+    cfg = full["observation"]
+    cap = load_capture(a.capture)
+    out = Path(a.out)
+    m = build_observation_map(
+        cap, out, out / "observation.zarr", cfg["texels_x"], cfg["texels_y"], cfg["tile"],
+        cfg["max_zenith_deg"], cfg["max_supersample"], a.workers or full["workers"],
+        config=full, log=_log)
+    write_metrics(out / "metrics" / "observation.json", m)
+    if a.figures:
+        observation_figures(out / "observation.zarr", a.figures,
+                            [tuple(x) for x in cfg["lobe_texels"]] or None)
+    _log(f"observation: {m['S']}x{m['T']} texels x {m['views']} views, valid "
+         f"{m['valid_fraction']:.3f}, {m['bytes_on_disk'] / 1e6:.1f} MB in "
+         f"{m['build_seconds']:.1f} s")
+    return 0
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="parammap", description=__doc__.splitlines()[0])
     p.add_argument("--version", action="version", version=f"parammap {__version__}")
@@ -228,11 +251,14 @@ def _parser() -> argparse.ArgumentParser:
     for name, helptext in (("response", "recover the camera response from the brackets"),
                            ("hdr", "merge brackets into linear HDR frames"),
                            ("calibrate", "intrinsics from the calibration photos"),
-                           ("poses", "pose of every view from the surface markers")):
+                           ("poses", "pose of every view from the surface markers"),
+                           ("observe", "build the observation map (zarr)")):
         s = sub.add_parser(name, help=helptext)
         s.add_argument("capture")
         s.add_argument("--out", required=True, help="data/processed/<id>")
         s.add_argument("--config", help="workflow config (default: built-in defaults)")
+        s.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE",
+                       help="override one config value, e.g. observation.texels_x=512")
         if name == "response":
             s.add_argument("--figure", help="PNG of the response curve")
             s.add_argument("--reference", help="reference curve drawn beside it: colour-hdri "
@@ -241,8 +267,10 @@ def _parser() -> argparse.ArgumentParser:
         if name == "hdr":
             s.add_argument("--response", help="response CSV (default <out>/camera/response.csv)")
             s.add_argument("--view", action="append", help="only this view (repeatable)")
-        if name == "poses":
-            s.add_argument("--figures", help="report folder for the pose figures")
+        if name in ("poses", "observe"):
+            s.add_argument("--figures", help="report folder for the figures")
+        if name == "observe":
+            s.add_argument("--workers", type=int, help="processes (default: config workers)")
     return p
 
 

@@ -72,3 +72,21 @@ def load_config(path: str | Path, overrides: dict[str, Any] | None = None) -> di
         raise ConfigError(f"{path}: cannot read config ({exc})") from None
     cfg.update(overrides or {})
     return validate_config(cfg)
+
+
+def apply_settings(cfg: dict[str, Any], settings: list[str]) -> dict[str, Any]:
+    """Apply ``section.key=value`` settings (value parsed as YAML) and re-validate,
+    e.g. ``observation.texels_x=512``."""
+    cfg = copy.deepcopy(cfg)
+    for item in settings or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"config: --set {item!r}: expected section.key=value")
+        node = cfg
+        *parents, leaf = key.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"config: --set {item!r}: {part} is not a section")
+        node[leaf] = yaml.safe_load(value)
+    return validate_config(cfg)

@@ -371,8 +371,9 @@ def load_response(path: str | Path) -> np.ndarray:
     """Read a response CSV written by :func:`save_response`; (256, 3)."""
     path = Path(path)
     try:
-        data = np.loadtxt(path, delimiter=",", comments="#", skiprows=0, dtype=str)
-        arr = data[1:].astype(float)
+        lines = [ln for ln in path.read_text().splitlines()
+                 if ln.strip() and not ln.startswith("#")]
+        arr = np.array([ln.split(",") for ln in lines[1:]], float)
     except (OSError, ValueError) as exc:
         raise HdrError(f"{path}: not a response curve CSV ({exc})") from None
     if arr.shape != (256, 4):

@@ -136,3 +136,81 @@ def plot_reexposure(hdr_metrics: dict, path: str | Path) -> Path:
         ax.set_title("re-exposure self-check: linear input, not applicable", fontsize=9)
     ax.legend(fontsize=7)
     return save_figure(fig, path)
+
+
+LUMA = np.array([0.2126, 0.7152, 0.0722])
+
+
+def plot_map(img: np.ndarray, path: str | Path, title: str, label: str = "",
+             cmap: str = "viridis", vmin: float | None = None, vmax: float | None = None) -> Path:
+    """One scalar map over the texels (row 0 at the top, as conventions.md)."""
+    fig, ax = plt.subplots(figsize=(4.2, 3.6))
+    im = ax.imshow(img, cmap=cmap, vmin=vmin, vmax=vmax, interpolation="nearest")
+    fig.colorbar(im, ax=ax, label=label, shrink=0.85)
+    ax.set_title(title, fontsize=9)
+    ax.set_xlabel("texel column")
+    ax.set_ylabel("texel row")
+    return save_figure(fig, path)
+
+
+def plot_maps(maps: dict[str, np.ndarray], path: str | Path, title: str, cols: int = 4,
+              cmap: str = "viridis", symmetric: bool = False) -> Path:
+    """Several scalar maps side by side, each with its own colour scale."""
+    n = len(maps)
+    cols = min(cols, n)
+    rows = int(np.ceil(n / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(cols * 2.6, rows * 2.4), squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    for ax, (name, img) in zip(axes.ravel(), maps.items(), strict=False):
+        finite = img[np.isfinite(img)]
+        lim = float(np.percentile(np.abs(finite), 99)) if finite.size else 1.0
+        kw = {"vmin": -lim, "vmax": lim} if symmetric else {}
+        im = ax.imshow(img, cmap="RdBu_r" if symmetric else cmap, interpolation="nearest", **kw)
+        fig.colorbar(im, ax=ax, shrink=0.8)
+        ax.set_title(name, fontsize=7)
+    fig.suptitle(title, fontsize=9)
+    return save_figure(fig, path)
+
+
+def plot_lobes(entries: list[dict], path: str | Path, title: str) -> Path:
+    """Radiance against view direction for chosen texels (004 figs. 9.4 and 11.6).
+
+    Each entry: ``label``, ``direction`` (n, 3), ``measured`` (n, 3) and optionally
+    ``fitted`` (n, 3). Top row: luminance over the projected hemisphere (x, y of the
+    direction) as height, measured dots and fitted crosses. Bottom row (with fits):
+    percentage residual ``100 (fitted - measured) / measured`` of the luminance.
+    """
+    fitted = any("fitted" in e for e in entries)
+    n = len(entries)
+    fig = plt.figure(figsize=(2.8 * n, 5.2 if fitted else 2.8))
+    for k, e in enumerate(entries):
+        d = np.asarray(e["direction"])
+        lm = np.asarray(e["measured"]) @ LUMA
+        ax = fig.add_subplot(2 if fitted else 1, n, k + 1, projection="3d")
+        ax.scatter(d[:, 0], d[:, 1], lm, s=4, c=lm, cmap="viridis")
+        if "fitted" in e:
+            lf = np.asarray(e["fitted"]) @ LUMA
+            ax.scatter(d[:, 0], d[:, 1], lf, s=6, marker="x", color="tab:red", linewidths=0.6)
+        ax.set_title(e["label"], fontsize=7)
+        ax.tick_params(labelsize=5)
+        ax.set_xlabel("x", fontsize=6)
+        ax.set_ylabel("y", fontsize=6)
+        if "fitted" in e:
+            ax2 = fig.add_subplot(2, n, n + k + 1)
+            pct = 100 * (lf - lm) / np.maximum(np.abs(lm), 1e-12)
+            lim = max(float(np.percentile(np.abs(pct), 98)), 0.5)
+            sc = ax2.scatter(d[:, 0], d[:, 1], c=pct, s=8, cmap="RdBu_r", vmin=-lim, vmax=lim)
+            ax2.set_aspect("equal")
+            ax2.set_xlim(-1, 1)
+            ax2.set_ylim(-1, 1)
+            ax2.tick_params(labelsize=5)
+            ax2.set_title(f"residual %, mean |.| {np.mean(np.abs(pct)):.2f}", fontsize=7)
+            fig.colorbar(sc, ax=ax2, shrink=0.7)
+    fig.suptitle(title, fontsize=9)
+    return save_figure(fig, path)
+
+
+def default_lobe_texels(S: int, T: int) -> list[tuple[int, int]]:
+    """A 3 x 3 spread of texels (patch centres for a 3 x 3 layout)."""
+    return [(int((i + 0.5) * T / 3), int((j + 0.5) * S / 3)) for i in range(3) for j in range(3)]

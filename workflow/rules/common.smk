@@ -40,6 +40,7 @@ def all_targets():
             f"{REPORTS}/{sid}/contact_sheet.png",
             f"{PROC}/{sid}/camera/poses.yaml",
             f"{PROC}/{sid}/metrics/hdr.json",
+            f"{PROC}/{sid}/metrics/observation.json",
         ]
     return targets
 

@@ -20,7 +20,14 @@ import numpy as np
 import yaml
 
 from ..capture import aruco_dictionary
-from ..geometry import look_at, pixel_to_plane, plane_to_texel, project_points, unit
+from ..geometry import (
+    look_at,
+    pixel_to_plane,
+    plane_to_texel,
+    project_points,
+    texel_centres,
+    unit,
+)
 from ..imageio import write_image_atomic
 from .sampling import sample_directions
 from .scene import Scene, build_scene, mh_truth, true_radiance
@@ -473,3 +480,24 @@ def true_view_radiance(capture_dir: str | Path, truth_dir: str | Path, view_id: 
     return render_radiance(lambda P, C: _shade_surface(world, P, C), preset.image_size,
                            np.array(cam["K"]), preset.dist, poses["R"][k], poses["t"][k],
                            ss=supersample or preset.supersample)
+
+
+def true_observations(
+    truth_dir: str | Path, view_ids: list[str], rows: np.ndarray, cols: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """True view directions and radiances of texels ``[rows, cols]`` (each (M,)) in the
+    given views, from the generator's poses: (M, N, 3) directions, (M, N, 3) radiance."""
+    from .scene import load_scene
+
+    truth_dir = Path(truth_dir)
+    scene = load_scene(truth_dir / "scene.npz")
+    poses = np.load(truth_dir / "poses.npz")
+    ids = list(poses["view_ids"])
+    k = [ids.index(v) for v in view_ids]
+    C = np.einsum("nji,nj->ni", poses["R"][k], -poses["t"][k])  # -R.T t
+    T, S = scene.shape
+    ctr = texel_centres(S, T, scene.width_mm, scene.height_mm)[rows, cols]
+    d = unit(C[None] - ctr[:, None])
+    M, N = d.shape[:2]
+    rad = true_radiance(scene, np.repeat(rows, N), np.repeat(cols, N), d.reshape(-1, 3))
+    return d, rad.reshape(M, N, 3)

@@ -1,0 +1,424 @@
+"""The observation map: every texel seen from every kept view, in a zarr v3 store.
+
+Layout (conventions.md): ``radiance`` float32 ``[T, S, N, 3]``, ``direction`` float32
+``[T, S, N, 3]`` (unit vectors toward the camera, surface frame), ``valid`` bool
+``[T, S, N]``, all chunked ``tile x tile x N``. Held-out and dropped views never enter.
+
+Footprint-aware sampling
+------------------------
+A texel usually covers several pixels (or a fraction of one). Reading the HDR frame at
+the texel centre alone would alias print detail at low map resolution. Instead each
+texel is supersampled on an ``s x s`` grid of points spread over the texel, with
+``s = ceil(footprint)`` where footprint is the texel's largest projected edge length in
+pixels in that view (capped by ``max_supersample``). The frame is read at each point
+with bilinear interpolation and the points are averaged, i.e. a box filter over the
+texel's footprint that follows perspective foreshortening (anisotropic footprints at
+grazing views are covered by the same grid). The grid is inset by half a pixel so the
+bilinear kernel does not reach into neighbouring texels. The view direction is the one
+of the texel centre. An observation is valid when all of its points fall inside the
+frame, the texel is in front of the camera, the direction's zenith is below
+``max_zenith_deg``, no point is saturated in every exposure, and the texel does not
+overlap a surface marker.
+
+Building streams in two passes, so memory does not grow with the map: (1) each view is
+sampled in row bands into a scratch store chunked per view; (2) the scratch store is
+transposed band by band into the final ``tile x tile x N`` chunks. Everything is
+written under a temporary name beside the target and renamed at the end, so an
+interrupted build never leaves a store that later steps would accept.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import yaml
+import zarr
+
+from . import __version__
+from .calibration import Intrinsics, load_intrinsics
+from .capture import Capture
+from .geometry import texel_centres, unit
+from .hdr import read_hdr
+
+__all__ = [
+    "ObservationError",
+    "ViewPose",
+    "build_observation_map",
+    "kept_poses",
+    "marker_texel_mask",
+    "open_observation_map",
+    "sample_view",
+    "texel_grid",
+]
+
+COMPLETE_ATTR = "parammap_complete"
+
+
+class ObservationError(ValueError):
+    """Missing or inconsistent inputs to the observation map, or an incomplete store."""
+
+
+@dataclass(frozen=True)
+class ViewPose:
+    """A kept view: OpenCV pose ``p_cam = R p_world + t`` (mm) and its HDR frame."""
+
+    id: str
+    R: np.ndarray
+    t: np.ndarray
+    hdr: Path
+
+    @property
+    def centre(self) -> np.ndarray:
+        return -self.R.T @ self.t
+
+
+def texel_grid(cap: Capture, texels_x: int, texels_y: int | None = None) -> tuple[int, int]:
+    """Map size ``(S, T)``; T follows the region's aspect ratio when not given."""
+    S = int(texels_x)
+    T = int(texels_y) if texels_y else max(1, round(S * cap.height_mm / cap.width_mm))
+    return S, T
+
+
+def kept_poses(poses_yaml: str | Path, hdr_dir: str | Path) -> tuple[list[ViewPose], list[str]]:
+    """Kept, non-held-out views from ``camera/poses.yaml`` (in file order) and the ids of
+    the held-out views."""
+    poses_yaml = Path(poses_yaml)
+    try:
+        recs = yaml.safe_load(poses_yaml.read_text())["views"]
+    except (OSError, KeyError, TypeError, yaml.YAMLError) as exc:
+        raise ObservationError(f"{poses_yaml}: not a poses file ({exc})") from None
+    views, held = [], []
+    for r in recs:
+        if r.get("holdout"):
+            held.append(str(r["id"]))
+            continue
+        if not r.get("kept"):
+            continue
+        views.append(ViewPose(str(r["id"]), np.asarray(r["R"], float).reshape(3, 3),
+                              np.asarray(r["t"], float).ravel(), Path(hdr_dir) / f"{r['id']}.exr"))
+    if not views:
+        raise ObservationError(f"{poses_yaml}: no kept view to build an observation map from")
+    return views, held
+
+
+def marker_texel_mask(cap: Capture, S: int, T: int, margin_mm: float = 0.0) -> np.ndarray:
+    """(T, S) bool, True where a texel's square overlaps a marker's bounding box
+    (grown by ``margin_mm``): those texels show the marker, not the surface."""
+    mask = np.zeros((T, S), bool)
+    tw, th = cap.width_mm / S, cap.height_mm / T
+    for quad in cap.marker_corners:
+        x0, y0 = quad.min(0) - margin_mm
+        x1, y1 = quad.max(0) + margin_mm
+        c0, c1 = math.floor(x0 / tw), math.ceil(x1 / tw)
+        r0, r1 = math.floor((cap.height_mm - y1) / th), math.ceil((cap.height_mm - y0) / th)
+        c0, r0 = max(c0, 0), max(r0, 0)
+        if c0 < min(c1, S) and r0 < min(r1, T):
+            mask[r0:min(r1, T), c0:min(c1, S)] = True
+    return mask
+
+
+def _project(P: np.ndarray, intr: Intrinsics, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    rvec, _ = cv2.Rodrigues(R)
+    uv, _ = cv2.projectPoints(P.reshape(-1, 1, 3), rvec, t.reshape(3, 1), intr.K, intr.dist)
+    return uv.reshape(P.shape[:-1] + (2,))
+
+
+def sample_view(
+    radiance: np.ndarray,
+    saturated: np.ndarray,
+    intr: Intrinsics,
+    R: np.ndarray,
+    t: np.ndarray,
+    rows: slice,
+    S: int,
+    T: int,
+    width_mm: float,
+    height_mm: float,
+    max_zenith_deg: float = 85.0,
+    max_supersample: int = 6,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sample one HDR frame at the texels of rows ``rows`` of the map.
+
+    Parameters
+    ----------
+    radiance : (H, W, 3) float32 linear radiance; saturated : (H, W) bool.
+    intr, R, t : camera and pose (``p_cam = R p_world + t``, mm).
+    rows : texel rows to sample; S, T, width_mm, height_mm : the map.
+
+    Returns
+    -------
+    radiance : (r, S, 3) float32, NaN where a point fell outside the frame.
+    direction : (r, S, 3) float32 unit vectors from the texel centre to the camera.
+    valid : (r, S) bool (before the marker mask).
+    """
+    ctr = texel_centres(S, T, width_mm, height_mm)[rows]  # (r, S, 3)
+    C = -R.T @ t
+    d = unit(C - ctr)
+    depth = (ctr @ R.T + t)[..., 2]
+    # Footprint from the projected texel edges at the centres.
+    tw, th = width_mm / S, height_mm / T
+    uv0 = _project(ctr, intr, R, t)
+    du = _project(ctr + [tw, 0, 0], intr, R, t) - uv0
+    dv = _project(ctr + [0, th, 0], intr, R, t) - uv0
+    foot = np.maximum(np.linalg.norm(du, axis=-1), np.linalg.norm(dv, axis=-1))
+    finite = np.isfinite(foot) & (depth > 0)
+    fmax = float(np.max(foot[finite])) if finite.any() else 1.0
+    s = int(np.clip(math.ceil(fmax), 1, max_supersample))
+    # Sub-sample offsets in texel units, inset by half a pixel (bilinear support).
+    inset = np.clip(0.5 / max(fmax, 1e-6), 0.0, 0.5)
+    off = ((np.arange(s) + 0.5) / s - 0.5) * (1.0 - 2 * inset) if s > 1 else np.zeros(1)
+    ox, oy = np.meshgrid(off * tw, off * th)
+    P = ctr[:, :, None, :] + np.stack([ox.ravel(), -oy.ravel(), np.zeros(s * s)], -1)
+    uv = _project(P, intr, R, t).astype(np.float32)  # (r, S, s*s, 2)
+    H, W = radiance.shape[:2]
+    inside = ((uv[..., 0] >= 0) & (uv[..., 0] <= W - 1) & (uv[..., 1] >= 0)
+              & (uv[..., 1] <= H - 1)).all(-1)
+    mx = uv[..., 0].reshape(-1, s * s)
+    my = uv[..., 1].reshape(-1, s * s)
+    samp = cv2.remap(radiance, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                     borderValue=(np.nan, np.nan, np.nan))
+    rad = samp.reshape(uv.shape[:3] + (3,)).mean(axis=2)
+    sat = cv2.remap(saturated.astype(np.uint8), mx, my, cv2.INTER_NEAREST,
+                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    sat = sat.reshape(uv.shape[:3]).any(axis=2)
+    zen_ok = d[..., 2] >= math.cos(math.radians(max_zenith_deg))
+    valid = inside & (depth > 0) & zen_ok & ~sat & np.isfinite(rad).all(-1)
+    rad = np.where(inside[..., None], rad, np.nan)
+    return rad.astype(np.float32), d.astype(np.float32), valid
+
+
+# ---------------------------------------------------------------------------------
+# Store building
+
+
+def _compressor():
+    return zarr.codecs.BloscCodec(cname="zstd", clevel=3, shuffle="shuffle")
+
+
+def _pass1_view(job: tuple) -> tuple[str, float, int]:
+    """Sample one view into the scratch store; returns (id, valid fraction, bytes read)."""
+    (scratch, n, view, intr, S, T, w_mm, h_mm, band, max_zen, max_ss) = job
+    t0 = time.perf_counter()
+    rad, sat, _ = read_hdr(view.hdr)
+    if (rad.shape[1], rad.shape[0]) != tuple(intr.image_size):
+        raise ObservationError(f"{view.hdr}: frame {rad.shape[1]}x{rad.shape[0]} does not "
+                               f"match the intrinsics image size {intr.image_size}")
+    g = zarr.open_group(scratch, mode="r+")
+    nvalid = 0
+    for r0 in range(0, T, band):
+        rows = slice(r0, min(r0 + band, T))
+        r, _, v = sample_view(rad, sat, intr, view.R, view.t, rows, S, T, w_mm, h_mm,
+                              max_zen, max_ss)
+        g["radiance"][n, rows] = r
+        g["valid"][n, rows] = v
+        nvalid += int(v.sum())
+    return view.id, nvalid / (S * T), rad.nbytes + sat.nbytes, time.perf_counter() - t0
+
+
+def _pass2_band(job: tuple) -> int:
+    """Transpose one band of tile rows from the scratch store into the final store."""
+    scratch, final, r0, r1, centres, marker = job
+    src = zarr.open_group(scratch, mode="r")
+    dst = zarr.open_group(final, mode="r+")
+    rad = np.moveaxis(src["radiance"][:, r0:r1], 0, 2)  # (r, S, N, 3)
+    valid = np.moveaxis(src["valid"][:, r0:r1], 0, 2) & ~marker[r0:r1, :, None]
+    S = rad.shape[1]
+    T = dst["valid"].shape[0]
+    h_mm, w_mm = dst.attrs["height_mm"], dst.attrs["width_mm"]
+    ctr = texel_centres(S, T, w_mm, h_mm)[r0:r1]
+    d = unit(np.asarray(centres)[None, None] - ctr[:, :, None, :]).astype(np.float32)
+    dst["radiance"][r0:r1] = rad
+    dst["direction"][r0:r1] = d
+    dst["valid"][r0:r1] = valid
+    return int(valid.sum())
+
+
+def _executor(workers: int):
+    if workers <= 1:
+        return _Serial()
+    return ProcessPoolExecutor(workers)
+
+
+class _Serial:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    @staticmethod
+    def map(fn, jobs):
+        return map(fn, jobs)
+
+
+def _store_bytes(path: Path) -> int:
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+
+
+def build_observation_map(
+    cap: Capture,
+    processed: str | Path,
+    out: str | Path,
+    texels_x: int = 64,
+    texels_y: int | None = None,
+    tile: int = 32,
+    max_zenith_deg: float = 85.0,
+    max_supersample: int = 6,
+    workers: int = 1,
+    config: dict[str, Any] | None = None,
+    log=print,
+) -> dict[str, Any]:
+    """Build ``observation.zarr`` from a processed capture's poses and HDR frames.
+
+    Parameters
+    ----------
+    cap : the parsed capture (surface size, markers).
+    processed : ``data/processed/<id>`` with ``camera/intrinsics.yaml``,
+        ``camera/poses.yaml`` and ``hdr/<view>.exr``.
+    out : the store to write (replaced atomically).
+    texels_x, texels_y : map size S x T (T from the aspect ratio when None).
+    tile : texel tile edge of the chunks.
+
+    Returns
+    -------
+    dict of figures for ``metrics/observation.json``.
+    """
+    t_start = time.perf_counter()
+    processed = Path(processed)
+    out = Path(out)
+    intr = load_intrinsics(processed / "camera" / "intrinsics.yaml")
+    views, held = kept_poses(processed / "camera" / "poses.yaml", processed / "hdr")
+    for v in views:
+        if not v.hdr.is_file():
+            raise ObservationError(f"{v.hdr}: HDR frame of kept view {v.id} is missing")
+    S, T = texel_grid(cap, texels_x, texels_y)
+    N = len(views)
+    tile = int(min(tile, S, T))
+    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
+    scratch = tmp / "scratch.zarr"
+    final = tmp / "store.zarr"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    try:
+        # Scratch: one view per chunk row band, fast compression, deleted at the end.
+        sg = zarr.open_group(scratch, mode="w")
+        band = tile
+        fast = zarr.codecs.BloscCodec(cname="lz4", clevel=1, shuffle="shuffle")
+        sg.create_array("radiance", shape=(N, T, S, 3), chunks=(1, band, S, 3),
+                        dtype="float32", compressors=fast, fill_value=np.nan)
+        sg.create_array("valid", shape=(N, T, S), chunks=(1, band, S), dtype="bool",
+                        compressors=fast, fill_value=False)
+        jobs = [(str(scratch), n, v, intr, S, T, cap.width_mm, cap.height_mm, band,
+                 max_zenith_deg, max_supersample) for n, v in enumerate(views)]
+        bytes_read = 0
+        per_view = {}
+        with _executor(workers) as ex:
+            for k, (vid, frac, nbytes, _) in enumerate(ex.map(_pass1_view, jobs)):
+                bytes_read += nbytes
+                per_view[vid] = frac
+                if (k + 1) % max(1, N // 10) == 0 or k + 1 == N:
+                    log(f"observation: sampled {k + 1}/{N} views")
+        t_sample = time.perf_counter() - t_start
+
+        g = zarr.open_group(final, mode="w")
+        comp = _compressor()
+        g.create_array("radiance", shape=(T, S, N, 3), chunks=(tile, tile, N, 3),
+                       dtype="float32", compressors=comp, fill_value=np.nan)
+        g.create_array("direction", shape=(T, S, N, 3), chunks=(tile, tile, N, 3),
+                       dtype="float32", compressors=comp, fill_value=np.nan)
+        g.create_array("valid", shape=(T, S, N), chunks=(tile, tile, N), dtype="bool",
+                       compressors=comp, fill_value=False)
+        marker = marker_texel_mask(cap, S, T)
+        g.attrs.update({
+            "width_mm": cap.width_mm, "height_mm": cap.height_mm, "S": S, "T": T,
+            "tile": tile, "view_ids": [v.id for v in views], "held_out_view_ids": held,
+            "camera_centres_mm": [v.centre.tolist() for v in views],
+            "calibration": {"K": intr.K.tolist(), "dist": intr.dist.tolist(),
+                            "image_size": list(intr.image_size), "rms_px": intr.rms_px},
+            "units": {"radiance": "relative linear radiance (one global scale)",
+                      "direction": "unit vector toward the camera, surface frame",
+                      "lengths": "mm"},
+            "sampling": {"method": "texel footprint supersampling, bilinear",
+                         "max_supersample": max_supersample,
+                         "max_zenith_deg": max_zenith_deg},
+            "marker_texels": int(marker.sum()),
+            "surface_id": cap.surface_id, "software": f"parammap {__version__}",
+            "config": config or {},
+        })
+        centres = np.array([v.centre for v in views])
+        bands = [(str(scratch), str(final), r0, min(r0 + tile, T), centres, marker)
+                 for r0 in range(0, T, tile)]
+        nvalid = 0
+        with _executor(workers) as ex:
+            for k, nv in enumerate(ex.map(_pass2_band, bands)):
+                nvalid += nv
+                if (k + 1) % max(1, len(bands) // 5) == 0 or k + 1 == len(bands):
+                    log(f"observation: wrote {k + 1}/{len(bands)} tile rows")
+        g.attrs[COMPLETE_ATTR] = True
+        shutil.rmtree(scratch)
+        if out.exists():
+            shutil.rmtree(out)
+        final.rename(out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    seconds = time.perf_counter() - t_start
+    on_disk = _store_bytes(out)
+    uncompressed = T * S * N * (3 * 4 + 3 * 4 + 1)
+    return {
+        "texels": S * T, "S": S, "T": T, "views": N, "held_out_views": len(held),
+        "valid_fraction": nvalid / (S * T * N), "build_seconds": seconds,
+        "sample_seconds": t_sample, "hdr_bytes_read": bytes_read,
+        "read_mb_per_s": bytes_read / 1e6 / max(t_sample, 1e-9),
+        "bytes_on_disk": on_disk, "bytes_uncompressed": uncompressed,
+        "compression_ratio": uncompressed / max(on_disk, 1),
+        "valid_fraction_per_view": per_view, "tile": tile,
+    }
+
+
+def open_observation_map(path: str | Path) -> zarr.Group:
+    """Open a finished observation map; refuses a missing or incomplete store."""
+    path = Path(path)
+    try:
+        g = zarr.open_group(path, mode="r")
+    except (FileNotFoundError, zarr.errors.GroupNotFoundError) as exc:
+        raise ObservationError(f"{path}: no observation map ({exc})") from None
+    if not g.attrs.get(COMPLETE_ATTR):
+        raise ObservationError(f"{path}: incomplete observation map (interrupted build?)")
+    for name in ("radiance", "direction", "valid"):
+        if name not in g:
+            raise ObservationError(f"{path}: observation map lacks array {name!r}")
+    return g
+
+
+def observation_figures(store: str | Path, out_dir: str | Path,
+                        texels: list[tuple[int, int]] | None = None) -> list[Path]:
+    """Valid-observation count per texel and lobe plots of chosen texels, from the store."""
+    from .report import default_lobe_texels, plot_lobes, plot_map
+
+    g = open_observation_map(store)
+    out_dir = Path(out_dir)
+    S, T, tile = g.attrs["S"], g.attrs["T"], g.attrs["tile"]
+    count = np.zeros((T, S), np.int32)
+    for r0 in range(0, T, tile):
+        count[r0:r0 + tile] = g["valid"][r0:r0 + tile].sum(-1)
+    paths = [plot_map(count, out_dir / "observation_valid_count.png",
+                      f"valid observations per texel ({len(g.attrs['view_ids'])} views)",
+                      "views")]
+    texels = texels or default_lobe_texels(S, T)
+    entries = []
+    for r, c in texels:
+        v = g["valid"][r, c]
+        entries.append({"label": f"texel [{r}, {c}] ({int(v.sum())} obs.)",
+                        "direction": g["direction"][r, c][v], "measured": g["radiance"][r, c][v]})
+    paths.append(plot_lobes(entries, out_dir / "observation_lobes.png",
+                            "measured radiance (luminance) against view direction"))
+    return paths

@@ -1,0 +1,110 @@
+"""Observation map (issue 4): accuracy against the generator's truth, store layout,
+atomic writes, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+import zarr
+
+from parammap.calibration import Intrinsics, save_intrinsics
+from parammap.capture import load_capture
+from parammap.cli import main
+from parammap.observation import (
+    COMPLETE_ATTR,
+    ObservationError,
+    build_observation_map,
+    marker_texel_mask,
+    open_observation_map,
+)
+from parammap.synth.generate import true_observations
+
+
+@pytest.fixture(scope="session")
+def tiny_processed(tiny_capture, tmp_path_factory):
+    """The tiny capture through response, HDR, poses (true intrinsics: the tiny preset's
+    320x240 board photos are too small to calibrate) and the observation map."""
+    cap, truth = tiny_capture
+    out = tmp_path_factory.mktemp("proc")
+    assert main(["response", str(cap), "--out", str(out)]) == 0
+    assert main(["hdr", str(cap), "--out", str(out)]) == 0
+    cam = yaml.safe_load((truth / "camera.yaml").read_text())
+    save_intrinsics(out / "camera" / "intrinsics.yaml",
+                    Intrinsics(np.array(cam["K"]), np.array(cam["dist"]),
+                               tuple(cam["image_size"]), 0.0))
+    assert main(["poses", str(cap), "--out", str(out)]) == 0
+    assert main(["observe", str(cap), "--out", str(out), "--set", "observation.texels_x=24",
+                 "--set", "observation.tile=8", "--figures", str(out / "fig")]) == 0
+    return cap, truth, out
+
+
+def test_observations_match_truth(tiny_processed):
+    _, truth, out = tiny_processed
+    g = open_observation_map(out / "observation.zarr")
+    T, S, N = g["valid"].shape
+    assert (T, S) == (24, 24) and N == len(g.attrs["view_ids"])
+    rows, cols = (a.ravel() for a in np.meshgrid(np.arange(T), np.arange(S), indexing="ij"))
+    d_true, L_true = true_observations(truth, g.attrs["view_ids"], rows, cols)
+    v = g["valid"][:].reshape(T * S, N)
+    d = g["direction"][:].reshape(T * S, N, 3)
+    L = g["radiance"][:].reshape(T * S, N, 3)
+    assert v.mean() > 0.95
+    ang = np.degrees(np.arccos(np.clip((d * d_true).sum(-1), -1, 1)))[v]
+    assert np.median(ang) < 0.2, np.median(ang)
+    np.testing.assert_allclose(np.linalg.norm(d[v], axis=-1), 1, atol=1e-5)
+    ok = v[..., None] & (L_true > 1e-3)
+    scale = np.median(L_true[ok] / L[ok])
+    rel = np.abs(L[ok] * scale - L_true[ok]) / L_true[ok]
+    assert np.median(rel) < 0.02, np.median(rel)
+
+
+def test_store_layout_and_metrics(tiny_processed):
+    cap, _, out = tiny_processed
+    g = open_observation_map(out / "observation.zarr")
+    N = len(g.attrs["view_ids"])
+    assert g["radiance"].chunks == (8, 8, N, 3) and g["radiance"].dtype == np.float32
+    assert g["valid"].chunks == (8, 8, N)
+    held = [v.id for v in load_capture(cap).views if v.holdout]
+    assert g.attrs["held_out_view_ids"] == held
+    assert not set(held) & set(g.attrs["view_ids"])
+    m = yaml.safe_load((out / "metrics" / "observation.json").read_text())
+    assert m["texels"] == 576 and m["views"] == N and 0 < m["bytes_on_disk"]
+    assert (out / "fig" / "observation_valid_count.png").is_file()
+    assert (out / "fig" / "observation_lobes.png").is_file()
+
+
+def test_incomplete_store_is_refused(tmp_path):
+    g = zarr.open_group(tmp_path / "half.zarr", mode="w")
+    for name in ("radiance", "direction", "valid"):
+        g.create_array(name, shape=(2, 2, 1), dtype="float32")
+    with pytest.raises(ObservationError, match="incomplete"):
+        open_observation_map(tmp_path / "half.zarr")
+    g.attrs[COMPLETE_ATTR] = True
+    open_observation_map(tmp_path / "half.zarr")
+    with pytest.raises(ObservationError, match="no observation map"):
+        open_observation_map(tmp_path / "missing.zarr")
+
+
+def test_failed_build_leaves_previous_store_and_no_temporary(tiny_processed, tmp_path):
+    cap, _, out = tiny_processed
+    target = tmp_path / "observation.zarr"
+    (tmp_path / "camera").mkdir()
+    for f in ("intrinsics.yaml", "poses.yaml"):
+        (tmp_path / "camera" / f).write_text((out / "camera" / f).read_text())
+    # No HDR frames here: the build must stop naming the missing frame.
+    with pytest.raises(ObservationError, match=r"hdr/.*\.exr.*missing"):
+        build_observation_map(load_capture(cap), tmp_path, target, 8, log=lambda *_: None)
+    assert not target.exists()
+    assert not list(tmp_path.glob(".observation.zarr.tmp*"))
+
+
+def test_marker_texels_are_masked(tiny_capture):
+    cap = load_capture(tiny_capture[0])
+    assert not marker_texel_mask(cap, 24, 24).any()  # generator markers lie outside
+    cap.marker_corners = np.array([[[10, 40], [20, 40], [20, 30], [10, 30]]], float)
+    m = marker_texel_mask(cap, 24, 24)
+    tw = cap.width_mm / 24
+    rows, cols = np.nonzero(m)
+    assert cols.min() == int(10 // tw) and cols.max() == int(np.ceil(20 / tw)) - 1
+    assert m.sum() == (rows.max() - rows.min() + 1) * (cols.max() - cols.min() + 1)
