@@ -14,6 +14,7 @@ include: "workflow/rules/common.smk"
 include: "workflow/rules/capture.smk"
 include: "workflow/rules/hdr.smk"
 include: "workflow/rules/observation.smk"
+include: "workflow/rules/fit.smk"
 
 
 rule all:

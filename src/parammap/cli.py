@@ -229,6 +229,27 @@ def _observe(a: argparse.Namespace) -> int:
     return 0
 
 
+@_command("fit-mh")
+def _fit_mh(a: argparse.Namespace) -> int:
+    from .metrics import write_metrics
+    from .models.mh import fit_mh_map, mh_figures, parse_lobes
+
+    full = _stage_config(a)
+    cfg = full["fit"]
+    out = Path(a.out)
+    K = parse_lobes(a.lobes)
+    name = f"mh-{K}"
+    m = fit_mh_map(out / "observation.zarr", out / "fit" / f"{name}.zarr", K, cfg["mh"],
+                   cfg["scheduler"], a.workers or cfg["workers"] or full["workers"], log=_log)
+    write_metrics(out / "metrics" / f"fit-{name}.json", m)
+    if a.figures:
+        mh_figures(out / "fit" / f"{name}.zarr", out / "observation.zarr", a.figures, name,
+                   [tuple(x) for x in full["observation"]["lobe_texels"]] or None)
+    _log(f"fit-mh: {name} mean % residual {m['mean_percentage_residual']}, "
+         f"{m['failed']} failed, {m['texels_per_second']:.1f} texels/s")
+    return 0
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="parammap", description=__doc__.splitlines()[0])
     p.add_argument("--version", action="version", version=f"parammap {__version__}")
@@ -252,7 +273,8 @@ def _parser() -> argparse.ArgumentParser:
                            ("hdr", "merge brackets into linear HDR frames"),
                            ("calibrate", "intrinsics from the calibration photos"),
                            ("poses", "pose of every view from the surface markers"),
-                           ("observe", "build the observation map (zarr)")):
+                           ("observe", "build the observation map (zarr)"),
+                           ("fit-mh", "fit the Multiple Highlight model to every texel")):
         s = sub.add_parser(name, help=helptext)
         s.add_argument("capture")
         s.add_argument("--out", required=True, help="data/processed/<id>")
@@ -267,10 +289,12 @@ def _parser() -> argparse.ArgumentParser:
         if name == "hdr":
             s.add_argument("--response", help="response CSV (default <out>/camera/response.csv)")
             s.add_argument("--view", action="append", help="only this view (repeatable)")
-        if name in ("poses", "observe"):
+        if name in ("poses", "observe", "fit-mh"):
             s.add_argument("--figures", help="report folder for the figures")
-        if name == "observe":
+        if name in ("observe", "fit-mh"):
             s.add_argument("--workers", type=int, help="processes (default: config workers)")
+        if name == "fit-mh":
+            s.add_argument("--lobes", default="1", help="lobes K, or auto (default 1)")
     return p
 
 

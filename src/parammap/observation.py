@@ -422,3 +422,33 @@ def observation_figures(store: str | Path, out_dir: str | Path,
     paths.append(plot_lobes(entries, out_dir / "observation_lobes.png",
                             "measured radiance (luminance) against view direction"))
     return paths
+
+
+def write_observation_arrays(
+    path: str | Path, radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray,
+    width_mm: float, height_mm: float, tile: int = 32, view_ids: list[str] | None = None,
+    attrs: dict[str, Any] | None = None,
+) -> Path:
+    """Write in-memory observations (T, S, N, ...) as a complete observation map, e.g.
+    for the 004 test set-ups of :mod:`parammap.synth.cases` (small maps only)."""
+    path = Path(path)
+    T, S, N = valid.shape
+    tile = int(min(tile, S, T))
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    g = zarr.open_group(tmp, mode="w")
+    comp = _compressor()
+    for name, arr, fill in (("radiance", radiance, np.nan), ("direction", direction, np.nan),
+                            ("valid", valid, False)):
+        a = g.create_array(name, shape=arr.shape, chunks=(tile, tile) + arr.shape[2:],
+                           dtype="bool" if name == "valid" else "float32", compressors=comp,
+                           fill_value=fill)
+        a[...] = arr
+    g.attrs.update({"width_mm": width_mm, "height_mm": height_mm, "S": S, "T": T,
+                    "tile": tile, "view_ids": view_ids or [f"v{n:03d}" for n in range(N)],
+                    "held_out_view_ids": [], "software": f"parammap {__version__}",
+                    **(attrs or {}), COMPLETE_ATTR: True})
+    if path.exists():
+        shutil.rmtree(path)
+    tmp.rename(path)
+    return path

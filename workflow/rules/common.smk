@@ -33,6 +33,10 @@ def view_ids(wildcards):
     return [v.id for v in load_capture(CAPTURES[wildcards.sid]).views]
 
 
+def mh_models():
+    return [f"mh-{k}" for k in config["fit"]["mh"]["lobes"]]
+
+
 def all_targets():
     targets = []
     for sid in CAPTURES:
@@ -42,6 +46,7 @@ def all_targets():
             f"{PROC}/{sid}/metrics/hdr.json",
             f"{PROC}/{sid}/metrics/observation.json",
         ]
+        targets += [f"{PROC}/{sid}/metrics/fit-{m}.json" for m in mh_models()]
     return targets
 
 

@@ -1,0 +1,147 @@
+"""Fit a per-texel model over the whole observation map, in parallel over texel tiles.
+
+One dask ``map_blocks`` over the observation map's ``valid`` array (chunks = texel tiles
+with all views): each task reads its tile's radiance and directions from the zarr
+store, fits, and writes its region of every output array itself, so every write covers
+whole zarr chunks of the output (created up front with the same tiles) and no two tasks
+touch one chunk (pitfalls.md). The task returns the tile's status codes, which the
+driver gathers for the metrics.
+
+The scheduler comes from config: ``processes`` (default; nlopt callbacks hold the GIL),
+``threads``, ``synchronous``, or the address of a dask.distributed scheduler
+(``tcp://host:8786``) for a cluster, with no code change. The whole store is written
+under a temporary name and renamed when every tile is done.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import dask
+import dask.array as da
+import numpy as np
+import zarr
+
+from . import __version__
+from .observation import open_observation_map
+
+__all__ = ["COMPLETE_ATTR", "FitError", "fit_map", "open_fit"]
+
+COMPLETE_ATTR = "parammap_complete"
+TileFn = Callable[[np.ndarray, np.ndarray, np.ndarray], dict[str, np.ndarray]]
+
+
+class FitError(ValueError):
+    """A missing, incomplete or mismatched fit store, or a bad fit setting."""
+
+
+def _fit_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path: str,
+               tile_fn: TileFn) -> np.ndarray:
+    (r0, r1), (c0, c1), _ = block_info[0]["array-location"]
+    g = zarr.open_group(obs_path, mode="r")
+    rad = g["radiance"][r0:r1, c0:c1]
+    dirs = g["direction"][r0:r1, c0:c1]
+    res = tile_fn(rad, dirs, np.asarray(valid))
+    out = zarr.open_group(out_path, mode="r+")
+    for name, arr in res.items():
+        out[name][r0:r1, c0:c1] = arr
+    return np.asarray(res["status"], np.int8)
+
+
+def _compute(x, scheduler: str, workers: int):
+    if scheduler.startswith(("tcp://", "tls://", "inproc://", "ucx://")):
+        from dask.distributed import Client
+
+        with Client(scheduler):
+            return x.compute()
+    if scheduler == "processes":
+        return x.compute(scheduler="processes", num_workers=workers)
+    if scheduler == "threads":
+        return x.compute(scheduler="threads", num_workers=workers)
+    if scheduler == "synchronous":
+        return x.compute(scheduler="synchronous")
+    raise FitError(f"fit.scheduler: unknown scheduler {scheduler!r} (processes, threads, "
+                   "synchronous or a tcp:// address)")
+
+
+def fit_map(
+    obs_path: str | Path,
+    out_path: str | Path,
+    tile_fn: TileFn,
+    outputs: dict[str, tuple[tuple[int, ...], str, Any]],
+    attrs: dict[str, Any],
+    scheduler: str = "processes",
+    workers: int = 2,
+    log=print,
+) -> dict[str, Any]:
+    """Apply ``tile_fn`` to every texel tile of an observation map into a zarr store.
+
+    Parameters
+    ----------
+    obs_path : the observation map (``observation.zarr``).
+    out_path : the fit store to write (``fit/<model>.zarr``), replaced atomically.
+    tile_fn : (radiance (t, u, N, 3), direction (t, u, N, 3), valid (t, u, N)) ->
+        dict of (t, u, ...) arrays, one per entry of ``outputs`` (``status`` included).
+    outputs : name -> (trailing shape, dtype, fill value).
+    attrs : model description stored as group attributes.
+
+    Returns
+    -------
+    dict with ``texels``, ``seconds``, ``texels_per_second`` and ``status`` (the (T, S)
+    int8 map of status codes).
+    """
+    obs = open_observation_map(obs_path)
+    T, S, N = obs["valid"].shape
+    tile = obs.attrs["tile"]
+    out_path = Path(out_path)
+    tmp = out_path.with_name(f".{out_path.name}.tmp-{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    g = zarr.open_group(tmp, mode="w")
+    comp = zarr.codecs.BloscCodec(cname="zstd", clevel=3, shuffle="shuffle")
+    for name, (shape, dtype, fill) in outputs.items():
+        g.create_array(name, shape=(T, S) + tuple(shape), chunks=(tile, tile) + tuple(shape),
+                       dtype=dtype, compressors=comp, fill_value=fill)
+    g.attrs.update({**attrs, "S": S, "T": T, "tile": tile,
+                    "width_mm": obs.attrs["width_mm"], "height_mm": obs.attrs["height_mm"],
+                    "observation_views": len(obs.attrs["view_ids"]),
+                    "software": f"parammap {__version__}"})
+    valid = da.from_zarr(obs["valid"])
+    ntiles = len(valid.chunks[0]) * len(valid.chunks[1])
+    log(f"fit: {T}x{S} texels, {N} views, {ntiles} tiles, scheduler {scheduler}, "
+        f"{workers} workers")
+    status = valid.map_blocks(
+        _fit_block, obs_path=str(obs_path), out_path=str(tmp), tile_fn=tile_fn,
+        drop_axis=2, dtype=np.int8, meta=np.array((), np.int8),
+        chunks=valid.chunks[:2])
+    t0 = time.perf_counter()
+    try:
+        with dask.config.set({"optimization.fuse.active": False}):
+            status = np.asarray(_compute(status, scheduler, workers))
+        seconds = time.perf_counter() - t0
+        g.attrs[COMPLETE_ATTR] = True
+        if out_path.exists():
+            shutil.rmtree(out_path)
+        out_path.parent.mkdir(parents=True, exist_ok=True)
+        tmp.rename(out_path)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    log(f"fit: {T * S} texels in {seconds:.1f} s ({T * S / seconds:.1f} texels/s)")
+    return {"texels": T * S, "seconds": seconds, "texels_per_second": T * S / seconds,
+            "status": status}
+
+
+def open_fit(path: str | Path) -> zarr.Group:
+    """Open a finished fit store; refuses a missing or incomplete one."""
+    path = Path(path)
+    try:
+        g = zarr.open_group(path, mode="r")
+    except (FileNotFoundError, zarr.errors.GroupNotFoundError) as exc:
+        raise FitError(f"{path}: no fit store ({exc})") from None
+    if not g.attrs.get(COMPLETE_ATTR):
+        raise FitError(f"{path}: incomplete fit store (interrupted run?)")
+    return g

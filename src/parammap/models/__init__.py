@@ -1,0 +1,1 @@
+"""Appearance models fitted per texel: Multiple Highlight (mh) and spherical harmonics (sh)."""

@@ -1,0 +1,597 @@
+"""Multiple Highlight (MH) model: evaluation and the bounded nlopt fit of one texel.
+
+``L_c(v) = Kd_c + sum_k Ks_kc * max(0, d_k . v) ** m`` per RGB channel, K lobes sharing
+one shininess m (000 eq. 1, 004 eq. 11.2). Parameter vectors follow conventions.md:
+``Kd.R Kd.G Kd.B m`` then per lobe ``Ks.R Ks.G Ks.B d.X d.Y d.Z`` (4 + 6K values).
+
+The optimiser works on ``x = [Kd(3), ln m, (Ks(3), theta, phi) per lobe]``: polar angles
+keep each d a unit vector in the upper hemisphere (theta in [0, pi/2]) and ln m keeps m
+in [1, 10000], so every constraint is a plain bound, which all of nlopt's local
+gradient algorithms honour. Radiances are divided by one per-texel scale before the fit
+(conditioning); Kd and Ks are multiplied back, so stored parameters are in the
+observation map's radiance units.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import nlopt
+import numpy as np
+
+__all__ = [
+    "ALGORITHMS",
+    "FitResult",
+    "MhFitConfig",
+    "bic",
+    "fit_texel",
+    "initial_guess_batch",
+    "initial_guess_published",
+    "mean_percentage_residual",
+    "mh_eval",
+    "n_params",
+]
+
+ALGORITHMS = {
+    "lbfgs": nlopt.LD_LBFGS,
+    "slsqp": nlopt.LD_SLSQP,
+    "mma": nlopt.LD_MMA,
+    "ccsaq": nlopt.LD_CCSAQ,
+    "tnewton": nlopt.LD_TNEWTON_PRECOND_RESTART,
+    "var2": nlopt.LD_VAR2,
+    "bobyqa": nlopt.LN_BOBYQA,
+}
+M_MIN, M_MAX = 1.0, 10000.0
+LN_M_MAX = math.log(M_MAX)
+
+# status codes stored per texel
+STATUS_NOT_FITTED, STATUS_OK, STATUS_TOO_FEW, STATUS_FAILED = 0, 1, 2, 3
+
+
+def n_params(K: int) -> int:
+    """Length of the MH parameter vector for K lobes."""
+    return 4 + 6 * K
+
+
+def mh_eval(params: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """Evaluate MH parameter vectors.
+
+    Parameters
+    ----------
+    params : (..., 4 + 6K) conventions.md layout.
+    directions : (..., N, 3) unit view directions, surface frame.
+
+    Returns
+    -------
+    (..., N, 3) radiance.
+    """
+    params = np.asarray(params, float)
+    v = np.asarray(directions, float)
+    K = (params.shape[-1] - 4) // 6
+    out = np.broadcast_to(params[..., None, 0:3], v.shape).copy()
+    m = params[..., 3][..., None]
+    for k in range(K):
+        ks = params[..., 4 + 6 * k: 7 + 6 * k]
+        d = params[..., 7 + 6 * k: 10 + 6 * k]
+        c = np.clip(np.einsum("...nc,...c->...n", v, d), 0.0, None)
+        out += (c ** m)[..., None] * ks[..., None, :]
+    return out
+
+
+def mean_percentage_residual(measured: np.ndarray, fitted: np.ndarray,
+                             valid: np.ndarray | None = None) -> np.ndarray:
+    """004's mean percentage residual per channel: mean of ``100 |fit - meas| / meas``
+    over valid observations. (..., N, 3) inputs, (..., 3) output."""
+    meas = np.asarray(measured, float)
+    den = np.maximum(np.abs(meas), 1e-9 * np.nanmax(np.abs(meas), axis=-2, keepdims=True)
+                     + 1e-30)
+    pct = 100 * np.abs(np.asarray(fitted, float) - meas) / den
+    if valid is None:
+        return pct.mean(axis=-2)
+    w = np.asarray(valid, float)[..., None]
+    return (np.where(w > 0, pct, 0)).sum(-2) / np.maximum(w.sum(-2), 1)
+
+
+def bic(rss: float, n: int, K: int, floor: float = 0.0) -> float:
+    """Bayesian information criterion of a K-lobe fit with ``n`` residuals (d has two
+    degrees of freedom, so 4 + 5K free parameters). ``floor`` is the smallest mean
+    squared residual taken as real: below it (noise-free data) extra lobes only fit
+    round-off, which must not count as evidence."""
+    return n * math.log(max(rss / n, floor, 1e-300)) + (4 + 5 * K) * math.log(n)
+
+
+# ---------------------------------------------------------------------------------
+# Initial guesses
+
+
+def _angles(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    return np.arccos(np.clip(d[..., 2], -1, 1)), np.arctan2(d[..., 1], d[..., 0])
+
+
+def _nnls_batch(A: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Non-negative weighted least squares for many small problems at once.
+
+    A : (B, N, P) design, y : (B, N, 3), w : (B, N) weights. Active-set by repeatedly
+    pinning the most negative coefficient to zero (exact for P <= 2, close otherwise).
+    Returns coefficients (B, P, 3) and RSS (B,).
+    """
+    B, N, P = A.shape
+    Aw = A * w[..., None]
+    G = np.einsum("bnp,bnq->bpq", Aw, A)
+    rhs = np.einsum("bnp,bnc->bpc", Aw, y)
+    active = np.ones((B, P, 3), bool)
+    eye = np.eye(P)
+    for _ in range(P + 1):
+        x = np.empty((B, P, 3))
+        for c in range(3):
+            a = active[..., c]
+            Gm = G * (a[:, :, None] & a[:, None, :]) + eye * (~a)[:, :, None]
+            Gm = Gm + eye * 1e-12 * np.trace(G, axis1=1, axis2=2)[:, None, None]
+            x[..., c] = np.linalg.solve(Gm, (rhs[..., c] * a)[..., None])[..., 0]
+        neg = x < -1e-15
+        if not neg.any():
+            break
+        # pin the most negative coefficient of each problem and channel
+        worst = np.argmin(np.where(neg, x, 0), axis=1)  # (B, 3)
+        hit = neg.any(axis=1)
+        bi, ci = np.nonzero(hit)
+        active[bi, worst[bi, ci], ci] = False
+    x = np.clip(x, 0, None) * active
+    r = np.einsum("bnp,bpc->bnc", A, x) - y
+    return x, np.einsum("bn,bnc->b", w, r * r)
+
+
+def _lobe_terms(V: np.ndarray, D: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """(B, N, K) = max(0, d_k . v) ** m for directions D (B, K, 3) and m (B,)."""
+    c = np.clip(np.einsum("bnc,bkc->bnk", V, D), 0, None)
+    return c ** m[:, None, None]
+
+
+def _solve_linear(V, L, W, D, m):
+    B, N, _ = V.shape
+    A = np.concatenate([np.ones((B, N, 1)), _lobe_terms(V, D, m)], axis=2)
+    return _nnls_batch(A, L, W)
+
+
+def _search_m(V, L, W, D, iters: int = 24) -> np.ndarray:
+    """Shininess per texel minimising the RSS after the linear solve: a coarse grid over
+    ln m, then golden-section search in the best bracket (001)."""
+    B = V.shape[0]
+    grid = np.linspace(0.0, LN_M_MAX, 13)
+    rss = np.stack([_solve_linear(V, L, W, D, np.full(B, math.exp(u)))[1] for u in grid], 1)
+    k = np.argmin(rss, axis=1)
+    lo = grid[np.maximum(k - 1, 0)]
+    hi = grid[np.minimum(k + 1, len(grid) - 1)]
+    g = (math.sqrt(5) - 1) / 2
+
+    def f(u):
+        return _solve_linear(V, L, W, D, np.exp(u))[1]
+
+    a, b = lo, hi
+    c, d = b - g * (b - a), a + g * (b - a)
+    fc, fd = f(c), f(d)
+    for _ in range(iters):
+        left = fc < fd  # the minimum lies in [a, d]
+        a, b = np.where(left, a, c), np.where(left, d, b)
+        c_new = np.where(left, b - g * (b - a), d)
+        d_new = np.where(left, c, a + g * (b - a))
+        fe = f(np.where(left, c_new, d_new))
+        fc, fd = np.where(left, fe, fd), np.where(left, fc, fe)
+        c, d = c_new, d_new
+    return np.exp((a + b) / 2)
+
+
+def initial_guess_batch(
+    V: np.ndarray, L: np.ndarray, W: np.ndarray, K: int, min_sep_deg: float = 10.0
+) -> np.ndarray:
+    """The better initial guess (in the spirit of 001), for a batch of texels.
+
+    Each lobe is placed at the direction of the largest remaining residual (at least
+    ``min_sep_deg`` from earlier lobes), then Kd and all Ks are solved by non-negative
+    linear least squares for fixed directions and m, and m is searched (grid, then
+    golden section on ln m).
+
+    Parameters
+    ----------
+    V : (B, N, 3) directions, L : (B, N, 3) radiance, W : (B, N) 0/1 validity.
+
+    Returns
+    -------
+    (B, 4 + 6K) parameter vectors (conventions.md layout).
+    """
+    B, N, _ = V.shape
+    D = np.zeros((B, 0, 3))
+    Y = L.mean(-1)
+    resid = np.where(W > 0, Y, -np.inf)
+    cos_sep = math.cos(math.radians(min_sep_deg))
+    m = np.full(B, 10.0)
+    for _ in range(K):
+        if D.shape[1]:
+            near = (np.einsum("bnc,bkc->bnk", V, D) > cos_sep).any(-1)
+            resid = np.where(near, -np.inf, resid)
+        i = np.argmax(resid, axis=1)
+        D = np.concatenate([D, V[np.arange(B), i][:, None, :]], axis=1)
+        m = _search_m(V, L, W, D)
+        coef, _ = _solve_linear(V, L, W, D, m)
+        model = np.einsum("bnp,bpc->bnc", np.concatenate(
+            [np.ones((B, N, 1)), _lobe_terms(V, D, m)], 2), coef)
+        resid = np.where(W > 0, (L - model).mean(-1), -np.inf)
+    coef, _ = _solve_linear(V, L, W, D, m)
+    p = np.zeros((B, n_params(K)))
+    p[:, 0:3] = coef[:, 0]
+    p[:, 3] = m
+    for k in range(K):
+        p[:, 4 + 6 * k: 7 + 6 * k] = coef[:, k + 1]
+        p[:, 7 + 6 * k: 10 + 6 * k] = D[:, k]
+    return p
+
+
+def initial_guess_published(V: np.ndarray, L: np.ndarray, W: np.ndarray, K: int,
+                            min_sep_deg: float = 20.0) -> np.ndarray:
+    """The published initial guess (000 ch. 5.1): Kd = mean radiance, Ks = 0, d = the
+    direction of the brightest sample (further lobes at the next brightest samples at
+    least ``min_sep_deg`` away), m = 10. (B, N, 3) inputs, (B, 4 + 6K) output."""
+    B = V.shape[0]
+    p = np.zeros((B, n_params(K)))
+    w = W[..., None]
+    p[:, 0:3] = (L * w).sum(1) / np.maximum(w.sum(1), 1)
+    p[:, 3] = 10.0
+    Y = np.where(W > 0, L.mean(-1), -np.inf)
+    cos_sep = math.cos(math.radians(min_sep_deg))
+    for k in range(K):
+        i = np.argmax(Y, axis=1)
+        d = V[np.arange(B), i]
+        p[:, 7 + 6 * k: 10 + 6 * k] = d
+        Y = np.where(np.einsum("bnc,bc->bn", V, d) > cos_sep, -np.inf, Y)
+    return p
+
+
+# ---------------------------------------------------------------------------------
+# nlopt fit of one texel
+
+
+@dataclass(frozen=True)
+class MhFitConfig:
+    """Options of the per-texel fit (config section ``fit.mh``)."""
+
+    algorithm: str = "lbfgs"
+    init: str = "better"  # better | published
+    loss: str = "linear"  # linear | soft_l1 | huber
+    f_scale: float = 0.05  # robust loss scale, relative to the texel's radiance scale
+    max_evals: int = 400
+    ftol_rel: float = 1e-10
+    xtol_rel: float = 1e-8
+    bic_margin: float = 10.0  # auto-K adds a lobe only if BIC drops by more
+    bic_floor: float = 1e-3  # residuals below this fraction of the radiance are noise
+
+
+@dataclass
+class FitResult:
+    params: np.ndarray  # (4 + 6K,)
+    rss: float
+    evals: int
+    status: int
+    nlopt_code: int
+
+
+def _to_x(p: np.ndarray, s: float) -> np.ndarray:
+    K = (len(p) - 4) // 6
+    x = np.empty(4 + 5 * K)
+    x[0:3] = p[0:3] / s
+    x[3] = math.log(min(max(p[3], M_MIN), M_MAX))
+    for k in range(K):
+        x[4 + 5 * k: 7 + 5 * k] = p[4 + 6 * k: 7 + 6 * k] / s
+        th, ph = _angles(p[7 + 6 * k: 10 + 6 * k])
+        x[7 + 5 * k], x[8 + 5 * k] = th, ph
+    return x
+
+
+def _from_x(x: np.ndarray, s: float) -> np.ndarray:
+    K = (len(x) - 4) // 5
+    p = np.empty(n_params(K))
+    p[0:3] = x[0:3] * s
+    p[3] = math.exp(x[3])
+    for k in range(K):
+        p[4 + 6 * k: 7 + 6 * k] = x[4 + 5 * k: 7 + 5 * k] * s
+        th, ph = x[7 + 5 * k], x[8 + 5 * k]
+        p[7 + 6 * k: 10 + 6 * k] = (math.sin(th) * math.cos(ph), math.sin(th) * math.sin(ph),
+                                    math.cos(th))
+    return p
+
+
+def _objective(V: np.ndarray, L: np.ndarray, K: int, loss: str, f: float):
+    """nlopt objective with analytic gradient, on scaled radiance L (n, 3)."""
+
+    best = [math.inf, None]
+
+    def fn(x: np.ndarray, grad: np.ndarray) -> float:
+        m = math.exp(x[3])
+        model = np.broadcast_to(x[0:3], L.shape).copy()
+        lobes = []
+        for k in range(K):
+            th, ph = x[7 + 5 * k], x[8 + 5 * k]
+            st, ct, sp, cp = math.sin(th), math.cos(th), math.sin(ph), math.cos(ph)
+            d = np.array([st * cp, st * sp, ct])
+            c = V @ d
+            pos = c > 0
+            cc = np.where(pos, c, 1.0)
+            p = np.where(pos, cc ** m, 0.0)
+            ks = x[4 + 5 * k: 7 + 5 * k]
+            model += p[:, None] * ks
+            lobes.append((st, ct, sp, cp, cc, pos, p, ks))
+        r = model - L
+        if loss == "linear":
+            val = float(np.sum(r * r))
+            dr = 2 * r
+        elif loss == "soft_l1":
+            z = 1 + (r / f) ** 2
+            sq = np.sqrt(z)
+            val = float(np.sum(2 * f * f * (sq - 1)))
+            dr = 2 * r / sq
+        else:  # huber
+            a = np.abs(r)
+            val = float(np.sum(np.where(a <= f, r * r, 2 * f * a - f * f)))
+            dr = np.where(a <= f, 2 * r, 2 * f * np.sign(r))
+        if grad.size > 0:
+            grad[0:3] = dr.sum(0)
+            gm = 0.0
+            for k, (st, ct, sp, cp, cc, pos, p, ks) in enumerate(lobes):
+                drk = dr @ ks  # (n,)
+                grad[4 + 5 * k: 7 + 5 * k] = p @ dr
+                gm += float(np.sum(drk * p * np.where(pos, np.log(cc), 0.0)))
+                dpdc = np.where(pos, m * p / cc, 0.0)
+                g = drk * dpdc
+                dth = np.array([ct * cp, ct * sp, -st])
+                dph = np.array([-st * sp, st * cp, 0.0])
+                grad[7 + 5 * k] = float(g @ (V @ dth))
+                grad[8 + 5 * k] = float(g @ (V @ dph))
+            grad[3] = gm * m
+        if val < best[0]:
+            best[0], best[1] = val, x.copy()
+        return val
+
+    fn.best = best
+    return fn
+
+
+def fit_texel(V: np.ndarray, L: np.ndarray, p0: np.ndarray,
+              cfg: MhFitConfig = MhFitConfig()) -> FitResult:
+    """Bounded nlopt fit of one texel from initial parameters ``p0`` (4 + 6K).
+
+    Parameters
+    ----------
+    V : (n, 3) unit view directions of the valid observations.
+    L : (n, 3) their radiance.
+
+    Returns
+    -------
+    FitResult with parameters in conventions.md layout (lobes sorted by strength) and
+    the residual sum of squares in radiance units squared.
+    """
+    K = (len(p0) - 4) // 6
+    s = float(max(np.mean(L), 1e-12))
+    Ls = L / s
+    x0 = _to_x(p0, s)
+    nx = len(x0)
+    lb = np.zeros(nx)
+    ub = np.full(nx, np.inf)
+    ub[3] = LN_M_MAX
+    for k in range(K):
+        lb[7 + 5 * k], ub[7 + 5 * k] = 0.0, math.pi / 2
+        lb[8 + 5 * k], ub[8 + 5 * k] = -3 * math.pi, 3 * math.pi
+    x0 = np.clip(x0, lb, ub)
+    opt = nlopt.opt(ALGORITHMS[cfg.algorithm], nx)
+    opt.set_lower_bounds(lb)
+    opt.set_upper_bounds(ub)
+    fn = _objective(V, Ls, K, cfg.loss, cfg.f_scale)
+    opt.set_min_objective(fn)
+    opt.set_ftol_rel(cfg.ftol_rel)
+    opt.set_xtol_rel(cfg.xtol_rel)
+    opt.set_maxeval(cfg.max_evals)
+    status = STATUS_OK
+    try:
+        x = opt.optimize(x0)
+        code = int(opt.last_optimize_result())
+    except (nlopt.RoundoffLimited, RuntimeError, ValueError):
+        # keep the best point reached; round-off stops are usually converged
+        x = fn.best[1] if fn.best[1] is not None else x0
+        code = -4
+    p = _sort_lobes(_from_x(x, s))
+    rss = float(np.sum((mh_eval(p, V) - L) ** 2))
+    if not np.all(np.isfinite(p)) or not math.isfinite(rss):
+        status = STATUS_FAILED
+    return FitResult(p, rss, int(opt.get_numevals()), status, code)
+
+
+def _sort_lobes(p: np.ndarray) -> np.ndarray:
+    K = (len(p) - 4) // 6
+    if K < 2:
+        return p
+    lobes = p[4:].reshape(K, 6)
+    order = np.argsort(-lobes[:, 0:3].sum(1), kind="stable")
+    out = p.copy()
+    out[4:] = lobes[order].ravel()
+    return out
+
+
+# ---------------------------------------------------------------------------------
+# A tile of texels
+
+
+def mh_outputs(K_max: int) -> dict[str, tuple[tuple[int, ...], str, float]]:
+    """Arrays of an MH fit store: name -> (trailing shape, dtype, fill value)."""
+    return {
+        "params": ((n_params(K_max),), "float32", float("nan")),
+        "rmse": ((3,), "float32", float("nan")),
+        "mpr": ((3,), "float32", float("nan")),
+        "k_used": ((), "int8", 0),
+        "evals": ((), "int32", 0),
+        "status": ((), "int8", STATUS_NOT_FITTED),
+    }
+
+
+def fit_mh_tile(
+    radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, K: int | str,
+    cfg: MhFitConfig = MhFitConfig(), K_max: int = 3,
+) -> dict[str, np.ndarray]:
+    """Fit every texel of a tile.
+
+    Parameters
+    ----------
+    radiance, direction : (t, u, N, 3); valid : (t, u, N) bool.
+    K : lobes, or ``"auto"`` (add lobes up to ``K_max`` while BIC improves by more than
+        ``cfg.bic_margin``).
+
+    Returns
+    -------
+    dict of arrays shaped (t, u, ...) as :func:`mh_outputs` (params padded to K_max
+    lobes with Ks = 0, d = +z). A texel with too few observations or a failed
+    optimisation is flagged in ``status`` and never stops the tile.
+    """
+    t, u, N, _ = radiance.shape
+    Kmax = K_max if K == "auto" else int(K)
+    out = {k: np.full((t, u) + shp, fill, dtype) for k, (shp, dtype, fill) in
+           mh_outputs(Kmax).items()}
+    V = direction.reshape(t * u, N, 3).astype(float)
+    L = radiance.reshape(t * u, N, 3).astype(float)
+    W = (valid.reshape(t * u, N) & np.isfinite(L).all(-1) & np.isfinite(V).all(-1))
+    L = np.where(W[..., None], L, 0.0)
+    V = np.where(W[..., None], V, [0.0, 0.0, 1.0])
+    nobs = W.sum(1)
+    Ks = range(1, Kmax + 1) if K == "auto" else [Kmax]
+    todo = np.flatnonzero(nobs >= 4)  # 004: at least four observations
+    few = np.flatnonzero(nobs < 4)
+    flat = {k: v.reshape((t * u,) + v.shape[2:]) for k, v in out.items()}
+    flat["status"][few] = STATUS_TOO_FEW
+    if len(todo) == 0:
+        return out
+    init = initial_guess_batch if cfg.init == "better" else initial_guess_published
+    inits = {k: init(V[todo], L[todo], W[todo].astype(float), k) for k in Ks}
+    for j, b in enumerate(todo):
+        w = W[b]
+        v, y = V[b][w], L[b][w]
+        best, best_bic, evals = None, math.inf, 0
+        for k in Ks:
+            try:
+                r = fit_texel(v, y, inits[k][j], cfg)
+            except Exception:  # noqa: BLE001 - a failed texel is flagged, never fatal
+                r = FitResult(np.full(n_params(k), np.nan), math.inf, 0, STATUS_FAILED, -1)
+            evals += r.evals
+            floor = (cfg.bic_floor * float(np.mean(np.abs(y)))) ** 2
+            crit = bic(r.rss, y.size, k, floor) if r.status == STATUS_OK else math.inf
+            if best is None or (K != "auto" and r.status == STATUS_OK) or \
+                    crit < best_bic - cfg.bic_margin:
+                best, best_bic = (r, k), crit
+            elif K == "auto":
+                break
+        r, k = best
+        p = np.zeros(n_params(Kmax))
+        p[: n_params(k)] = r.params
+        for extra in range(k, Kmax):
+            p[9 + 6 * extra] = 1.0  # unused lobe: Ks = 0, d = +z
+        flat["params"][b] = p
+        flat["k_used"][b] = k
+        flat["evals"][b] = evals
+        flat["status"][b] = r.status
+        if r.status == STATUS_OK:
+            fitted = mh_eval(r.params, v)
+            flat["rmse"][b] = np.sqrt(np.mean((fitted - y) ** 2, axis=0))
+            flat["mpr"][b] = mean_percentage_residual(y, fitted)
+    return out
+
+
+def parse_lobes(K: str | int) -> int | str:
+    """``"auto"`` or a positive lobe count from a model name part."""
+    if str(K) == "auto":
+        return "auto"
+    try:
+        k = int(K)
+    except ValueError:
+        k = 0
+    if k < 1:
+        raise ValueError(f"MH lobes must be a positive integer or auto (got {K!r})")
+    return k
+
+
+def fit_mh_map(obs_path: str | Path, out_path: str | Path, K: int | str, cfg: dict,
+               scheduler: str = "processes", workers: int = 2, log=print) -> dict:
+    """Fit the MH model with K lobes (or ``auto``) to every texel of an observation map
+    into ``fit/mh-<K>.zarr``; returns the figures for ``metrics/fit-mh-<K>.json``."""
+    from functools import partial
+
+    from ..fitting import fit_map, open_fit
+
+    K = parse_lobes(K)
+    fcfg = MhFitConfig(**{k: cfg[k] for k in MhFitConfig.__dataclass_fields__ if k in cfg})
+    if fcfg.algorithm not in ALGORITHMS:
+        raise ValueError(f"fit.mh.algorithm: unknown {fcfg.algorithm!r} "
+                         f"(one of {', '.join(ALGORITHMS)})")
+    K_max = cfg.get("K_max", 3) if K == "auto" else K
+    res = fit_map(obs_path, out_path, partial(fit_mh_tile, K=K, cfg=fcfg, K_max=K_max),
+                  mh_outputs(K_max),
+                  {"model": "mh", "model_version": 1, "lobes": str(K), "K_max": K_max,
+                   "layout": "Kd.R Kd.G Kd.B m (lobeK.Ks.R lobeK.Ks.G lobeK.Ks.B lobeK.d.X "
+                             "lobeK.d.Y lobeK.d.Z)*K",
+                   "fit": {k: getattr(fcfg, k) for k in MhFitConfig.__dataclass_fields__}},
+                  scheduler, workers, log)
+    g = open_fit(out_path)
+    ok = g["status"][:] == STATUS_OK
+    mpr = g["mpr"][:][ok]
+    rmse = g["rmse"][:][ok]
+    kused = g["k_used"][:][ok]
+    return {
+        "model": f"mh-{K}", "texels": res["texels"], "fitted": int(ok.sum()),
+        "too_few_observations": int((res["status"] == STATUS_TOO_FEW).sum()),
+        "failed": int((res["status"] == STATUS_FAILED).sum()),
+        "seconds": res["seconds"], "texels_per_second": res["texels_per_second"],
+        "mean_percentage_residual": np.nanmean(mpr, 0).tolist() if ok.any() else None,
+        "median_percentage_residual": np.nanmedian(mpr, 0).tolist() if ok.any() else None,
+        "rmse": np.nanmean(rmse, 0).tolist() if ok.any() else None,
+        "lobes_used": {str(k): int((kused == k).sum()) for k in np.unique(kused)},
+        "mean_evals": float(g["evals"][:][ok].mean()) if ok.any() else None,
+        "scheduler": scheduler, "workers": workers,
+    }
+
+
+def mh_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path, name: str,
+               texels: list[tuple[int, int]] | None = None) -> list[Path]:
+    """Parameter maps, residual maps and lobe plots (measured vs fitted with percentage
+    residuals, like 004 fig. 11.6) of an MH fit store."""
+    from ..fitting import open_fit
+    from ..observation import open_observation_map
+    from ..report import default_lobe_texels, plot_lobes, plot_maps
+
+    g = open_fit(fit_path)
+    obs = open_observation_map(obs_path)
+    out_dir = Path(out_dir)
+    p = g["params"][:].astype(float)
+    K = (p.shape[-1] - 4) // 6
+    maps = {"Kd (luminance)": p[..., 0:3] @ [0.2126, 0.7152, 0.0722],
+            "log10 m": np.log10(np.clip(p[..., 3], 1, None))}
+    for k in range(K):
+        maps[f"lobe {k + 1} Ks (luminance)"] = p[..., 4 + 6 * k: 7 + 6 * k] @ [0.2126, 0.7152,
+                                                                             0.0722]
+        maps[f"lobe {k + 1} zenith (deg)"] = np.degrees(np.arccos(np.clip(p[..., 9 + 6 * k],
+                                                                          -1, 1)))
+    if g.attrs.get("lobes") == "auto":
+        maps["lobes used"] = g["k_used"][:].astype(float)
+    paths = [plot_maps(maps, out_dir / f"{name}_params.png", f"{name}: parameter maps")]
+    mpr = g["mpr"][:].astype(float)
+    paths.append(plot_maps({f"mean % residual {c}": mpr[..., i] for i, c in enumerate("RGB")}
+                           | {"RMSE (mean of RGB)": g["rmse"][:].astype(float).mean(-1),
+                              "status (1 ok, 2 too few obs., 3 failed)":
+                                  g["status"][:].astype(float)},
+                           out_dir / f"{name}_residuals.png", f"{name}: residuals", cols=3))
+    entries = []
+    for r, c in texels or default_lobe_texels(g.attrs["S"], g.attrs["T"]):
+        v = obs["valid"][r, c]
+        d = obs["direction"][r, c][v]
+        entries.append({"label": f"texel [{r}, {c}]", "direction": d,
+                        "measured": obs["radiance"][r, c][v],
+                        "fitted": mh_eval(p[r, c], d)})
+    paths.append(plot_lobes(entries, out_dir / f"{name}_lobes.png",
+                            f"{name}: measured (dots) and fitted (crosses)"))
+    return paths

@@ -1,0 +1,43 @@
+# Model fits: one job per model writes fit/<model>.zarr (dask over texel tiles inside
+# the job; scheduler from config.fit.scheduler), its metrics and figures.
+
+
+rule fit_mh:
+    input:
+        capture=capture_dir,
+        obs=f"{PROC}/{{sid}}/observation.zarr",
+    output:
+        store=directory(f"{PROC}/{{sid}}/fit/mh-{{K}}.zarr"),
+        metrics=f"{PROC}/{{sid}}/metrics/fit-mh-{{K}}.json",
+        params=report(
+            f"{REPORTS}/{{sid}}/mh-{{K}}_params.png",
+            caption="../report/mh_params.rst",
+            category="MH model",
+            subcategory="{sid}",
+        ),
+        residuals=report(
+            f"{REPORTS}/{{sid}}/mh-{{K}}_residuals.png",
+            caption="../report/mh_residuals.rst",
+            category="MH model",
+            subcategory="{sid}",
+        ),
+        lobes=report(
+            f"{REPORTS}/{{sid}}/mh-{{K}}_lobes.png",
+            caption="../report/mh_lobes.rst",
+            category="MH model",
+            subcategory="{sid}",
+        ),
+    params:
+        cli=PARAMMAP,
+        out=lambda wc: f"{PROC}/{wc.sid}",
+        figures=lambda wc: f"{REPORTS}/{wc.sid}",
+    wildcard_constraints:
+        K="[0-9]+|auto",
+    threads: WORKERS
+    log:
+        "logs/fit/{sid}/mh-{K}.log",
+    conda:
+        "../envs/parammap.yaml"
+    shell:
+        "{params.cli} fit-mh {input.capture} --out {params.out} --lobes {wildcards.K}"
+        " --config config/config.yaml --figures {params.figures} --workers {threads} 2> {log}"
