@@ -70,7 +70,15 @@ def _summary(a: argparse.Namespace) -> int:
 def _stage_config(a: argparse.Namespace) -> dict:
     from .config import apply_settings, load_config, validate_config
 
-    cfg = load_config(a.config) if a.config else validate_config({"captures": {"cli": "."}})
+    if a.config:
+        cfg = load_config(a.config)
+    else:
+        import json
+
+        part = json.loads(a.config_json) if getattr(a, "config_json", None) else {}
+        if not isinstance(part, dict):
+            raise ConfigError("--config-json: expected a JSON object")
+        cfg = validate_config({"captures": {"cli": "."}} | part)
     return apply_settings(cfg, getattr(a, "set", None) or [])
 
 
@@ -279,6 +287,7 @@ def _parser() -> argparse.ArgumentParser:
         s.add_argument("capture")
         s.add_argument("--out", required=True, help="data/processed/<id>")
         s.add_argument("--config", help="workflow config (default: built-in defaults)")
+        s.add_argument("--config-json", help="config sections as JSON (the workflow's way)")
         s.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE",
                        help="override one config value, e.g. observation.texels_x=512")
         if name == "response":

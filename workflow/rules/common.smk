@@ -1,5 +1,7 @@
 # Shared helpers: validated config, capture paths, output folders.
+import json
 import re
+import shlex
 import sys
 
 from parammap.config import validate_config
@@ -19,6 +21,14 @@ SYNTH_DIRS_RE = "|".join(re.escape(CAPTURES[s]) for s in SYNTH if s in CAPTURES)
 
 wildcard_constraints:
     sid="[A-Za-z0-9][A-Za-z0-9_.-]*",
+
+
+def config_arg(*sections):
+    """The config sections a stage reads, passed to its CLI as JSON: the CLI sees the
+    same (command-line extended) config as the workflow, and a change to one section
+    reruns only the stages that read it."""
+    part = {k: config[k] for k in sections} | {"workers": config["workers"]}
+    return "--config-json " + shlex.quote(json.dumps(part, sort_keys=True))
 
 
 def capture_dir(wildcards):

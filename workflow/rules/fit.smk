@@ -29,6 +29,7 @@ rule fit_mh:
         ),
     params:
         cli=PARAMMAP,
+        cfg=config_arg("fit", "observation"),
         out=lambda wc: f"{PROC}/{wc.sid}",
         figures=lambda wc: f"{REPORTS}/{wc.sid}",
     wildcard_constraints:
@@ -40,4 +41,4 @@ rule fit_mh:
         "../envs/parammap.yaml"
     shell:
         "{params.cli} fit-mh {input.capture} --out {params.out} --lobes {wildcards.K}"
-        " --config config/config.yaml --figures {params.figures} --workers {threads} 2> {log}"
+        " {params.cfg} --figures {params.figures} --workers {threads} 2> {log}"

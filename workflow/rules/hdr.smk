@@ -16,6 +16,7 @@ rule response:
         ),
     params:
         cli=PARAMMAP,
+        cfg=config_arg("hdr"),
         out=lambda wc: f"{PROC}/{wc.sid}",
         reference=lambda wc: (
             f"--reference {CAPTURES[wc.sid]}.truth/response.npz --reference-label truth"
@@ -27,7 +28,7 @@ rule response:
     conda:
         "../envs/parammap.yaml"
     shell:
-        "{params.cli} response {input.capture} --out {params.out} --config config/config.yaml"
+        "{params.cli} response {input.capture} --out {params.out} {params.cfg}"
         " --figure {output.figure} {params.reference} 2> {log}"
 
 
@@ -40,6 +41,7 @@ rule hdr_view:
         stats=f"{PROC}/{{sid}}/hdr/{{view}}.json",
     params:
         cli=PARAMMAP,
+        cfg=config_arg("hdr"),
         out=lambda wc: f"{PROC}/{wc.sid}",
     log:
         "logs/hdr/{sid}/{view}.log",
@@ -47,7 +49,7 @@ rule hdr_view:
         "../envs/parammap.yaml"
     shell:
         "{params.cli} hdr {input.capture} --out {params.out} --response {input.response}"
-        " --view {wildcards.view} --config config/config.yaml 2> {log}"
+        " --view {wildcards.view} {params.cfg} 2> {log}"
 
 
 rule hdr_metrics:
@@ -78,13 +80,14 @@ rule calibrate:
         f"{PROC}/{{sid}}/metrics/calibration.json",
     params:
         cli=PARAMMAP,
+        cfg=config_arg("calibration"),
         out=lambda wc: f"{PROC}/{wc.sid}",
     log:
         "logs/calibrate/{sid}.log",
     conda:
         "../envs/parammap.yaml"
     shell:
-        "{params.cli} calibrate {input.capture} --out {params.out} --config config/config.yaml"
+        "{params.cli} calibrate {input.capture} --out {params.out} {params.cfg}"
         " 2> {log}"
 
 
@@ -105,6 +108,7 @@ rule poses:
         f"{REPORTS}/{{sid}}/pose_reprojection.png",
     params:
         cli=PARAMMAP,
+        cfg=config_arg("poses"),
         out=lambda wc: f"{PROC}/{wc.sid}",
         figures=lambda wc: f"{REPORTS}/{wc.sid}",
     log:
@@ -112,5 +116,5 @@ rule poses:
     conda:
         "../envs/parammap.yaml"
     shell:
-        "{params.cli} poses {input.capture} --out {params.out} --config config/config.yaml"
+        "{params.cli} poses {input.capture} --out {params.out} {params.cfg}"
         " --figures {params.figures} 2> {log}"

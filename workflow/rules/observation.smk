@@ -24,6 +24,7 @@ rule observation:
         ),
     params:
         cli=PARAMMAP,
+        cfg=config_arg("observation"),
         out=lambda wc: f"{PROC}/{wc.sid}",
         figures=lambda wc: f"{REPORTS}/{wc.sid}",
     threads: WORKERS
@@ -32,5 +33,5 @@ rule observation:
     conda:
         "../envs/parammap.yaml"
     shell:
-        "{params.cli} observe {input.capture} --out {params.out} --config config/config.yaml"
+        "{params.cli} observe {input.capture} --out {params.out} {params.cfg}"
         " --figures {params.figures} --workers {threads} 2> {log}"
