@@ -283,22 +283,25 @@ def _bounds(K: int) -> tuple[np.ndarray, np.ndarray]:
     return lb, ub
 
 
-def _normal_equations(X, V, Ls, W, K):
+def _normal_equations(X, V, Ls, W, K, LL=None):
     """Cost, Gauss-Newton matrix J^T J (B, nx, nx) and gradient J^T r (B, nx) of the
     weighted least-squares problem in x-space, for a batch of texels.
 
-    Every Jacobian column is a per-channel multiple of a few per-observation vectors
-    (1, and per lobe p, dp/dln m, dp/dtheta, dp/dphi), so J^T J is assembled from their
-    small Gram matrix instead of the (N x 3) x nx Jacobian.
+    The model of each channel is a combination ``a_c . q_n`` of a few per-observation
+    vectors q (1 and per lobe p_k), and every Jacobian column a per-channel multiple of
+    q or of p's derivatives (ln m, theta, phi). So cost, J^T J and J^T r all follow from
+    the small Gram matrix of these vectors: no (N x 3)-sized array is formed.
+    ``LL`` (B, 3) = sum of w L^2, constant over iterations.
     """
     B, N, _ = V.shape
     nx = X.shape[1]
     nb = 1 + 4 * K
     m = np.exp(X[:, 3])
-    model = np.broadcast_to(X[:, None, 0:3], Ls.shape).copy()
     q = np.empty((B, nb, N))
     q[:, 0] = 1.0
-    coef = np.zeros((B, 3, nx, nb))
+    coef = np.zeros((B, 3, nx, nb))  # Jacobian columns in terms of q
+    amod = np.zeros((B, 3, nb))  # model = amod . q
+    amod[:, :, 0] = X[:, 0:3]
     for c in range(3):
         coef[:, c, c, 0] = 1.0
     for k in range(K):
@@ -307,36 +310,37 @@ def _normal_equations(X, V, Ls, W, K):
         d = np.stack([st * cp, st * sp, ct], -1)
         dth = np.stack([ct * cp, ct * sp, -st], -1)
         dph = np.stack([-st * sp, st * cp, np.zeros_like(st)], -1)
-        c_ = np.matmul(V, np.stack([d, dth, dph], -1))  # (B, N, 3)
-        cos = c_[..., 0]
+        c_ = np.matmul(np.stack([d, dth, dph], 1), V.transpose(0, 2, 1))  # (B, 3, N)
+        cos = c_[:, 0]
         pos = cos > 0
         cc = np.where(pos, cos, 1.0)
         lnc = np.log(cc)
         pk = np.where(pos, np.exp(m[:, None] * lnc), 0.0)
         ks = X[:, 4 + 5 * k: 7 + 5 * k]
-        model += pk[..., None] * ks[:, None, :]
-        dpdc = np.where(pos, m[:, None] * pk / cc, 0.0)
+        dpdc = pk * m[:, None] / cc
         q[:, 1 + 4 * k] = pk
         q[:, 2 + 4 * k] = pk * lnc * m[:, None]
-        q[:, 3 + 4 * k] = dpdc * c_[..., 1]
-        q[:, 4 + 4 * k] = dpdc * c_[..., 2]
+        q[:, 3 + 4 * k] = dpdc * c_[:, 1]
+        q[:, 4 + 4 * k] = dpdc * c_[:, 2]
+        amod[:, :, 1 + 4 * k] = ks
         for c in range(3):
             coef[:, c, 4 + 5 * k + c, 1 + 4 * k] = 1.0
             coef[:, c, 3, 2 + 4 * k] = ks[:, c]
             coef[:, c, 7 + 5 * k, 3 + 4 * k] = ks[:, c]
             coef[:, c, 8 + 5 * k, 4 + 4 * k] = ks[:, c]
-    r = model - Ls
     qw = q * W[:, None, :]
     Q = np.matmul(qw, q.transpose(0, 2, 1))  # (B, nb, nb)
-    R = np.matmul(qw, r)  # (B, nb, 3)
-    A = np.zeros((B, nx, nx))
-    g = np.zeros((B, nx))
-    for c in range(3):
-        cf = coef[:, c]
-        A += np.matmul(np.matmul(cf, Q), cf.transpose(0, 2, 1))
-        g += np.matmul(cf, R[:, :, c:c + 1])[..., 0]
-    cost = (W[..., None] * r * r).sum((1, 2))
-    return cost, A, g
+    qL = np.matmul(qw, Ls)  # (B, nb, 3)
+    if LL is None:
+        LL = (W[..., None] * Ls * Ls).sum(1)
+    # R = q_w r = Q a - qL, per channel; cost = a Q a - 2 a qL + LL
+    Qa = np.matmul(amod, Q)  # (B, 3, nb)
+    R = Qa.transpose(0, 2, 1) - qL  # (B, nb, 3)
+    cost = ((Qa * amod).sum(-1) - 2 * (amod * qL.transpose(0, 2, 1)).sum(-1) + LL).sum(-1)
+    cf = coef  # (B, 3, nx, nb)
+    A = np.matmul(np.matmul(cf, Q[:, None]), cf.transpose(0, 1, 3, 2)).sum(1)
+    g = np.matmul(cf, R.transpose(0, 2, 1)[..., None])[..., 0].sum(1)
+    return np.maximum(cost, 0.0), A, g
 
 
 def refine_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, P0: np.ndarray,
@@ -351,7 +355,8 @@ def refine_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, P0: np.ndarray,
     lb, ub = _bounds(K)
     X = np.clip(X, lb, ub)
     lam = np.full(len(X), 1e-3)
-    cost, A, g = _normal_equations(X, V, Ls, W, K)
+    LL = (W[..., None] * Ls * Ls).sum(1)
+    cost, A, g = _normal_equations(X, V, Ls, W, K, LL)
     nx = X.shape[1]
     eye = np.eye(nx)
     act = np.arange(len(X))  # texels still improving
@@ -363,7 +368,7 @@ def refine_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, P0: np.ndarray,
         except np.linalg.LinAlgError:
             break
         Xn = np.clip(X[act] + step, lb, ub)
-        cn, An, gn = _normal_equations(Xn, V[act], Ls[act], W[act], K)
+        cn, An, gn = _normal_equations(Xn, V[act], Ls[act], W[act], K, LL[act])
         better = np.isfinite(cn) & (cn < cost[act])
         gain = np.where(better, (cost[act] - cn) / np.maximum(cost[act], 1e-300), 0.0)
         b = act[better]
@@ -449,32 +454,30 @@ def _from_x(x: np.ndarray, s: float) -> np.ndarray:
 
 
 def _objective(V: np.ndarray, L: np.ndarray, K: int, loss: str, f: float):
-    """nlopt objective with analytic gradient, on scaled radiance L (n, 3)."""
-
+    """nlopt objective with analytic gradient, on scaled radiance L (n, 3); all lobes
+    handled at once (few numpy calls per evaluation: the per-call overhead dominates
+    at a few hundred observations)."""
     best = [math.inf, None]
+    idx_ks = np.array([4 + 5 * k + c for k in range(K) for c in range(3)])
+    idx_th = np.array([7 + 5 * k for k in range(K)])
+    idx_ph = idx_th + 1
 
     def fn(x: np.ndarray, grad: np.ndarray) -> float:
         m = math.exp(x[3])
-        model = np.broadcast_to(x[0:3], L.shape).copy()
-        lobes = []
-        for k in range(K):
-            th, ph = x[7 + 5 * k], x[8 + 5 * k]
-            st, ct, sp, cp = math.sin(th), math.cos(th), math.sin(ph), math.cos(ph)
-            d = np.array([st * cp, st * sp, ct])
-            c = V @ d
-            pos = c > 0
-            cc = np.where(pos, c, 1.0)
-            p = np.where(pos, cc ** m, 0.0)
-            ks = x[4 + 5 * k: 7 + 5 * k]
-            model += p[:, None] * ks
-            lobes.append((st, ct, sp, cp, cc, pos, p, ks))
-        r = model - L
+        th, ph = x[idx_th], x[idx_ph]
+        st, ct, sp, cp = np.sin(th), np.cos(th), np.sin(ph), np.cos(ph)
+        C = V @ np.stack([st * cp, st * sp, ct], 1).T  # (n, K)
+        pos = C > 0
+        Cs = np.where(pos, C, 1.0)
+        lc = np.log(Cs)
+        P = np.where(pos, np.exp(m * lc), 0.0)
+        KS = x[idx_ks].reshape(K, 3)
+        r = P @ KS + x[0:3] - L
         if loss == "linear":
-            val = float(np.sum(r * r))
+            val = float(np.vdot(r, r))
             dr = 2 * r
         elif loss == "soft_l1":
-            z = 1 + (r / f) ** 2
-            sq = np.sqrt(z)
+            sq = np.sqrt(1 + (r / f) ** 2)
             val = float(np.sum(2 * f * f * (sq - 1)))
             dr = 2 * r / sq
         else:  # huber
@@ -482,19 +485,15 @@ def _objective(V: np.ndarray, L: np.ndarray, K: int, loss: str, f: float):
             val = float(np.sum(np.where(a <= f, r * r, 2 * f * a - f * f)))
             dr = np.where(a <= f, 2 * r, 2 * f * np.sign(r))
         if grad.size > 0:
+            G = dr @ KS.T  # (n, K): sum over channels of dr * Ks
             grad[0:3] = dr.sum(0)
-            gm = 0.0
-            for k, (st, ct, sp, cp, cc, pos, p, ks) in enumerate(lobes):
-                drk = dr @ ks  # (n,)
-                grad[4 + 5 * k: 7 + 5 * k] = p @ dr
-                gm += float(np.sum(drk * p * np.where(pos, np.log(cc), 0.0)))
-                dpdc = np.where(pos, m * p / cc, 0.0)
-                g = drk * dpdc
-                dth = np.array([ct * cp, ct * sp, -st])
-                dph = np.array([-st * sp, st * cp, 0.0])
-                grad[7 + 5 * k] = float(g @ (V @ dth))
-                grad[8 + 5 * k] = float(g @ (V @ dph))
-            grad[3] = gm * m
+            grad[idx_ks] = (P.T @ dr).ravel()
+            GP = G * P
+            grad[3] = float(np.vdot(GP, lc)) * m
+            Gd = GP * (m / Cs)
+            grad[idx_th] = np.einsum("nk,nk->k", V @ np.stack([ct * cp, ct * sp, -st], 1).T, Gd)
+            grad[idx_ph] = np.einsum("nk,nk->k", V @ np.stack([-st * sp, st * cp, 0 * st], 1).T,
+                                     Gd)
         if val < best[0]:
             best[0], best[1] = val, x.copy()
         return val
@@ -541,8 +540,8 @@ def fit_texel(V: np.ndarray, L: np.ndarray, p0: np.ndarray,
         # mostly at an already converged start.
         x = fn.best[1] if fn.best[1] is not None else x0
         code = -4
-    if fn.best[1] is not None and fn.best[0] <= fn(x, np.empty(0)):
-        x = fn.best[1]
+    if fn.best[1] is not None:
+        x = fn.best[1]  # the best point evaluated (what nlopt returns, or better)
     p = _sort_lobes(_from_x(x, s))
     if cfg.loss == "linear" and fn.best[1] is not None:
         rss = fn.best[0] * s * s  # the objective is the RSS of the scaled radiance
