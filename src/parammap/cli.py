@@ -258,6 +258,27 @@ def _fit_mh(a: argparse.Namespace) -> int:
     return 0
 
 
+@_command("fit-sh")
+def _fit_sh(a: argparse.Namespace) -> int:
+    from .metrics import write_metrics
+    from .models.sh import fit_sh_map, parse_sh_model, sh_figures
+
+    full = _stage_config(a)
+    cfg = full["fit"]
+    out = Path(a.out)
+    hemi, n = parse_sh_model(a.model)
+    name = f"sh-{hemi}-{n * n}"
+    m = fit_sh_map(out / "observation.zarr", out / "fit" / f"{name}.zarr", hemi, n, cfg["sh"],
+                   cfg["scheduler"], a.workers or cfg["workers"] or full["workers"], log=_log)
+    write_metrics(out / "metrics" / f"fit-{name}.json", m)
+    if a.figures:
+        sh_figures(out / "fit" / f"{name}.zarr", out / "observation.zarr", a.figures, name,
+                   [tuple(x) for x in full["observation"]["lobe_texels"]] or None)
+    _log(f"fit-sh: {name} mean % residual {m['mean_percentage_residual']}, "
+         f"{m['texels_per_second']:.1f} texels/s")
+    return 0
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="parammap", description=__doc__.splitlines()[0])
     p.add_argument("--version", action="version", version=f"parammap {__version__}")
@@ -282,7 +303,8 @@ def _parser() -> argparse.ArgumentParser:
                            ("calibrate", "intrinsics from the calibration photos"),
                            ("poses", "pose of every view from the surface markers"),
                            ("observe", "build the observation map (zarr)"),
-                           ("fit-mh", "fit the Multiple Highlight model to every texel")):
+                           ("fit-mh", "fit the Multiple Highlight model to every texel"),
+                           ("fit-sh", "project every texel onto spherical harmonics")):
         s = sub.add_parser(name, help=helptext)
         s.add_argument("capture")
         s.add_argument("--out", required=True, help="data/processed/<id>")
@@ -298,12 +320,15 @@ def _parser() -> argparse.ArgumentParser:
         if name == "hdr":
             s.add_argument("--response", help="response CSV (default <out>/camera/response.csv)")
             s.add_argument("--view", action="append", help="only this view (repeatable)")
-        if name in ("poses", "observe", "fit-mh"):
+        if name in ("poses", "observe", "fit-mh", "fit-sh"):
             s.add_argument("--figures", help="report folder for the figures")
-        if name in ("observe", "fit-mh"):
+        if name in ("observe", "fit-mh", "fit-sh"):
             s.add_argument("--workers", type=int, help="processes (default: config workers)")
         if name == "fit-mh":
             s.add_argument("--lobes", default="1", help="lobes K, or auto (default 1)")
+        if name == "fit-sh":
+            s.add_argument("--model", default="sh-lsop-36",
+                           help="sh-<zh|mirror|lsop|rlsop|wls>-<coefficients>")
     return p
 
 

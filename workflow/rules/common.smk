@@ -47,6 +47,11 @@ def mh_models():
     return [f"mh-{k}" for k in config["fit"]["mh"]["lobes"]]
 
 
+def models():
+    """Every fitted model name (outputs.md): mh-<K> and sh-<hemisphere>-<n^2>."""
+    return mh_models() + list(config["fit"]["sh"]["models"])
+
+
 def all_targets():
     targets = []
     for sid in CAPTURES:
@@ -56,7 +61,7 @@ def all_targets():
             f"{PROC}/{sid}/metrics/hdr.json",
             f"{PROC}/{sid}/metrics/observation.json",
         ]
-        targets += [f"{PROC}/{sid}/metrics/fit-{m}.json" for m in mh_models()]
+        targets += [f"{PROC}/{sid}/metrics/fit-{m}.json" for m in models()]
     return targets
 
 

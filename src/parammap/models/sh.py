@@ -1,0 +1,383 @@
+"""Spherical harmonics (SH) model: basis, hemisphere solid angles and projections.
+
+Basis (conventions.md, 004 eqs. 12.1-12.5): real, orthonormal over the full sphere,
+index ``i = l (l + 1) + m``, ``n`` bands give ``n^2`` coefficients per channel::
+
+    y_l^m = sqrt(2) K_l^m cos(m phi) P_l^m(cos theta)      m > 0
+    y_l^m = sqrt(2) K_l^m sin(-m phi) P_l^-m(cos theta)    m < 0
+    y_l^0 = K_l^0 P_l^0(cos theta)
+
+with the Condon-Shortley phase inside ``P_m^m`` (004 eq. 12.1 rule 2). theta is the
+zenith and phi the azimuth of a direction in the surface frame.
+
+The samples cover only the upper hemisphere; ``hemisphere`` selects how (004 ch. 12.3):
+
+- ``zh`` (zero hemisphere): project with the lower hemisphere taken as zero;
+- ``mirror``: the samples reflected below the equator (the function is even in z);
+- ``lsop``: least-squares optimal projection, ``A c = b`` with A the Gram matrix of the
+  basis over the upper hemisphere (004 eq. 12.14);
+- ``rlsop``: regularised LSOP, ``(A + lambda D) c = b`` with ``D = diag((l (l + 1))^2)``:
+  Tikhonov damping of the surface Laplacian of the reconstruction over the whole sphere.
+  The unsampled lower hemisphere is what leaves plain LSOP free to oscillate (the
+  ringing 004 saw at 64+ coefficients, its ch. 18 suggests filtering); penalising
+  roughness removes that freedom, most for the highest bands, while barely touching
+  the low bands that carry the data;
+- ``wls``: weighted least squares directly on the samples (solid angles as weights).
+
+Every projection integrates with per-sample solid angles: the spherical Voronoi cells of
+the texel's valid directions, mirrored below the equator so that the cells of the
+upper points tile exactly the upper hemisphere (any upper direction is nearer to an
+upper sample than to that sample's mirror image, so no cell crosses the equator and
+cells of samples near the equator end exactly on it: the "half cells").
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import ConvexHull
+
+__all__ = [
+    "HEMISPHERES",
+    "fit_sh_map",
+    "fit_sh_tile",
+    "hemisphere_gram",
+    "project",
+    "sh_basis",
+    "sh_eval",
+    "sh_figures",
+    "sh_outputs",
+    "solid_angles",
+]
+
+HEMISPHERES = ("zh", "mirror", "lsop", "rlsop", "wls")
+STATUS_NOT_FITTED, STATUS_OK, STATUS_TOO_FEW, STATUS_FAILED = 0, 1, 2, 3
+
+
+def _lm(n: int) -> tuple[np.ndarray, np.ndarray]:
+    l_ = np.repeat(np.arange(n), 2 * np.arange(n) + 1)
+    m_ = np.concatenate([np.arange(-l, l + 1) for l in range(n)])
+    return l_, m_
+
+
+@lru_cache(maxsize=64)
+def _norms(n: int) -> np.ndarray:
+    K = np.zeros((n, n))
+    for l in range(n):
+        for m in range(l + 1):
+            K[l, m] = math.sqrt((2 * l + 1) * math.factorial(l - m)
+                                / (4 * math.pi * math.factorial(l + m)))
+    return K
+
+
+def sh_basis(directions: np.ndarray, n: int) -> np.ndarray:
+    """Real SH basis values.
+
+    Parameters
+    ----------
+    directions : (..., 3) unit vectors, surface frame.
+    n : number of bands.
+
+    Returns
+    -------
+    (..., n^2) values, index ``l (l + 1) + m``.
+    """
+    d = np.asarray(directions, float)
+    x = np.clip(d[..., 2], -1.0, 1.0)
+    phi = np.arctan2(d[..., 1], d[..., 0])
+    s = np.sqrt(np.maximum(1 - x * x, 0.0))
+    K = _norms(n)
+    out = np.empty(d.shape[:-1] + (n * n,))
+    pmm = np.ones_like(x)
+    for m in range(n):
+        if m > 0:
+            pmm = -(2 * m - 1) * s * pmm  # (-1)^m (2m - 1)!! (1 - x^2)^(m/2)
+        p_prev, p = None, pmm
+        cm, sm = (np.cos(m * phi), np.sin(m * phi)) if m else (None, None)
+        for l in range(m, n):
+            if l == m + 1:
+                p_prev, p = p, x * (2 * m + 1) * pmm
+            elif l > m + 1:
+                p_prev, p = p, ((2 * l - 1) * x * p - (l + m - 1) * p_prev) / (l - m)
+            if m == 0:
+                out[..., l * (l + 1)] = K[l, 0] * p
+            else:
+                out[..., l * (l + 1) + m] = math.sqrt(2) * K[l, m] * cm * p
+                out[..., l * (l + 1) - m] = math.sqrt(2) * K[l, m] * sm * p
+    return out
+
+
+def sh_eval(coeffs: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """Reconstruct radiance: coeffs (..., 3, n^2), directions (..., N, 3) ->
+    (..., N, 3) (004 eq. 12.15)."""
+    n = int(round(math.sqrt(coeffs.shape[-1])))
+    Y = sh_basis(directions, n)
+    return np.einsum("...ni,...ci->...nc", Y, coeffs)
+
+
+@lru_cache(maxsize=16)
+def hemisphere_gram(n: int) -> np.ndarray:
+    """(n^2, n^2) Gram matrix ``A_ij = int_H y_i y_j`` over the upper hemisphere.
+
+    Exact quadrature: Gauss-Legendre in cos(theta) on [0, 1] (the products are
+    polynomials there once the azimuthal integral has selected equal |m|) times the
+    trapezoid rule in phi, exact for trigonometric polynomials of degree < 4n.
+    """
+    xg, wg = np.polynomial.legendre.leggauss(2 * n + 4)
+    x = 0.5 * (xg + 1)
+    w = 0.5 * wg
+    nphi = 4 * n + 4
+    phi = 2 * np.pi * np.arange(nphi) / nphi
+    X, PHI = np.meshgrid(x, phi, indexing="ij")
+    s = np.sqrt(1 - X * X)
+    d = np.stack([s * np.cos(PHI), s * np.sin(PHI), X], -1).reshape(-1, 3)
+    Y = sh_basis(d, n)
+    wt = (w[:, None] * np.full(nphi, 2 * np.pi / nphi)[None]).ravel()
+    A = (Y * wt[:, None]).T @ Y
+    A = 0.5 * (A + A.T)
+    A.setflags(write=False)
+    return A
+
+
+def _signed_area(a, b, c):
+    """Signed solid angle of spherical triangles (Van Oosterom & Strackee)."""
+    num = np.einsum("...i,...i->...", a, np.cross(b, c))
+    den = 1 + np.einsum("...i,...i->...", a, b) + np.einsum("...i,...i->...", b, c) \
+        + np.einsum("...i,...i->...", c, a)
+    return 2 * np.arctan2(num, den)
+
+
+def _triangulation(ref: np.ndarray) -> np.ndarray:
+    """Outward-oriented triangles of the convex hull of ref and its mirror image."""
+    pts = np.concatenate([ref, ref * [1, 1, -1]])
+    tri = ConvexHull(pts).simplices
+    a, b, c = pts[tri[:, 0]], pts[tri[:, 1]], pts[tri[:, 2]]
+    flip = np.einsum("ij,ij->i", np.cross(b - a, c - a), a + b + c) < 0
+    tri[flip] = tri[flip][:, [0, 2, 1]]
+    return tri
+
+
+def solid_angles(directions: np.ndarray, reference: np.ndarray | None = None) -> np.ndarray:
+    """Solid angle of each direction's spherical Voronoi cell within the upper
+    hemisphere.
+
+    Parameters
+    ----------
+    directions : (..., N, 3) unit vectors with z > 0; a batch of texels shares one
+        triangulation (the Delaunay triangulation of ``reference``, default the batch
+        mean), while each texel's own directions give its cell areas, so per-texel
+        areas cost one convex hull per batch. Directions of nearby texels differ by
+        small smooth shifts, which keep the triangulation valid.
+
+    Returns
+    -------
+    (..., N) solid angles in steradians, summing to 2 pi per texel.
+    """
+    d = np.asarray(directions, float)
+    batch = d.shape[:-2]
+    N = d.shape[-2]
+    d = d.reshape((-1, N, 3))
+    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    d[..., 2] = np.maximum(d[..., 2], 1e-6)
+    ref = d.mean(0) if reference is None else np.asarray(reference, float)
+    ref = ref / np.linalg.norm(ref, axis=-1, keepdims=True)
+    tri = _triangulation(ref)
+    pts = np.concatenate([d, d * [1, 1, -1]], axis=1)  # (B, 2N, 3)
+    a, b, c = (pts[:, tri[:, k]] for k in range(3))  # (B, F, 3)
+    u = np.cross(b - a, c - a)
+    u /= np.linalg.norm(u, axis=-1, keepdims=True)  # circumcentre on the sphere
+
+    def mid(p, q):
+        s = p + q
+        return s / np.linalg.norm(s, axis=-1, keepdims=True)
+
+    mab, mbc, mca = mid(a, b), mid(b, c), mid(c, a)
+    B = pts.shape[0]
+    offs = (np.arange(B) * 2 * N)[:, None]
+    area = np.zeros(B * 2 * N)
+    for v, m1, m2, k in ((a, mab, mca, 0), (b, mbc, mab, 1), (c, mca, mbc, 2)):
+        contrib = _signed_area(v, m1, u) + _signed_area(v, u, m2)
+        area += np.bincount((offs + tri[:, k]).ravel(), contrib.ravel(), minlength=B * 2 * N)
+    return area.reshape(B, 2 * N)[:, :N].reshape(batch + (N,))
+
+
+def project(
+    radiance: np.ndarray, directions: np.ndarray, weights: np.ndarray, n: int,
+    hemisphere: str = "lsop", reg: float = 1e-4,
+) -> np.ndarray:
+    """SH coefficients of a batch of texels.
+
+    Parameters
+    ----------
+    radiance : (B, N, 3); directions : (B, N, 3) upper-hemisphere unit vectors;
+    weights : (B, N) solid angles (0 for invalid samples).
+    n : bands; hemisphere : ``zh``, ``mirror``, ``lsop``, ``rlsop`` or ``wls``.
+    reg : lambda of ``rlsop`` (relative to A, whose diagonal is ~0.5).
+
+    Returns
+    -------
+    (B, 3, n^2) coefficients, channel blocks in R, G, B order.
+    """
+    if hemisphere not in HEMISPHERES:
+        raise ValueError(f"unknown hemisphere handling {hemisphere!r} "
+                         f"(one of {', '.join(HEMISPHERES)})")
+    Y = sh_basis(directions, n)  # (B, N, n2)
+    Yw = Y * weights[..., None]
+    b = np.einsum("bni,bnc->bci", Yw, radiance)  # int_H f y_i
+    if hemisphere == "zh":
+        return b
+    if hemisphere == "mirror":
+        l_, m_ = _lm(n)
+        even = ((l_ + m_) % 2 == 0).astype(float)  # y_i(x, y, -z) = (-1)^(l+m) y_i
+        return 2 * b * even
+    if hemisphere == "wls":
+        G = np.einsum("bni,bnj->bij", Yw, Y)
+        G += 1e-10 * np.trace(G, axis1=1, axis2=2)[:, None, None] * np.eye(n * n)
+        return np.linalg.solve(G[:, None], b[..., None])[..., 0]
+    A = hemisphere_gram(n)
+    if hemisphere == "rlsop":
+        l_, _ = _lm(n)
+        A = A + reg * np.diag((l_ * (l_ + 1.0)) ** 2)
+    return np.linalg.solve(A, b.reshape(-1, n * n).T).T.reshape(b.shape)
+
+
+# ---------------------------------------------------------------------------------
+# Tiles and maps
+
+
+def sh_outputs(n: int) -> dict[str, tuple[tuple[int, ...], str, float]]:
+    """Arrays of an SH fit store: name -> (trailing shape, dtype, fill value)."""
+    return {
+        "coeffs": ((3 * n * n,), "float32", float("nan")),
+        "rmse": ((3,), "float32", float("nan")),
+        "mpr": ((3,), "float32", float("nan")),
+        "status": ((), "int8", STATUS_NOT_FITTED),
+    }
+
+
+def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, n: int,
+                hemisphere: str, reg: float = 1e-4, batch: int = 256,
+                min_obs: int | None = None) -> dict[str, np.ndarray]:
+    """Project every texel of a tile, batched (texels sharing one validity pattern
+    share one triangulation). (t, u, N, 3) inputs; outputs as :func:`sh_outputs`."""
+    from .mh import mean_percentage_residual
+
+    t, u, N, _ = radiance.shape
+    out = {k: np.full((t, u) + shp, fill, dtype) for k, (shp, dtype, fill) in
+           sh_outputs(n).items()}
+    flat = {k: v.reshape((t * u,) + v.shape[2:]) for k, v in out.items()}
+    L = radiance.reshape(t * u, N, 3).astype(float)
+    V = direction.reshape(t * u, N, 3).astype(float)
+    W = valid.reshape(t * u, N) & np.isfinite(L).all(-1) & np.isfinite(V).all(-1) \
+        & (V[..., 2] > 0)
+    min_obs = min_obs or 4
+    nobs = W.sum(1)
+    flat["status"][nobs < min_obs] = STATUS_TOO_FEW
+    todo = np.flatnonzero(nobs >= min_obs)
+    # group texels by validity pattern: one triangulation per pattern and batch
+    keys = {}
+    for b in todo:
+        keys.setdefault(W[b].tobytes(), []).append(b)
+    for idx in keys.values():
+        idx = np.array(idx)
+        w = W[idx[0]]
+        for s0 in range(0, len(idx), batch):
+            sel = idx[s0:s0 + batch]
+            v, y = V[sel][:, w], L[sel][:, w]
+            try:
+                omega = solid_angles(v)
+                c = project(y, v, omega, n, hemisphere, reg)
+            except Exception:  # noqa: BLE001 - a failed batch is flagged, never fatal
+                flat["status"][sel] = STATUS_FAILED
+                continue
+            fitted = sh_eval(c, v)
+            flat["coeffs"][sel] = c.reshape(len(sel), -1)
+            flat["rmse"][sel] = np.sqrt(np.mean((fitted - y) ** 2, axis=1))
+            flat["mpr"][sel] = mean_percentage_residual(y, fitted)
+            flat["status"][sel] = np.where(np.isfinite(c).all((1, 2)), STATUS_OK,
+                                           STATUS_FAILED)
+    return out
+
+
+def parse_sh_model(name: str) -> tuple[str, int]:
+    """``sh-<hemisphere>-<coefficients>`` -> (hemisphere, bands)."""
+    parts = name.split("-")
+    if len(parts) != 3 or parts[0] != "sh" or parts[1] not in HEMISPHERES:
+        raise ValueError(f"SH model name must be sh-<{'|'.join(HEMISPHERES)}>-<n^2> "
+                         f"(got {name!r})")
+    try:
+        nc = int(parts[2])
+    except ValueError:
+        nc = -1
+    n = int(round(math.sqrt(max(nc, 0))))
+    if nc < 1 or n * n != nc:
+        raise ValueError(f"{name}: the coefficient count must be a square (1, 4, 9, 16...)")
+    return parts[1], n
+
+
+def fit_sh_map(obs_path: str | Path, out_path: str | Path, hemisphere: str, n: int,
+               cfg: dict, scheduler: str = "processes", workers: int = 2, log=print) -> dict:
+    """Project every texel of an observation map onto n SH bands into
+    ``fit/sh-<hemisphere>-<n^2>.zarr``; returns the figures for its metrics file."""
+    from functools import partial
+
+    from ..fitting import fit_map, open_fit
+
+    reg = float(cfg.get("regularisation", 1e-4))
+    res = fit_map(obs_path, out_path,
+                  partial(fit_sh_tile, n=n, hemisphere=hemisphere, reg=reg),
+                  sh_outputs(n),
+                  {"model": "sh", "model_version": 1, "hemisphere": hemisphere, "bands": n,
+                   "coefficients": n * n, "regularisation": reg if hemisphere == "rlsop"
+                   else None,
+                   "layout": "sh.R.00 .. sh.R.(n^2-1), then G, then B; index l(l+1)+m"},
+                  scheduler, workers, log)
+    g = open_fit(out_path)
+    ok = g["status"][:] == STATUS_OK
+    mpr = g["mpr"][:][ok]
+    return {
+        "model": f"sh-{hemisphere}-{n * n}", "texels": res["texels"], "fitted": int(ok.sum()),
+        "too_few_observations": int((res["status"] == STATUS_TOO_FEW).sum()),
+        "failed": int((res["status"] == STATUS_FAILED).sum()),
+        "seconds": res["seconds"], "texels_per_second": res["texels_per_second"],
+        "mean_percentage_residual": np.nanmean(mpr, 0).tolist() if ok.any() else None,
+        "median_percentage_residual": np.nanmedian(mpr, 0).tolist() if ok.any() else None,
+        "rmse": np.nanmean(g["rmse"][:][ok], 0).tolist() if ok.any() else None,
+        "scheduler": scheduler, "workers": workers,
+    }
+
+
+def sh_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path, name: str,
+               texels: list[tuple[int, int]] | None = None) -> list[Path]:
+    """Coefficient maps of the first bands, residual maps and lobe plots."""
+    from ..fitting import open_fit
+    from ..observation import open_observation_map
+    from ..report import default_lobe_texels, plot_lobes, plot_maps
+
+    g = open_fit(fit_path)
+    obs = open_observation_map(obs_path)
+    out_dir = Path(out_dir)
+    n2 = g.attrs["coefficients"]
+    c = g["coeffs"][:].astype(float).reshape(g.attrs["T"], g.attrs["S"], 3, n2)
+    lum = c.transpose(0, 1, 3, 2) @ [0.2126, 0.7152, 0.0722]
+    l_, m_ = _lm(g.attrs["bands"])
+    maps = {f"y[{l},{m}] (luminance)": lum[..., i]
+            for i, (l, m) in enumerate(zip(l_, m_, strict=True)) if l < 3}
+    paths = [plot_maps(maps, out_dir / f"{name}_params.png",
+                       f"{name}: coefficients of bands 0-2", cols=5, symmetric=True)]
+    mpr = g["mpr"][:].astype(float)
+    paths.append(plot_maps({f"mean % residual {ch}": mpr[..., i] for i, ch in enumerate("RGB")}
+                           | {"RMSE (mean of RGB)": g["rmse"][:].astype(float).mean(-1)},
+                           out_dir / f"{name}_residuals.png", f"{name}: residuals", cols=4))
+    entries = []
+    for r, col in texels or default_lobe_texels(g.attrs["S"], g.attrs["T"]):
+        v = obs["valid"][r, col]
+        d = obs["direction"][r, col][v]
+        entries.append({"label": f"texel [{r}, {col}]", "direction": d,
+                        "measured": obs["radiance"][r, col][v], "fitted": sh_eval(c[r, col], d)})
+    paths.append(plot_lobes(entries, out_dir / f"{name}_lobes.png",
+                            f"{name}: measured (dots) and reconstructed (crosses)"))
+    return paths
