@@ -15,6 +15,7 @@ include: "workflow/rules/capture.smk"
 include: "workflow/rules/hdr.smk"
 include: "workflow/rules/observation.smk"
 include: "workflow/rules/fit.smk"
+include: "workflow/rules/report.smk"
 
 
 rule all:

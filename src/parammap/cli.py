@@ -279,6 +279,54 @@ def _fit_sh(a: argparse.Namespace) -> int:
     return 0
 
 
+@_command("export")
+def _export(a: argparse.Namespace) -> int:
+    from .holdout import diffuse_map
+    from .params import param_map_from_fit, write_param_map
+
+    out = Path(a.out)
+    for name in a.model:
+        if name == "diffuse":
+            pm = diffuse_map(out / "observation.zarr")
+        else:
+            pm = param_map_from_fit(out / "fit" / f"{name}.zarr")
+        path = write_param_map(out / "params" / f"{name}.exr", pm, half=a.half)
+        _log(f"export: {path} ({pm.params.shape[-1]} channels, "
+             f"{'half' if a.half else 'float32'})")
+    return 0
+
+
+@_command("holdout")
+def _holdout(a: argparse.Namespace) -> int:
+    from .calibration import load_intrinsics
+    from .capture import load_capture
+    from .holdout import holdout_comparison
+    from .metrics import write_metrics
+    from .params import read_param_map
+
+    out = Path(a.out)
+    cap = load_capture(a.capture)
+    intr = load_intrinsics(out / "camera" / "intrinsics.yaml")
+    maps = {name: read_param_map(out / "params" / f"{name}.exr") for name in a.model}
+    res = holdout_comparison(cap, intr, out, maps, out / "holdout", log=_log)
+    write_metrics(out / "metrics" / "holdout.json", res)
+    return 0
+
+
+@_command("figures")
+def _figures(a: argparse.Namespace) -> int:
+    from .figures import make_figures
+
+    full = _stage_config(a)
+    paths = make_figures(a.kind, a.capture, a.out, a.figures, model=a.model,
+                         reference=a.reference, reference_label=a.reference_label,
+                         models=a.models or [], timings=[Path(p) for p in a.timings or []],
+                         lobe_texels=[tuple(x) for x in full["observation"]["lobe_texels"]]
+                         or None)
+    _log(f"figures {a.kind}: wrote {len(paths)} files to {a.figures}")
+    return 0
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="parammap", description=__doc__.splitlines()[0])
     p.add_argument("--version", action="version", version=f"parammap {__version__}")
@@ -304,7 +352,9 @@ def _parser() -> argparse.ArgumentParser:
                            ("poses", "pose of every view from the surface markers"),
                            ("observe", "build the observation map (zarr)"),
                            ("fit-mh", "fit the Multiple Highlight model to every texel"),
-                           ("fit-sh", "project every texel onto spherical harmonics")):
+                           ("fit-sh", "project every texel onto spherical harmonics"),
+                           ("export", "write parameter-map EXRs from fit stores"),
+                           ("holdout", "compare renders with the held-out photos")):
         s = sub.add_parser(name, help=helptext)
         s.add_argument("capture")
         s.add_argument("--out", required=True, help="data/processed/<id>")
@@ -326,9 +376,28 @@ def _parser() -> argparse.ArgumentParser:
             s.add_argument("--workers", type=int, help="processes (default: config workers)")
         if name == "fit-mh":
             s.add_argument("--lobes", default="1", help="lobes K, or auto (default 1)")
+        if name in ("export", "holdout"):
+            s.add_argument("--model", action="append", required=True,
+                           help="model name (mh-1, sh-lsop-36, diffuse...), repeatable")
+        if name == "export":
+            s.add_argument("--half", action="store_true", help="half floats (default float32)")
         if name == "fit-sh":
             s.add_argument("--model", default="sh-lsop-36",
                            help="sh-<zh|mirror|lsop|rlsop|wls>-<coefficients>")
+    s = sub.add_parser("figures", help="report figures and tables from stage outputs")
+    s.add_argument("kind", help="response | hdr | calibration | poses | observation | model | "
+                                "holdout | tables")
+    s.add_argument("capture")
+    s.add_argument("--out", required=True, help="data/processed/<id>")
+    s.add_argument("--figures", required=True, help="report folder, reports/<id>")
+    s.add_argument("--model", help="model name for kind model")
+    s.add_argument("--models", nargs="*", help="model names for kind tables")
+    s.add_argument("--timings", nargs="*", help="Snakemake benchmark files for kind tables")
+    s.add_argument("--reference", help="reference response for kind response")
+    s.add_argument("--reference-label", default="reference")
+    s.add_argument("--config", help="workflow config (default: built-in defaults)")
+    s.add_argument("--config-json", help="config sections as JSON")
+    s.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE")
     return p
 
 

@@ -47,16 +47,11 @@ def read_exr(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     if not path.is_file():
         raise ExrError(f"{path}: no such EXR file")
     try:
-        with OpenEXR.File(str(path)) as f:
+        # separate_channels: otherwise the binding merges R, G, B (also "Kd.R"...)
+        # into one multi-channel array
+        with OpenEXR.File(str(path), separate_channels=True) as f:
             header = dict(f.header())
-            chans = {}
-            for k, v in f.channels().items():
-                px = np.array(v.pixels)
-                # The binding merges R, G, B (and A) into one "RGB"/"RGBA" channel.
-                if px.ndim == 3 and len(k) == px.shape[2]:
-                    chans.update({c: px[..., i] for i, c in enumerate(k)})
-                else:
-                    chans[k] = px
+            chans = {k: np.array(v.pixels) for k, v in f.channels().items()}
     except Exception as exc:  # the binding raises bare RuntimeError/OSError variants
         raise ExrError(f"{path}: not a readable EXR file ({exc})") from None
     return chans, header

@@ -154,3 +154,33 @@ def plane_to_texel(
     col = np.asarray(x) * S / width_mm
     row = (height_mm - np.asarray(y)) * T / height_mm
     return row, col
+
+
+def sample_image(img: np.ndarray, x: np.ndarray, y: np.ndarray, nearest: bool = False,
+                 border: float = np.nan) -> np.ndarray:
+    """Sample an image at pixel coordinates (any shape; pixel centres at integers) with
+    bilinear (or nearest) interpolation; ``border`` outside. Returns x.shape + channels.
+
+    cv2.remap is fast but wants 2-D maps under 32767 rows and columns; points are laid
+    out in rows of 4096 here.
+    """
+    shape = np.shape(x)
+    xf = np.asarray(x, np.float32).ravel()
+    yf = np.asarray(y, np.float32).ravel()
+    n = xf.size
+    w = 4096
+    rows = max(1, -(-n // w))
+    pad = rows * w - n
+    mx = np.pad(xf, (0, pad), constant_values=-1e6).reshape(rows, w)
+    my = np.pad(yf, (0, pad), constant_values=-1e6).reshape(rows, w)
+    src = np.ascontiguousarray(img)
+    chans = src.shape[2] if src.ndim == 3 else 1
+    out = np.empty((rows, w, chans), src.dtype)
+    for r0 in range(0, rows, 4096):
+        sl = slice(r0, min(rows, r0 + 4096))
+        res = cv2.remap(src, mx[sl], my[sl],
+                        cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_CONSTANT, borderValue=(border,) * 4)
+        out[sl] = res.reshape(res.shape[:2] + (chans,))
+    out = out.reshape(-1, chans)[:n]
+    return out.reshape(shape + ((chans,) if src.ndim == 3 else ()))

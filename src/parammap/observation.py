@@ -46,7 +46,7 @@ import zarr
 from . import __version__
 from .calibration import Intrinsics, load_intrinsics
 from .capture import Capture
-from .geometry import texel_centres, unit
+from .geometry import sample_image, texel_centres, unit
 from .hdr import read_hdr
 
 __all__ = [
@@ -182,13 +182,10 @@ def sample_view(
     H, W = radiance.shape[:2]
     inside = ((uv[..., 0] >= 0) & (uv[..., 0] <= W - 1) & (uv[..., 1] >= 0)
               & (uv[..., 1] <= H - 1)).all(-1)
-    mx = uv[..., 0].reshape(-1, s * s)
-    my = uv[..., 1].reshape(-1, s * s)
-    samp = cv2.remap(radiance, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                     borderValue=(np.nan, np.nan, np.nan))
-    rad = samp.reshape(uv.shape[:3] + (3,)).mean(axis=2)
-    sat = cv2.remap(saturated.astype(np.uint8), mx, my, cv2.INTER_NEAREST,
-                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    samp = sample_image(radiance, uv[..., 0], uv[..., 1])  # (r, S, s*s, 3)
+    rad = samp.mean(axis=2)
+    sat = sample_image(saturated.astype(np.uint8), uv[..., 0], uv[..., 1], nearest=True,
+                       border=0) > 0
     sat = sat.reshape(uv.shape[:3]).any(axis=2)
     zen_ok = d[..., 2] >= math.cos(math.radians(max_zenith_deg))
     valid = inside & (depth > 0) & zen_ok & ~sat & np.isfinite(rad).all(-1)

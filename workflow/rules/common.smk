@@ -52,17 +52,30 @@ def models():
     return mh_models() + list(config["fit"]["sh"]["models"])
 
 
+def benchmark_files(sid):
+    """Snakemake benchmark files of a surface's main steps."""
+    steps = ["response", "calibrate", "poses", "observation", "holdout"]
+    steps += [f"fit-{m}" for m in models()]
+    return [f"logs/benchmarks/{sid}/{s}.tsv" for s in steps]
+
+
+def surface_targets(sid):
+    """Everything the workflow produces for one surface (the default target)."""
+    R = f"{REPORTS}/{sid}"
+    figs = [f"{R}/{f}.png" for f in ("contact_sheet", "response", "reexposure",
+                                      "calibration", "view_directions",
+                                      "pose_reprojection", "observation_valid_count",
+                                      "observation_lobes")]
+    figs += [f"{R}/{m}_{k}.png" for m in models() for k in ("params", "residuals", "lobes")]
+    figs += [f"{R}/holdout.csv", f"{R}/holdout", f"{R}/sizes.csv"]
+    data = [f"{PROC}/{sid}/params/{m}.exr" for m in models() + ["diffuse"]]
+    data += [f"{PROC}/{sid}/metrics/{m}.json" for m in ("hdr", "poses", "observation",
+                                                        "holdout")]
+    return figs + data
+
+
 def all_targets():
-    targets = []
-    for sid in CAPTURES:
-        targets += [
-            f"{REPORTS}/{sid}/contact_sheet.png",
-            f"{PROC}/{sid}/camera/poses.yaml",
-            f"{PROC}/{sid}/metrics/hdr.json",
-            f"{PROC}/{sid}/metrics/observation.json",
-        ]
-        targets += [f"{PROC}/{sid}/metrics/fit-{m}.json" for m in models()]
-    return targets
+    return [t for sid in CAPTURES for t in surface_targets(sid)]
 
 
 def synth_for(capdir):

@@ -1,5 +1,6 @@
 # Model fits: one job per model writes fit/<model>.zarr (dask over texel tiles inside
-# the job; scheduler from config.fit.scheduler), its metrics and figures.
+# the job; scheduler from config.fit.scheduler) and its metrics; then the parameter-map
+# EXR. Model names follow outputs.md: mh-<K> and sh-<hemisphere>-<coefficients>.
 
 
 rule fit_mh:
@@ -9,39 +10,22 @@ rule fit_mh:
     output:
         store=directory(f"{PROC}/{{sid}}/fit/mh-{{K}}.zarr"),
         metrics=f"{PROC}/{{sid}}/metrics/fit-mh-{{K}}.json",
-        params=report(
-            f"{REPORTS}/{{sid}}/mh-{{K}}_params.png",
-            caption="../report/mh_params.rst",
-            category="MH model",
-            subcategory="{sid}",
-        ),
-        residuals=report(
-            f"{REPORTS}/{{sid}}/mh-{{K}}_residuals.png",
-            caption="../report/mh_residuals.rst",
-            category="MH model",
-            subcategory="{sid}",
-        ),
-        lobes=report(
-            f"{REPORTS}/{{sid}}/mh-{{K}}_lobes.png",
-            caption="../report/mh_lobes.rst",
-            category="MH model",
-            subcategory="{sid}",
-        ),
     params:
         cli=PARAMMAP,
-        cfg=config_arg("fit", "observation"),
+        cfg=config_arg("fit"),
         out=lambda wc: f"{PROC}/{wc.sid}",
-        figures=lambda wc: f"{REPORTS}/{wc.sid}",
     wildcard_constraints:
         K="[0-9]+|auto",
     threads: WORKERS
     log:
         "logs/fit/{sid}/mh-{K}.log",
+    benchmark:
+        "logs/benchmarks/{sid}/fit-mh-{K}.tsv"
     conda:
         "../envs/parammap.yaml"
     shell:
         "{params.cli} fit-mh {input.capture} --out {params.out} --lobes {wildcards.K}"
-        " {params.cfg} --figures {params.figures} --workers {threads} 2> {log}"
+        " {params.cfg} --workers {threads} 2> {log}"
 
 
 rule fit_sh:
@@ -51,38 +35,79 @@ rule fit_sh:
     output:
         store=directory(f"{PROC}/{{sid}}/fit/sh-{{hemi}}-{{nc}}.zarr"),
         metrics=f"{PROC}/{{sid}}/metrics/fit-sh-{{hemi}}-{{nc}}.json",
-        params=report(
-            f"{REPORTS}/{{sid}}/sh-{{hemi}}-{{nc}}_params.png",
-            caption="../report/sh_params.rst",
-            category="SH model",
-            subcategory="{sid}",
-        ),
-        residuals=report(
-            f"{REPORTS}/{{sid}}/sh-{{hemi}}-{{nc}}_residuals.png",
-            caption="../report/sh_residuals.rst",
-            category="SH model",
-            subcategory="{sid}",
-        ),
-        lobes=report(
-            f"{REPORTS}/{{sid}}/sh-{{hemi}}-{{nc}}_lobes.png",
-            caption="../report/sh_lobes.rst",
-            category="SH model",
-            subcategory="{sid}",
-        ),
     params:
         cli=PARAMMAP,
-        cfg=config_arg("fit", "observation"),
+        cfg=config_arg("fit"),
         out=lambda wc: f"{PROC}/{wc.sid}",
-        figures=lambda wc: f"{REPORTS}/{wc.sid}",
     wildcard_constraints:
         hemi="zh|mirror|lsop|rlsop|wls",
         nc="[0-9]+",
     threads: WORKERS
     log:
         "logs/fit/{sid}/sh-{hemi}-{nc}.log",
+    benchmark:
+        "logs/benchmarks/{sid}/fit-sh-{hemi}-{nc}.tsv"
     conda:
         "../envs/parammap.yaml"
     shell:
         "{params.cli} fit-sh {input.capture} --out {params.out}"
-        " --model sh-{wildcards.hemi}-{wildcards.nc} {params.cfg}"
-        " --figures {params.figures} --workers {threads} 2> {log}"
+        " --model sh-{wildcards.hemi}-{wildcards.nc} {params.cfg} --workers {threads} 2> {log}"
+
+
+rule export_params:
+    input:
+        capture=capture_dir,
+        fit=f"{PROC}/{{sid}}/fit/{{model}}.zarr",
+    output:
+        f"{PROC}/{{sid}}/params/{{model}}.exr",
+    params:
+        cli=PARAMMAP,
+        out=lambda wc: f"{PROC}/{wc.sid}",
+    wildcard_constraints:
+        model="(mh|sh)-[a-z0-9-]+",
+    log:
+        "logs/export/{sid}/{model}.log",
+    conda:
+        "../envs/parammap.yaml"
+    shell:
+        "{params.cli} export {input.capture} --out {params.out} --model {wildcards.model}"
+        " 2> {log}"
+
+
+rule export_diffuse:
+    input:
+        capture=capture_dir,
+        obs=f"{PROC}/{{sid}}/observation.zarr",
+    output:
+        f"{PROC}/{{sid}}/params/diffuse.exr",
+    params:
+        cli=PARAMMAP,
+        out=lambda wc: f"{PROC}/{wc.sid}",
+    log:
+        "logs/export/{sid}/diffuse.log",
+    conda:
+        "../envs/parammap.yaml"
+    shell:
+        "{params.cli} export {input.capture} --out {params.out} --model diffuse 2> {log}"
+
+
+rule holdout:
+    input:
+        capture=capture_dir,
+        poses=f"{PROC}/{{sid}}/camera/poses.yaml",
+        params=lambda wc: expand(f"{PROC}/{wc.sid}/params/{{m}}.exr", m=models() + ["diffuse"]),
+    output:
+        metrics=f"{PROC}/{{sid}}/metrics/holdout.json",
+        images=directory(f"{PROC}/{{sid}}/holdout"),
+    params:
+        cli=PARAMMAP,
+        out=lambda wc: f"{PROC}/{wc.sid}",
+        models=" ".join(f"--model {m}" for m in models() + ["diffuse"]),
+    log:
+        "logs/holdout/{sid}.log",
+    benchmark:
+        "logs/benchmarks/{sid}/holdout.tsv"
+    conda:
+        "../envs/parammap.yaml"
+    shell:
+        "{params.cli} holdout {input.capture} --out {params.out} {params.models} 2> {log}"

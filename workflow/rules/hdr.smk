@@ -1,5 +1,7 @@
-# HDR stage: one response per capture, then every view merged in its own job (memory
-# bounded by one bracket), then the per-view figures gathered into metrics/hdr.json.
+# HDR and camera stages: one response per capture, every view merged in its own job
+# (memory bounded by one bracket), per-view figures gathered into metrics/hdr.json;
+# intrinsics from the board photos; the pose of every view from the surface markers.
+# Figures come from report.smk, never from these jobs.
 
 
 rule response:
@@ -7,29 +9,19 @@ rule response:
         capture=capture_dir,
         ok=f"{PROC}/{{sid}}/capture.ok",
     output:
-        csv=f"{PROC}/{{sid}}/camera/response.csv",
-        figure=report(
-            f"{REPORTS}/{{sid}}/response.png",
-            caption="../report/response.rst",
-            category="Capture",
-            subcategory="{sid}",
-        ),
+        f"{PROC}/{{sid}}/camera/response.csv",
     params:
         cli=PARAMMAP,
         cfg=config_arg("hdr"),
         out=lambda wc: f"{PROC}/{wc.sid}",
-        reference=lambda wc: (
-            f"--reference {CAPTURES[wc.sid]}.truth/response.npz --reference-label truth"
-            if wc.sid in SYNTH
-            else ""
-        ),
     log:
         "logs/response/{sid}.log",
+    benchmark:
+        "logs/benchmarks/{sid}/response.tsv"
     conda:
         "../envs/parammap.yaml"
     shell:
-        "{params.cli} response {input.capture} --out {params.out} {params.cfg}"
-        " --figure {output.figure} {params.reference} 2> {log}"
+        "{params.cli} response {input.capture} --out {params.out} {params.cfg} 2> {log}"
 
 
 rule hdr_view:
@@ -57,12 +49,6 @@ rule hdr_metrics:
         stats=lambda wc: expand(f"{PROC}/{wc.sid}/hdr/{{view}}.json", view=view_ids(wc)),
     output:
         metrics=f"{PROC}/{{sid}}/metrics/hdr.json",
-        figure=report(
-            f"{REPORTS}/{{sid}}/reexposure.png",
-            caption="../report/reexposure.rst",
-            category="Capture",
-            subcategory="{sid}",
-        ),
     log:
         "logs/hdr/{sid}/metrics.log",
     conda:
@@ -84,11 +70,12 @@ rule calibrate:
         out=lambda wc: f"{PROC}/{wc.sid}",
     log:
         "logs/calibrate/{sid}.log",
+    benchmark:
+        "logs/benchmarks/{sid}/calibrate.tsv"
     conda:
         "../envs/parammap.yaml"
     shell:
-        "{params.cli} calibrate {input.capture} --out {params.out} {params.cfg}"
-        " 2> {log}"
+        "{params.cli} calibrate {input.capture} --out {params.out} {params.cfg} 2> {log}"
 
 
 rule poses:
@@ -99,22 +86,15 @@ rule poses:
     output:
         f"{PROC}/{{sid}}/camera/poses.yaml",
         f"{PROC}/{{sid}}/metrics/poses.json",
-        report(
-            f"{REPORTS}/{{sid}}/view_directions.png",
-            caption="../report/view_directions.rst",
-            category="Capture",
-            subcategory="{sid}",
-        ),
-        f"{REPORTS}/{{sid}}/pose_reprojection.png",
     params:
         cli=PARAMMAP,
         cfg=config_arg("poses"),
         out=lambda wc: f"{PROC}/{wc.sid}",
-        figures=lambda wc: f"{REPORTS}/{wc.sid}",
     log:
         "logs/poses/{sid}.log",
+    benchmark:
+        "logs/benchmarks/{sid}/poses.tsv"
     conda:
         "../envs/parammap.yaml"
     shell:
-        "{params.cli} poses {input.capture} --out {params.out} {params.cfg}"
-        " --figures {params.figures} 2> {log}"
+        "{params.cli} poses {input.capture} --out {params.out} {params.cfg} 2> {log}"

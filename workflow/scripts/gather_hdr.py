@@ -3,4 +3,4 @@
 from parammap.hdr import gather_hdr_metrics
 
 snakemake = globals()["snakemake"]
-gather_hdr_metrics(snakemake.input.stats, snakemake.output.metrics, snakemake.output.figure)
+gather_hdr_metrics(snakemake.input.stats, snakemake.output.metrics)

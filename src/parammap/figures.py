@@ -1,0 +1,206 @@
+"""Report figures and tables of one surface, built only from stage outputs
+(``data/processed/<id>``): deleting ``reports/`` and rebuilding it never refits.
+
+Each ``kind`` writes into ``reports/<id>/``:
+
+- ``response``: response.png (recovered curve; a reference beside it when given)
+- ``hdr``: reexposure.png (re-exposure self-check per view)
+- ``calibration``: calibration.png (per-photo RMS of the board calibration)
+- ``poses``: view_directions.png, pose_reprojection.png
+- ``observation``: observation_valid_count.png, observation_lobes.png
+- ``model``: <model>_params.png, <model>_residuals.png, <model>_lobes.png
+- ``holdout``: holdout.csv, holdout/<view>.png (photo / render / difference per model)
+- ``tables``: sizes.csv (004 tables 9.1, 11.1, 12.1), models.csv, timings.csv
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from .metrics import read_metrics
+from .report import plot_hemisphere, plot_reexposure, plot_reprojection, plot_response, save_figure
+
+__all__ = ["KINDS", "make_figures"]
+
+KINDS = ("response", "hdr", "calibration", "poses", "observation", "model", "holdout", "tables")
+
+
+def _write_csv(path: Path, rows: list[dict]) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    with tmp.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]) if rows else ["empty"])
+        w.writeheader()
+        w.writerows(rows)
+    tmp.replace(path)
+    return path
+
+
+def _store_bytes(path: Path) -> int:
+    if path.is_file():
+        return path.stat().st_size
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+
+
+def _calibration(proc: Path, out: Path) -> list[Path]:
+    import matplotlib.pyplot as plt
+
+    m = read_metrics(proc / "metrics" / "calibration.json")
+    per = m.get("per_image_rms_px") or {}
+    fig, ax = plt.subplots(figsize=(max(4, len(per) * 0.25), 3))
+    ax.bar(range(len(per)), list(per.values()), color="tab:blue")
+    ax.set_xticks(range(len(per)))
+    ax.set_xticklabels(list(per), rotation=90, fontsize=6)
+    ax.set_ylabel("reprojection RMS (px)")
+    ax.set_title(f"calibration: RMS {m['rms_px']:.3f} px from {m['images_used']} photos; "
+                 f"fx {m['fx_px']:.1f}, fy {m['fy_px']:.1f}, c ({m['cx_px']:.1f}, "
+                 f"{m['cy_px']:.1f})", fontsize=8)
+    return [save_figure(fig, out / "calibration.png")]
+
+
+def _poses(proc: Path, out: Path, width_mm: float, height_mm: float, sid: str) -> list[Path]:
+    import yaml
+
+    records = yaml.safe_load((proc / "camera" / "poses.yaml").read_text())["views"]
+    paths = [plot_reprojection(records, out / "pose_reprojection.png")]
+    kept = [r for r in records if r["kept"]]
+    if kept:
+        C = np.array([r["centre_mm"] for r in kept]) - [width_mm / 2, height_mm / 2, 0]
+        paths.append(plot_hemisphere(C / np.linalg.norm(C, axis=1, keepdims=True),
+                                     out / "view_directions.png",
+                                     holdout=np.array([r["holdout"] for r in kept]),
+                                     title=f"{sid}: camera directions from poses"))
+    return paths
+
+
+def _holdout(proc: Path, out: Path) -> list[Path]:
+    import matplotlib.pyplot as plt
+
+    from .imageio import read_image
+
+    m = read_metrics(proc / "metrics" / "holdout.json")
+    rows = []
+    paths = []
+    for vid, rec in m["views"].items():
+        for name, s in rec["models"].items():
+            rows.append({"view": vid, "model": name, "gamma": f"{rec['gamma']:.4g}",
+                         "mean_diff_8bit": f"{s['mean_diff_8bit']:.2f}",
+                         "std_diff_8bit": f"{s['std_diff_8bit']:.2f}",
+                         "psnr_db": f"{s['psnr_db']:.2f}" if s["psnr_db"] else "",
+                         "pixels": s["pixels"]})
+        names = list(rec["models"])
+        fig, axes = plt.subplots(len(names), 3, figsize=(7.5, 2.1 * len(names)), squeeze=False)
+        photo = read_image(proc / "holdout" / f"{vid}_photo.png")
+        for k, name in enumerate(names):
+            img = read_image(proc / "holdout" / f"{vid}_{name}.png")
+            diff = read_image(proc / "holdout" / f"{vid}_{name}_diff.png")[..., 0]
+            axes[k, 0].imshow(photo)
+            axes[k, 1].imshow(img)
+            im = axes[k, 2].imshow(diff, cmap="magma", vmin=0, vmax=64)
+            s = rec["models"][name]
+            axes[k, 1].set_title(f"{name}", fontsize=7)
+            axes[k, 2].set_title(f"|diff| mean {s['mean_diff_8bit']:.2f} "
+                                 f"sd {s['std_diff_8bit']:.2f}", fontsize=7)
+            for ax in axes[k]:
+                ax.axis("off")
+        axes[0, 0].set_title(f"held-out photo {vid} (gamma {rec['gamma']:.3g})", fontsize=7)
+        fig.colorbar(im, ax=axes[:, 2], shrink=0.5, label="8-bit difference")
+        paths.append(save_figure(fig, out / "holdout" / f"{vid}.png"))
+    paths.insert(0, _write_csv(out / "holdout.csv", rows))
+    return paths
+
+
+def _tables(proc: Path, out: Path, models: list[str], timings: list[Path]) -> list[Path]:
+    obs_bytes = _store_bytes(proc / "observation.zarr")
+    om = read_metrics(proc / "metrics" / "observation.json")
+    sizes = [{"item": "observation map (zarr, compressed)", "bytes": obs_bytes,
+              "MB": f"{obs_bytes / 1e6:.2f}", "ratio_to_observation": "1"},
+             {"item": "observation map (uncompressed)", "bytes": om["bytes_uncompressed"],
+              "MB": f"{om['bytes_uncompressed'] / 1e6:.2f}",
+              "ratio_to_observation": f"{om['bytes_uncompressed'] / obs_bytes:.2f}"}]
+    rows = []
+    for name in models:
+        exr = proc / "params" / f"{name}.exr"
+        if exr.is_file():
+            b = exr.stat().st_size
+            sizes.append({"item": f"params/{name}.exr", "bytes": b, "MB": f"{b / 1e6:.3f}",
+                          "ratio_to_observation": f"{b / obs_bytes:.4f}"})
+        mf = proc / "metrics" / f"fit-{name}.json"
+        if mf.is_file():
+            m = read_metrics(mf)
+            mpr = m.get("mean_percentage_residual") or [float("nan")] * 3
+            med = m.get("median_percentage_residual") or [float("nan")] * 3
+            rows.append({"model": name, "texels": m["texels"], "fitted": m["fitted"],
+                         "failed": m["failed"],
+                         "mean_pct_residual_RGB": " ".join(f"{x:.2f}" for x in mpr),
+                         "median_pct_residual_RGB": " ".join(f"{x:.2f}" for x in med),
+                         "texels_per_s": f"{m['texels_per_second']:.1f}",
+                         "seconds": f"{m['seconds']:.1f}"})
+    time_rows = []
+    for p in sorted(timings):
+        lines = Path(p).read_text().splitlines()
+        if len(lines) < 2:
+            continue
+        head, vals = lines[0].split("\t"), lines[1].split("\t")
+        rec = dict(zip(head, vals, strict=False))
+        time_rows.append({"step": Path(p).stem, "seconds": rec.get("s", ""),
+                          "max_rss_mb": rec.get("max_rss", "")})
+    return [_write_csv(out / "sizes.csv", sizes), _write_csv(out / "models.csv", rows),
+            _write_csv(out / "timings.csv", time_rows)]
+
+
+def make_figures(kind: str, capture_dir: str | Path, processed: str | Path,
+                 out_dir: str | Path, model: str | None = None,
+                 reference: str | Path | None = None, reference_label: str = "reference",
+                 models: list[str] | None = None, timings: list[Path] | None = None,
+                 lobe_texels: list[tuple[int, int]] | None = None) -> list[Path]:
+    """Build one kind of report figure (see the module docstring)."""
+    from .capture import load_capture
+
+    proc, out = Path(processed), Path(out_dir)
+    if kind not in KINDS:
+        raise ValueError(f"unknown figure kind {kind!r} (one of {', '.join(KINDS)})")
+    cap = load_capture(capture_dir)
+    if kind == "response":
+        from .hdr import load_reference_response, load_response
+
+        if not (proc / "camera" / "response.csv").is_file():
+            import matplotlib.pyplot as plt
+
+            fig, ax = plt.subplots(figsize=(5, 1))
+            ax.axis("off")
+            ax.text(0.5, 0.5, "linear input: no response curve", ha="center")
+            return [save_figure(fig, out / "response.png")]
+        g = load_response(proc / "camera" / "response.csv")
+        ref = load_reference_response(reference) if reference else None
+        return [plot_response(g, out / "response.png", reference=ref,
+                              reference_label=reference_label,
+                              title=f"{cap.surface_id}: recovered response")]
+    if kind == "hdr":
+        return [plot_reexposure(read_metrics(proc / "metrics" / "hdr.json"),
+                                out / "reexposure.png")]
+    if kind == "calibration":
+        return _calibration(proc, out)
+    if kind == "poses":
+        return _poses(proc, out, cap.width_mm, cap.height_mm, cap.surface_id)
+    if kind == "observation":
+        from .observation import observation_figures
+
+        return observation_figures(proc / "observation.zarr", out, lobe_texels)
+    if kind == "model":
+        if not model:
+            raise ValueError("figures model: --model is required")
+        fit = proc / "fit" / f"{model}.zarr"
+        if model.startswith("mh-"):
+            from .models.mh import mh_figures
+
+            return mh_figures(fit, proc / "observation.zarr", out, model, lobe_texels)
+        from .models.sh import sh_figures
+
+        return sh_figures(fit, proc / "observation.zarr", out, model, lobe_texels)
+    if kind == "holdout":
+        return _holdout(proc, out)
+    return _tables(proc, out, models or [], timings or [])

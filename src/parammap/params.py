@@ -1,0 +1,139 @@
+"""Parameter-map EXR files: one multi-channel OpenEXR per surface and model.
+
+Channel names and header attributes follow conventions.md:
+
+- MH (K lobes): ``Kd.R Kd.G Kd.B m`` then for each lobe k = 1..K
+  ``lobek.Ks.R lobek.Ks.G lobek.Ks.B lobek.d.X lobek.d.Y lobek.d.Z``;
+- SH (n bands): ``sh.R.00 ... sh.R.(n^2-1)``, then G, then B (two digits at least);
+- a diffuse-only map (the baseline): ``Kd.R Kd.G Kd.B``.
+
+Rows as in the texel convention (row 0 at the top edge), float32 by default (half on
+request), ZIP compression. Header: ``parammap_model`` (mh, sh or diffuse),
+``parammap_model_version``, ``parammap_layout`` (the channel names, space separated),
+``parammap_hemisphere`` (SH), ``parammap_radiance_scale`` (a normalisation already
+undone: 1), ``width_mm``, ``height_mm``, ``S``, ``T`` and ``software``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import __version__
+from .exr import ExrError, read_exr, write_exr
+
+__all__ = ["MODELS", "ParamMap", "channel_names", "param_map_from_fit", "read_param_map",
+           "write_param_map"]
+
+MODELS = {"mh": 1, "sh": 1, "diffuse": 1}
+
+
+class ParamMapError(ExrError):
+    """A parameter-map EXR of an unknown model or layout."""
+
+
+def channel_names(model: str, n_params: int) -> list[str]:
+    """Channel names of a model's parameter vector of length ``n_params``."""
+    if model == "diffuse":
+        if n_params != 3:
+            raise ParamMapError(f"diffuse maps have 3 parameters (got {n_params})")
+        return ["Kd.R", "Kd.G", "Kd.B"]
+    if model == "mh":
+        if n_params < 10 or (n_params - 4) % 6:
+            raise ParamMapError(f"MH maps have 4 + 6K parameters (got {n_params})")
+        names = ["Kd.R", "Kd.G", "Kd.B", "m"]
+        for k in range(1, (n_params - 4) // 6 + 1):
+            names += [f"lobe{k}.Ks.R", f"lobe{k}.Ks.G", f"lobe{k}.Ks.B",
+                      f"lobe{k}.d.X", f"lobe{k}.d.Y", f"lobe{k}.d.Z"]
+        return names
+    if model == "sh":
+        nc = n_params // 3
+        n = int(round(math.sqrt(nc)))
+        if n_params % 3 or n * n != nc:
+            raise ParamMapError(f"SH maps have 3 n^2 parameters (got {n_params})")
+        w = max(2, len(str(nc - 1)))
+        return [f"sh.{c}.{i:0{w}d}" for c in "RGB" for i in range(nc)]
+    raise ParamMapError(f"unknown model {model!r} (known: {', '.join(MODELS)})")
+
+
+@dataclass
+class ParamMap:
+    """A parameter map: ``params`` (T, S, P) in the model's conventions.md order."""
+
+    model: str
+    params: np.ndarray
+    width_mm: float
+    height_mm: float
+    hemisphere: str | None = None
+    attrs: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.params.shape[:2]
+
+
+def write_param_map(path: str | Path, pm: ParamMap, half: bool = False) -> Path:
+    """Write a parameter map EXR (atomically)."""
+    names = channel_names(pm.model, pm.params.shape[-1])
+    T, S = pm.shape
+    attrs = {"parammap_model": pm.model, "parammap_model_version": MODELS[pm.model],
+             "parammap_layout": " ".join(names), "parammap_radiance_scale": 1.0,
+             "width_mm": float(pm.width_mm), "height_mm": float(pm.height_mm),
+             "S": int(S), "T": int(T), "software": f"parammap {__version__}"}
+    if pm.hemisphere:
+        attrs["parammap_hemisphere"] = pm.hemisphere
+    for k, v in pm.attrs.items():
+        attrs[f"parammap_{k}"] = v
+    return write_exr(path, {n: pm.params[..., i] for i, n in enumerate(names)}, attrs, half)
+
+
+def read_param_map(path: str | Path) -> ParamMap:
+    """Read a parameter map EXR written by :func:`write_param_map`.
+
+    Raises
+    ------
+    ParamMapError
+        For a file of an unknown model or version, or whose channels do not follow the
+        model's layout.
+    """
+    chans, h = read_exr(path)
+    model = h.get("parammap_model")
+    if model not in MODELS:
+        raise ParamMapError(f"{path}: unknown parameter-map model {model!r} "
+                            f"(known: {', '.join(MODELS)})")
+    if h.get("parammap_model_version") != MODELS[model]:
+        raise ParamMapError(f"{path}: {model} map version {h.get('parammap_model_version')!r}"
+                            f" is not supported (expected {MODELS[model]})")
+    layout = str(h.get("parammap_layout", "")).split()
+    try:
+        expected = channel_names(model, len(layout))
+    except ParamMapError as exc:
+        raise ParamMapError(f"{path}: {exc}") from None
+    if layout != expected or set(chans) != set(layout):
+        raise ParamMapError(f"{path}: channels do not follow the {model} layout "
+                            f"(expected {expected[:6]}...)")
+    params = np.stack([chans[n] for n in layout], -1).astype(np.float32)
+    if params.shape[:2] != (int(h.get("T", -1)), int(h.get("S", -1))):
+        raise ParamMapError(f"{path}: image size does not match S, T in the header")
+    extra = {k[len("parammap_"):]: v for k, v in h.items() if k.startswith("parammap_")
+             and k not in ("parammap_model", "parammap_model_version", "parammap_layout",
+                           "parammap_hemisphere")}
+    return ParamMap(model, params, float(h["width_mm"]), float(h["height_mm"]),
+                    h.get("parammap_hemisphere"), extra)
+
+
+def param_map_from_fit(fit_path: str | Path) -> ParamMap:
+    """The parameter map of a finished fit store (``fit/<model>.zarr``)."""
+    from .fitting import open_fit
+
+    g = open_fit(fit_path)
+    model = g.attrs["model"]
+    key = "params" if model == "mh" else "coeffs"
+    attrs = {k: g.attrs[k] for k in ("lobes", "K_max", "bands", "coefficients",
+                                     "regularisation") if g.attrs.get(k) is not None}
+    return ParamMap(model, g[key][:], g.attrs["width_mm"], g.attrs["height_mm"],
+                    g.attrs.get("hemisphere"), attrs)
