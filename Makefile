@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 CORES ?= all
 
-.PHONY: demo test lint report clean-reports setup
+.PHONY: demo test lint report clean-reports setup browser
 
 setup: $(VENV)/.installed
 
@@ -18,9 +18,22 @@ $(VENV)/.installed: pyproject.toml requirements.lock
 
 demo: setup
 	$(BIN)/snakemake --cores $(CORES) --profile profiles/default
-	@echo "Outputs: data/processed/demo/  Figures: reports/demo/"
+	$(BIN)/snakemake --cores 1 --profile profiles/default --report reports/report.html
+	@echo "Report: reports/report.html  Viewer: reports/demo/viewer/index.html"
 
-test: setup
+# Rebuild every report figure and table from the stage outputs (no refitting).
+report: setup
+	$(BIN)/snakemake --cores $(CORES) --profile profiles/default
+	$(BIN)/snakemake --cores 1 --profile profiles/default --report reports/report.html
+
+# The viewer test drives the system Chromium (Debian package); without it (no root, no
+# apt) that test is skipped and says so.
+browser:
+	@command -v chromium >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null \
+	  && (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium) \
+	  >/dev/null 2>&1 || echo "note: chromium not installed; viewer tests will be skipped"; }
+
+test: setup browser
 	$(BIN)/ruff check src tests workflow/scripts benchmarks
 	$(BIN)/snakemake --lint --cores 1 --dry-run >/dev/null
 	$(BIN)/python -m pytest -q

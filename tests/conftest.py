@@ -5,8 +5,12 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
+import yaml
 
+from parammap.calibration import Intrinsics, save_intrinsics
+from parammap.cli import main
 from parammap.synth.generate import generate
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
@@ -28,3 +32,21 @@ def tiny_copy(tiny_capture, tmp_path) -> Path:
     dst = tmp_path / "cap"
     shutil.copytree(tiny_capture[0], dst)
     return dst
+
+
+@pytest.fixture(scope="session")
+def tiny_processed(tiny_capture, tmp_path_factory):
+    """The tiny capture through response, HDR, poses (true intrinsics: the tiny preset's
+    320x240 board photos are too small to calibrate) and the observation map."""
+    cap, truth = tiny_capture
+    out = tmp_path_factory.mktemp("proc")
+    assert main(["response", str(cap), "--out", str(out)]) == 0
+    assert main(["hdr", str(cap), "--out", str(out)]) == 0
+    cam = yaml.safe_load((truth / "camera.yaml").read_text())
+    save_intrinsics(out / "camera" / "intrinsics.yaml",
+                    Intrinsics(np.array(cam["K"]), np.array(cam["dist"]),
+                               tuple(cam["image_size"]), 0.0))
+    assert main(["poses", str(cap), "--out", str(out)]) == 0
+    assert main(["observe", str(cap), "--out", str(out), "--set", "observation.texels_x=24",
+                 "--set", "observation.tile=8", "--figures", str(out / "fig")]) == 0
+    return cap, truth, out

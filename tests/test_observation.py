@@ -8,9 +8,7 @@ import pytest
 import yaml
 import zarr
 
-from parammap.calibration import Intrinsics, save_intrinsics
 from parammap.capture import load_capture
-from parammap.cli import main
 from parammap.observation import (
     COMPLETE_ATTR,
     ObservationError,
@@ -19,24 +17,6 @@ from parammap.observation import (
     open_observation_map,
 )
 from parammap.synth.generate import true_observations
-
-
-@pytest.fixture(scope="session")
-def tiny_processed(tiny_capture, tmp_path_factory):
-    """The tiny capture through response, HDR, poses (true intrinsics: the tiny preset's
-    320x240 board photos are too small to calibrate) and the observation map."""
-    cap, truth = tiny_capture
-    out = tmp_path_factory.mktemp("proc")
-    assert main(["response", str(cap), "--out", str(out)]) == 0
-    assert main(["hdr", str(cap), "--out", str(out)]) == 0
-    cam = yaml.safe_load((truth / "camera.yaml").read_text())
-    save_intrinsics(out / "camera" / "intrinsics.yaml",
-                    Intrinsics(np.array(cam["K"]), np.array(cam["dist"]),
-                               tuple(cam["image_size"]), 0.0))
-    assert main(["poses", str(cap), "--out", str(out)]) == 0
-    assert main(["observe", str(cap), "--out", str(out), "--set", "observation.texels_x=24",
-                 "--set", "observation.tile=8", "--figures", str(out / "fig")]) == 0
-    return cap, truth, out
 
 
 def test_observations_match_truth(tiny_processed):

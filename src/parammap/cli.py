@@ -313,6 +313,32 @@ def _holdout(a: argparse.Namespace) -> int:
     return 0
 
 
+@_command("viewer")
+def _viewer(a: argparse.Namespace) -> int:
+    import yaml
+
+    from .calibration import load_intrinsics
+    from .capture import load_capture
+    from .metrics import read_metrics
+    from .params import read_param_map
+    from .viewer import write_viewer
+
+    out = Path(a.out)
+    cap = load_capture(a.capture)
+    intr = load_intrinsics(out / "camera" / "intrinsics.yaml")
+    maps = {name: read_param_map(out / "params" / f"{name}.exr") for name in a.model}
+    recs = yaml.safe_load((out / "camera" / "poses.yaml").read_text())["views"]
+    views = [r for r in recs if r["kept"]]
+    gamma = 1.0
+    hold = out / "metrics" / "holdout.json"
+    if hold.is_file():
+        g = [v["gamma"] for v in read_metrics(hold)["views"].values()]
+        gamma = float(np.median(g)) if g else gamma
+    path = write_viewer(a.figures, cap.surface_id, maps, intr, views, gamma)
+    _log(f"viewer: open {path}")
+    return 0
+
+
 @_command("figures")
 def _figures(a: argparse.Namespace) -> int:
     from .figures import make_figures
@@ -384,6 +410,12 @@ def _parser() -> argparse.ArgumentParser:
         if name == "fit-sh":
             s.add_argument("--model", default="sh-lsop-36",
                            help="sh-<zh|mirror|lsop|rlsop|wls>-<coefficients>")
+    s = sub.add_parser("viewer", help="write the WebGL2 viewer page for the fitted maps")
+    s.add_argument("capture")
+    s.add_argument("--out", required=True, help="data/processed/<id>")
+    s.add_argument("--figures", required=True, help="viewer folder, reports/<id>/viewer")
+    s.add_argument("--model", action="append", required=True, help="model name, repeatable")
+
     s = sub.add_parser("figures", help="report figures and tables from stage outputs")
     s.add_argument("kind", help="response | hdr | calibration | poses | observation | model | "
                                 "holdout | tables")

@@ -252,3 +252,24 @@ rule fig_tables:
         "{params.cli} figures tables {input.capture} --out {params.out}"
         " --figures {params.figures} --models {params.models}"
         " --timings {input.timings} 2> {log}"
+
+
+rule viewer:
+    input:
+        capture=capture_dir,
+        poses=f"{PROC}/{{sid}}/camera/poses.yaml",
+        holdout=f"{PROC}/{{sid}}/metrics/holdout.json",
+        params=lambda wc: expand(f"{PROC}/{wc.sid}/params/{{m}}.exr", m=models() + ["diffuse"]),
+    output:
+        directory(f"{REPORTS}/{{sid}}/viewer"),
+    params:
+        cli=PARAMMAP,
+        out=lambda wc: f"{PROC}/{wc.sid}",
+        models=" ".join(f"--model {m}" for m in models() + ["diffuse"]),
+    log:
+        "logs/figures/{sid}/viewer.log",
+    conda:
+        "../envs/parammap.yaml"
+    shell:
+        "{params.cli} viewer {input.capture} --out {params.out} --figures {output}"
+        " {params.models} 2> {log}"
