@@ -11,7 +11,7 @@ def test_shipped_config_is_valid_and_defaults_fill():
     cfg = load_config(ROOT / "config" / "config.yaml")
     assert cfg["captures"] == {"demo": "data/captures/demo"}
     assert cfg["hdr"]["method"] == "debevec"
-    assert validate_config({"captures": {"a": "x"}})["poses"]["max_rms_px"] == 1.0
+    assert validate_config({"captures": {"a": "x"}})["poses"]["max_rms_px"] == 2.0
 
 
 @pytest.mark.parametrize(

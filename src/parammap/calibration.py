@@ -220,6 +220,9 @@ def refine_marker_corners(
     lum = np.ascontiguousarray(lum, np.float32)
     out = np.array(corners, float, copy=True)
     for m, quad in enumerate(np.asarray(corners, float)):
+        edges = np.linalg.norm(np.roll(quad, -1, axis=0) - quad, axis=1)
+        if edges.min() < 3.0 * cells:
+            continue  # cells under ~3 px (grazing or distant): profiles would mix cells
         centre = quad.mean(0)
         lines = []
         for k in range(4):

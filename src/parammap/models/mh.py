@@ -273,9 +273,17 @@ def _x_to_params_batch(X: np.ndarray, s: np.ndarray) -> np.ndarray:
     return P
 
 
-def _bounds(K: int) -> tuple[np.ndarray, np.ndarray]:
+KS_CAP = 20.0  # Ks <= KS_CAP x the texel's brightest observation (scaled units)
+
+
+def _bounds(K: int, ks_max: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds in x-space. ``ks_max`` caps the lobe amplitudes: a peak between samples
+    may exceed every observation, but not by orders of magnitude; without a cap a
+    narrow lobe whose peak no view saw can grow without limit (a spike in renders)."""
     nx = 4 + 5 * K
     lb, ub = np.zeros(nx), np.full(nx, np.inf)
+    for k in range(K):
+        ub[4 + 5 * k: 7 + 5 * k] = ks_max
     ub[3] = LN_M_MAX
     for k in range(K):
         lb[7 + 5 * k], ub[7 + 5 * k] = 0.0, math.pi / 2
@@ -353,6 +361,10 @@ def refine_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, P0: np.ndarray,
     Ls = L / s[:, None, None]
     X = _params_to_x_batch(P0, s)
     lb, ub = _bounds(K)
+    ub = np.broadcast_to(ub, X.shape).copy()
+    ksmax = KS_CAP * np.max(np.where(W[..., None] > 0, Ls, 0), axis=(1, 2))
+    for k in range(K):
+        ub[:, 4 + 5 * k: 7 + 5 * k] = ksmax[:, None]
     X = np.clip(X, lb, ub)
     lam = np.full(len(X), 1e-3)
     LL = (W[..., None] * Ls * Ls).sum(1)
@@ -367,7 +379,7 @@ def refine_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, P0: np.ndarray,
                                    -g[act, :, None])[..., 0]
         except np.linalg.LinAlgError:
             break
-        Xn = np.clip(X[act] + step, lb, ub)
+        Xn = np.clip(X[act] + step, lb, ub[act])
         cn, An, gn = _normal_equations(Xn, V[act], Ls[act], W[act], K, LL[act])
         better = np.isfinite(cn) & (cn < cost[act])
         gain = np.where(better, (cost[act] - cn) / np.maximum(cost[act], 1e-300), 0.0)
@@ -521,7 +533,7 @@ def fit_texel(V: np.ndarray, L: np.ndarray, p0: np.ndarray,
     Ls = L / s
     x0 = _to_x(p0, s)
     nx = len(x0)
-    lb, ub = _bounds(K)
+    lb, ub = _bounds(K, KS_CAP * float(np.max(Ls)))
     x0 = np.clip(x0, lb, ub)
     opt = nlopt.opt(ALGORITHMS[cfg.algorithm], nx)
     opt.set_lower_bounds(lb)
