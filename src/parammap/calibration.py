@@ -26,6 +26,7 @@ __all__ = [
     "detect_markers",
     "estimate_pose",
     "load_intrinsics",
+    "marker_views",
     "refine_marker_corners",
     "save_intrinsics",
     "to_gray8",
@@ -90,8 +91,16 @@ def board_points(cap: Capture, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return obj.astype(np.float32), corners.reshape(-1, 2)
 
 
-def calibrate(cap: Capture, min_images: int = 4, min_corners: int = 8, log=print) -> Intrinsics:
+def calibrate(cap: Capture, min_images: int = 4, min_corners: int = 8, log=print,
+              extra_views: list[tuple[str, np.ndarray, np.ndarray]] | None = None,
+              guess: Intrinsics | None = None) -> Intrinsics:
     """Intrinsics from the capture's calibration photos.
+
+    ``extra_views`` adds planar targets of known layout seen by the same camera, as
+    (name, object points (n, 3), image points (n, 2)): the surface markers of the
+    captured views (:func:`marker_views`). They are many, spread over the whole image
+    and over many orientations, which pins down the principal point and tangential
+    distortion far better than a few board photos. ``guess`` starts the solver.
 
     Raises
     ------
@@ -126,12 +135,59 @@ def calibrate(cap: Capture, min_images: int = 4, min_corners: int = 8, log=print
             f"{cap.root / 'capture.yaml'}: calibration.images: only {len(objs)} of "
             f"{len(cap.calibration_images)} photos show the {cap.calibration['board']} board "
             f"(need {min_images} with at least {min_corners} corners)")
-    rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(objs, imgs, size, None, None)
+    flags, K0, d0 = 0, None, None
+    for name, o, i in extra_views or []:
+        objs.append(np.asarray(o, np.float32))
+        imgs.append(np.asarray(i, np.float32))
+        names.append(name)
+    if guess is not None:
+        flags, K0, d0 = cv2.CALIB_USE_INTRINSIC_GUESS, guess.K.copy(), guess.dist.copy()
+    rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(objs, imgs, size, K0, d0, flags=flags)
+    if extra_views:
+        # one pass of outlier rejection over the marker views (a bad detection biases)
+        per_view = []
+        for o, i, r, t in zip(objs, imgs, rvecs, tvecs, strict=True):
+            proj, _ = cv2.projectPoints(o, r, t, K, dist)
+            per_view.append(float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - i) ** 2, 1)))))
+        lim = 3 * float(np.median(per_view))
+        keep = [k for k, e in enumerate(per_view) if e <= lim or k < len(objs) - len(extra_views)]
+        if len(keep) < len(objs):
+            log(f"calibration: {len(objs) - len(keep)} marker views above {lim:.2f} px left out")
+            objs, imgs, names = ([x[k] for k in keep] for x in (objs, imgs, names))
+            rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(objs, imgs, size, K, dist,
+                                                             flags=cv2.CALIB_USE_INTRINSIC_GUESS)
     per = {}
     for name, o, i, r, t in zip(names, objs, imgs, rvecs, tvecs, strict=True):
         proj, _ = cv2.projectPoints(o, r, t, K, dist)
         per[name] = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - i) ** 2, 1))))
     return Intrinsics(K, dist.ravel()[:5], size, float(rms), len(objs), per)
+
+
+def marker_views(cap: Capture, intr: Intrinsics, frames, min_markers: int = 4,
+                 log=print) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """Surface-marker correspondences of captured views, for :func:`calibrate`.
+
+    ``frames`` yields (view id, linear radiance (H, W, 3)). Corners are edge-refined
+    with the board intrinsics ``intr``; views with fewer than ``min_markers`` markers
+    are skipped.
+    """
+    if len(cap.marker_ids) == 0:
+        return []
+    known = {int(i): k for k, i in enumerate(cap.marker_ids)}
+    cells = aruco_dictionary(cap.marker_dictionary).markerSize + 2
+    out = []
+    for vid, rad in frames:
+        ids, corners = detect_markers(to_gray8(rad), cap.marker_dictionary)
+        use = [k for k, i in enumerate(ids) if int(i) in known]
+        if len(use) < min_markers:
+            continue
+        lum = np.asarray(rad, np.float32) @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+        c = refine_marker_corners(lum, np.asarray(corners, float)[use], intr, cells)
+        obj = np.concatenate([np.c_[cap.marker_corners[known[int(ids[k])]], np.zeros(4)]
+                              for k in use])
+        out.append((vid, obj, c.reshape(-1, 2)))
+    log(f"calibration: {len(out)} captured views add their surface markers")
+    return out
 
 
 def save_intrinsics(path: str | Path, intr: Intrinsics) -> Path:

@@ -132,7 +132,13 @@ def _hdr(a: argparse.Namespace) -> int:
 
 @_command("calibrate")
 def _calibrate(a: argparse.Namespace) -> int:
-    from .calibration import calibrate, load_intrinsics, save_intrinsics
+    from .calibration import (
+        CalibrationError,
+        calibrate,
+        load_intrinsics,
+        marker_views,
+        save_intrinsics,
+    )
     from .capture import load_capture
     from .metrics import write_metrics
 
@@ -144,6 +150,20 @@ def _calibrate(a: argparse.Namespace) -> int:
         _log(f"calibrate: using saved intrinsics {cap.intrinsics_path}")
     else:
         intr = calibrate(cap, cfg["min_images"], cfg["min_corners"], log=_log)
+        hdr = [(v.id, out / "hdr" / f"{v.id}.exr") for v in cap.fitted_views]
+        if cfg["use_marker_views"] and len(cap.marker_ids):
+            missing = [str(p) for _, p in hdr if not p.is_file()]
+            if missing:
+                raise CalibrationError(f"calibration.use_marker_views: HDR frames missing "
+                                       f"(run the hdr stage first): {missing[0]}...")
+            from .hdr import read_hdr
+
+            extra = marker_views(cap, intr, ((vid, read_hdr(p)[0]) for vid, p in hdr),
+                                 cfg["min_markers_per_view"], log=_log)
+            if extra:
+                board = intr
+                intr = calibrate(cap, cfg["min_images"], cfg["min_corners"], log=_log,
+                                 extra_views=extra, guess=board)
     save_intrinsics(out / "camera" / "intrinsics.yaml", intr)
     write_metrics(out / "metrics" / "calibration.json", {
         "rms_px": intr.rms_px, "images_used": intr.images_used,

@@ -94,9 +94,15 @@ def _holdout(proc: Path, out: Path) -> list[Path]:
         names = list(rec["models"])
         fig, axes = plt.subplots(len(names), 3, figsize=(7.5, 2.1 * len(names)), squeeze=False)
         photo = read_image(proc / "holdout" / f"{vid}_photo.png")
+        # crop to the sampled region (everything else is black in the photo image)
+        ys, xs = np.nonzero(photo.max(-1) > 0)
+        crop = (slice(max(ys.min() - 4, 0), ys.max() + 5),
+                slice(max(xs.min() - 4, 0), xs.max() + 5)) if ys.size else \
+            (slice(None), slice(None))
+        photo = photo[crop]
         for k, name in enumerate(names):
-            img = read_image(proc / "holdout" / f"{vid}_{name}.png")
-            diff = read_image(proc / "holdout" / f"{vid}_{name}_diff.png")[..., 0]
+            img = read_image(proc / "holdout" / f"{vid}_{name}.png")[crop]
+            diff = read_image(proc / "holdout" / f"{vid}_{name}_diff.png")[..., 0][crop]
             axes[k, 0].imshow(photo)
             axes[k, 1].imshow(img)
             im = axes[k, 2].imshow(diff, cmap="magma", vmin=0, vmax=64)

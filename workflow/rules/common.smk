@@ -74,6 +74,14 @@ def surface_targets(sid):
     return figs + data
 
 
+def fitted_view_ids(wildcards):
+    """Ids of the views that are not held out."""
+    checkpoints.validate_capture.get(sid=wildcards.sid)
+    from parammap.capture import load_capture
+
+    return [v.id for v in load_capture(CAPTURES[wildcards.sid]).fitted_views]
+
+
 def all_targets():
     return [t for sid in CAPTURES for t in surface_targets(sid)]
 

@@ -61,6 +61,11 @@ rule calibrate:
     input:
         capture=capture_dir,
         ok=f"{PROC}/{{sid}}/capture.ok",
+        hdr=lambda wc: (
+            expand(f"{PROC}/{wc.sid}/hdr/{{view}}.exr", view=fitted_view_ids(wc))
+            if config["calibration"]["use_marker_views"]
+            else []
+        ),
     output:
         f"{PROC}/{{sid}}/camera/intrinsics.yaml",
         f"{PROC}/{{sid}}/metrics/calibration.json",
