@@ -158,7 +158,8 @@ def _log_cos(V: np.ndarray, D: np.ndarray) -> np.ndarray:
 
 def _solve_linear_lc(lnc, L, W, m):
     B, N, _ = lnc.shape
-    A = np.concatenate([np.ones((B, N, 1)), np.exp(lnc * m[:, None, None])], axis=2)
+    m = m.astype(lnc.dtype)
+    A = np.concatenate([np.ones((B, N, 1), lnc.dtype), np.exp(lnc * m[:, None, None])], axis=2)
     return _nnls_batch(A, L, W)
 
 
@@ -228,14 +229,14 @@ def initial_guess_batch(
     m = np.full(B, 10.0)
     for _ in range(K):
         if D.shape[1]:
-            near = (np.einsum("bnc,bkc->bnk", V, D) > cos_sep).any(-1)
+            near = (np.matmul(V, D.transpose(0, 2, 1)) > cos_sep).any(-1)
             resid = np.where(near, -np.inf, resid)
         i = np.argmax(resid, axis=1)
         D = np.concatenate([D, V[np.arange(B), i][:, None, :]], axis=1)
         m = _search_m(V, L, W, D)
         coef, _ = _solve_linear(V, L, W, D, m)
-        model = np.einsum("bnp,bpc->bnc", np.concatenate(
-            [np.ones((B, N, 1)), _lobe_terms(V, D, m)], 2), coef)
+        model = np.matmul(np.concatenate(
+            [np.ones((B, N, 1), V.dtype), _lobe_terms(V, D, m.astype(V.dtype))], 2), coef)
         resid = np.where(W > 0, (L - model).mean(-1), -np.inf)
     coef, _ = _solve_linear(V, L, W, D, m)
     p = np.zeros((B, n_params(K)))
@@ -305,7 +306,7 @@ def _normal_equations(X, V, Ls, W, K, LL=None):
     nx = X.shape[1]
     nb = 1 + 4 * K
     m = np.exp(X[:, 3])
-    q = np.empty((B, nb, N))
+    q = np.empty((B, nb, N), V.dtype)
     q[:, 0] = 1.0
     coef = np.zeros((B, 3, nx, nb))  # Jacobian columns in terms of q
     amod = np.zeros((B, 3, nb))  # model = amod . q
@@ -628,7 +629,9 @@ def fit_mh_tile(
         return out
     init = initial_guess_batch if cfg.init == "better" else initial_guess_published
     Wf = W[todo].astype(float)
-    inits = {k: init(V[todo], L[todo], Wf, k) for k in Ks}
+    # the initial guesses in float32 (twice as fast; LM and nlopt then work in float64)
+    V32, L32, W32 = V[todo].astype(np.float32), L[todo].astype(np.float32), Wf.astype(np.float32)
+    inits = {k: init(V32, L32, W32, k).astype(float) for k in Ks}
     if cfg.init == "better":
         inits = {k: refine_batch(V[todo], L[todo], Wf, p0) for k, p0 in inits.items()}
     for j, b in enumerate(todo):
