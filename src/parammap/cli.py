@@ -316,18 +316,23 @@ def _export(a: argparse.Namespace) -> int:
     return 0
 
 
-@_command("holdout")
-def _holdout(a: argparse.Namespace) -> int:
+def _surface_maps(a: argparse.Namespace):
+    """Processed folder, capture, intrinsics and the parameter maps named by --model."""
     from .calibration import load_intrinsics
     from .capture import load_capture
-    from .holdout import holdout_comparison
-    from .metrics import write_metrics
     from .params import read_param_map
 
     out = Path(a.out)
-    cap = load_capture(a.capture)
-    intr = load_intrinsics(out / "camera" / "intrinsics.yaml")
     maps = {name: read_param_map(out / "params" / f"{name}.exr") for name in a.model}
+    return out, load_capture(a.capture), load_intrinsics(out / "camera" / "intrinsics.yaml"), maps
+
+
+@_command("holdout")
+def _holdout(a: argparse.Namespace) -> int:
+    from .holdout import holdout_comparison
+    from .metrics import write_metrics
+
+    out, cap, intr, maps = _surface_maps(a)
     res = holdout_comparison(cap, intr, out, maps, out / "holdout", log=_log)
     write_metrics(out / "metrics" / "holdout.json", res)
     return 0
@@ -337,16 +342,10 @@ def _holdout(a: argparse.Namespace) -> int:
 def _viewer(a: argparse.Namespace) -> int:
     import yaml
 
-    from .calibration import load_intrinsics
-    from .capture import load_capture
     from .metrics import read_metrics
-    from .params import read_param_map
     from .viewer import write_viewer
 
-    out = Path(a.out)
-    cap = load_capture(a.capture)
-    intr = load_intrinsics(out / "camera" / "intrinsics.yaml")
-    maps = {name: read_param_map(out / "params" / f"{name}.exr") for name in a.model}
+    out, cap, intr, maps = _surface_maps(a)
     recs = yaml.safe_load((out / "camera" / "poses.yaml").read_text())["views"]
     views = [r for r in recs if r["kept"]]
     gamma = 1.0

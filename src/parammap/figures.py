@@ -22,6 +22,7 @@ import numpy as np
 
 from .metrics import read_metrics
 from .report import plot_hemisphere, plot_reexposure, plot_reprojection, plot_response, save_figure
+from .stores import store_bytes
 
 __all__ = ["KINDS", "make_figures"]
 
@@ -37,12 +38,6 @@ def _write_csv(path: Path, rows: list[dict]) -> Path:
         w.writerows(rows)
     tmp.replace(path)
     return path
-
-
-def _store_bytes(path: Path) -> int:
-    if path.is_file():
-        return path.stat().st_size
-    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
 
 
 def _calibration(proc: Path, out: Path) -> list[Path]:
@@ -120,7 +115,7 @@ def _holdout(proc: Path, out: Path) -> list[Path]:
 
 
 def _tables(proc: Path, out: Path, models: list[str], timings: list[Path]) -> list[Path]:
-    obs_bytes = _store_bytes(proc / "observation.zarr")
+    obs_bytes = store_bytes(proc / "observation.zarr")
     om = read_metrics(proc / "metrics" / "observation.json")
     sizes = [{"item": "observation map (zarr, compressed)", "bytes": obs_bytes,
               "MB": f"{obs_bytes / 1e6:.2f}", "ratio_to_observation": "1"},

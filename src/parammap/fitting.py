@@ -29,10 +29,10 @@ import zarr
 
 from . import __version__
 from .observation import open_observation_map
+from .stores import COMPLETE_ATTR, open_complete
 
-__all__ = ["COMPLETE_ATTR", "FitError", "fit_map", "open_fit"]
+__all__ = ["COMPLETE_ATTR", "FitError", "fit_map", "fit_summary", "open_fit"]
 
-COMPLETE_ATTR = "parammap_complete"
 TileFn = Callable[[np.ndarray, np.ndarray, np.ndarray], dict[str, np.ndarray]]
 
 
@@ -137,11 +137,23 @@ def fit_map(
 
 def open_fit(path: str | Path) -> zarr.Group:
     """Open a finished fit store; refuses a missing or incomplete one."""
-    path = Path(path)
-    try:
-        g = zarr.open_group(path, mode="r")
-    except (FileNotFoundError, zarr.errors.GroupNotFoundError) as exc:
-        raise FitError(f"{path}: no fit store ({exc})") from None
-    if not g.attrs.get(COMPLETE_ATTR):
-        raise FitError(f"{path}: incomplete fit store (interrupted run?)")
-    return g
+    return open_complete(path, FitError, "fit store")
+
+
+def fit_summary(out_path: str | Path, res: dict[str, Any], name: str,
+                **extra: Any) -> dict[str, Any]:
+    """Figures of a finished fit for its metrics file: texels fitted, too few
+    observations (status 2) and failed (3), speed, and the mean / median of the
+    per-texel mean percentage residual and RMSE per channel."""
+    g = open_fit(out_path)
+    status = g["status"][:]
+    ok = status == 1
+    mpr, rmse = g["mpr"][:][ok], g["rmse"][:][ok]
+    return {
+        "model": name, "texels": res["texels"], "fitted": int(ok.sum()),
+        "too_few_observations": int((status == 2).sum()), "failed": int((status == 3).sum()),
+        "seconds": res["seconds"], "texels_per_second": res["texels_per_second"],
+        "mean_percentage_residual": np.nanmean(mpr, 0).tolist() if ok.any() else None,
+        "median_percentage_residual": np.nanmedian(mpr, 0).tolist() if ok.any() else None,
+        "rmse": np.nanmean(rmse, 0).tolist() if ok.any() else None, **extra,
+    }

@@ -33,7 +33,6 @@ import math
 import os
 import shutil
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -48,8 +47,10 @@ from .calibration import Intrinsics, load_intrinsics
 from .capture import Capture
 from .geometry import sample_image, texel_centres, unit
 from .hdr import read_hdr
+from .stores import COMPLETE_ATTR, executor, open_complete, store_bytes
 
 __all__ = [
+    "COMPLETE_ATTR",
     "ObservationError",
     "ViewPose",
     "build_observation_map",
@@ -59,9 +60,6 @@ __all__ = [
     "sample_view",
     "texel_grid",
 ]
-
-COMPLETE_ATTR = "parammap_complete"
-
 
 class ObservationError(ValueError):
     """Missing or inconsistent inputs to the observation map, or an incomplete store."""
@@ -239,28 +237,6 @@ def _pass2_band(job: tuple) -> int:
     return int(valid.sum())
 
 
-def _executor(workers: int):
-    if workers <= 1:
-        return _Serial()
-    return ProcessPoolExecutor(workers)
-
-
-class _Serial:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-    @staticmethod
-    def map(fn, jobs):
-        return map(fn, jobs)
-
-
-def _store_bytes(path: Path) -> int:
-    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
-
-
 def build_observation_map(
     cap: Capture,
     processed: str | Path,
@@ -318,7 +294,7 @@ def build_observation_map(
                  max_zenith_deg, max_supersample) for n, v in enumerate(views)]
         bytes_read = 0
         per_view = {}
-        with _executor(workers) as ex:
+        with executor(workers) as ex:
             for k, (vid, frac, nbytes, _) in enumerate(ex.map(_pass1_view, jobs)):
                 bytes_read += nbytes
                 per_view[vid] = frac
@@ -355,7 +331,7 @@ def build_observation_map(
         bands = [(str(scratch), str(final), r0, min(r0 + tile, T), centres, marker)
                  for r0 in range(0, T, tile)]
         nvalid = 0
-        with _executor(workers) as ex:
+        with executor(workers) as ex:
             for k, nv in enumerate(ex.map(_pass2_band, bands)):
                 nvalid += nv
                 if (k + 1) % max(1, len(bands) // 5) == 0 or k + 1 == len(bands):
@@ -368,7 +344,7 @@ def build_observation_map(
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     seconds = time.perf_counter() - t_start
-    on_disk = _store_bytes(out)
+    on_disk = store_bytes(out)
     uncompressed = T * S * N * (3 * 4 + 3 * 4 + 1)
     return {
         "texels": S * T, "S": S, "T": T, "views": N, "held_out_views": len(held),
@@ -383,13 +359,7 @@ def build_observation_map(
 
 def open_observation_map(path: str | Path) -> zarr.Group:
     """Open a finished observation map; refuses a missing or incomplete store."""
-    path = Path(path)
-    try:
-        g = zarr.open_group(path, mode="r")
-    except (FileNotFoundError, zarr.errors.GroupNotFoundError) as exc:
-        raise ObservationError(f"{path}: no observation map ({exc})") from None
-    if not g.attrs.get(COMPLETE_ATTR):
-        raise ObservationError(f"{path}: incomplete observation map (interrupted build?)")
+    g = open_complete(path, ObservationError, "observation map")
     for name in ("radiance", "direction", "valid"):
         if name not in g:
             raise ObservationError(f"{path}: observation map lacks array {name!r}")

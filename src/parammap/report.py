@@ -214,3 +214,25 @@ def plot_lobes(entries: list[dict], path: str | Path, title: str) -> Path:
 def default_lobe_texels(S: int, T: int) -> list[tuple[int, int]]:
     """A 3 x 3 spread of texels (patch centres for a 3 x 3 layout)."""
     return [(int((i + 0.5) * T / 3), int((j + 0.5) * S / 3)) for i in range(3) for j in range(3)]
+
+
+def fit_figures(g, obs, out_dir: str | Path, name: str, predict,
+                texels: list[tuple[int, int]] | None = None) -> list[Path]:
+    """Residual maps and lobe plots of a fit store ``g`` (zarr group with ``mpr``,
+    ``rmse``, ``status``) against its observation map ``obs``; ``predict(row, col,
+    directions)`` evaluates the fitted model of one texel."""
+    out_dir = Path(out_dir)
+    mpr = g["mpr"][:].astype(float)
+    maps = {f"mean % residual {c}": mpr[..., i] for i, c in enumerate("RGB")}
+    maps["RMSE (mean of RGB)"] = g["rmse"][:].astype(float).mean(-1)
+    maps["status (1 ok, 2 too few obs., 3 failed)"] = g["status"][:].astype(float)
+    paths = [plot_maps(maps, out_dir / f"{name}_residuals.png", f"{name}: residuals", cols=3)]
+    entries = []
+    for r, c in texels or default_lobe_texels(g.attrs["S"], g.attrs["T"]):
+        v = obs["valid"][r, c]
+        d = obs["direction"][r, c][v]
+        entries.append({"label": f"texel [{r}, {c}]", "direction": d,
+                        "measured": obs["radiance"][r, c][v], "fitted": predict(r, c, d)})
+    paths.append(plot_lobes(entries, out_dir / f"{name}_lobes.png",
+                            f"{name}: measured (dots) and model (crosses)"))
+    return paths

@@ -690,7 +690,7 @@ def fit_mh_map(obs_path: str | Path, out_path: str | Path, K: int | str, cfg: di
     into ``fit/mh-<K>.zarr``; returns the figures for ``metrics/fit-mh-<K>.json``."""
     from functools import partial
 
-    from ..fitting import fit_map, open_fit
+    from ..fitting import fit_map, fit_summary, open_fit
 
     K = parse_lobes(K)
     fcfg = MhFitConfig(**{k: cfg[k] for k in MhFitConfig.__dataclass_fields__ if k in cfg})
@@ -707,21 +707,11 @@ def fit_mh_map(obs_path: str | Path, out_path: str | Path, K: int | str, cfg: di
                   scheduler, workers, log)
     g = open_fit(out_path)
     ok = g["status"][:] == STATUS_OK
-    mpr = g["mpr"][:][ok]
-    rmse = g["rmse"][:][ok]
     kused = g["k_used"][:][ok]
-    return {
-        "model": f"mh-{K}", "texels": res["texels"], "fitted": int(ok.sum()),
-        "too_few_observations": int((res["status"] == STATUS_TOO_FEW).sum()),
-        "failed": int((res["status"] == STATUS_FAILED).sum()),
-        "seconds": res["seconds"], "texels_per_second": res["texels_per_second"],
-        "mean_percentage_residual": np.nanmean(mpr, 0).tolist() if ok.any() else None,
-        "median_percentage_residual": np.nanmedian(mpr, 0).tolist() if ok.any() else None,
-        "rmse": np.nanmean(rmse, 0).tolist() if ok.any() else None,
-        "lobes_used": {str(k): int((kused == k).sum()) for k in np.unique(kused)},
-        "mean_evals": float(g["evals"][:][ok].mean()) if ok.any() else None,
-        "scheduler": scheduler, "workers": workers,
-    }
+    return fit_summary(
+        out_path, res, f"mh-{K}", scheduler=scheduler, workers=workers,
+        lobes_used={str(k): int((kused == k).sum()) for k in np.unique(kused)},
+        mean_evals=float(g["evals"][:][ok].mean()) if ok.any() else None)
 
 
 def mh_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path, name: str,
@@ -730,7 +720,7 @@ def mh_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path, 
     residuals, like 004 fig. 11.6) of an MH fit store."""
     from ..fitting import open_fit
     from ..observation import open_observation_map
-    from ..report import default_lobe_texels, plot_lobes, plot_maps
+    from ..report import fit_figures, plot_maps
 
     g = open_fit(fit_path)
     obs = open_observation_map(obs_path)
@@ -747,19 +737,5 @@ def mh_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path, 
     if g.attrs.get("lobes") == "auto":
         maps["lobes used"] = g["k_used"][:].astype(float)
     paths = [plot_maps(maps, out_dir / f"{name}_params.png", f"{name}: parameter maps")]
-    mpr = g["mpr"][:].astype(float)
-    paths.append(plot_maps({f"mean % residual {c}": mpr[..., i] for i, c in enumerate("RGB")}
-                           | {"RMSE (mean of RGB)": g["rmse"][:].astype(float).mean(-1),
-                              "status (1 ok, 2 too few obs., 3 failed)":
-                                  g["status"][:].astype(float)},
-                           out_dir / f"{name}_residuals.png", f"{name}: residuals", cols=3))
-    entries = []
-    for r, c in texels or default_lobe_texels(g.attrs["S"], g.attrs["T"]):
-        v = obs["valid"][r, c]
-        d = obs["direction"][r, c][v]
-        entries.append({"label": f"texel [{r}, {c}]", "direction": d,
-                        "measured": obs["radiance"][r, c][v],
-                        "fitted": mh_eval(p[r, c], d)})
-    paths.append(plot_lobes(entries, out_dir / f"{name}_lobes.png",
-                            f"{name}: measured (dots) and fitted (crosses)"))
-    return paths
+    return paths + fit_figures(g, obs, out_dir, name, lambda r, c, d: mh_eval(p[r, c], d),
+                               texels)

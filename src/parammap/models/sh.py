@@ -341,7 +341,7 @@ def fit_sh_map(obs_path: str | Path, out_path: str | Path, hemisphere: str, n: i
     ``fit/sh-<hemisphere>-<n^2>.zarr``; returns the figures for its metrics file."""
     from functools import partial
 
-    from ..fitting import fit_map, open_fit
+    from ..fitting import fit_map, fit_summary
 
     reg = float(cfg.get("regularisation", 1e-4))
     res = fit_map(obs_path, out_path,
@@ -352,19 +352,8 @@ def fit_sh_map(obs_path: str | Path, out_path: str | Path, hemisphere: str, n: i
                    else None,
                    "layout": "sh.R.00 .. sh.R.(n^2-1), then G, then B; index l(l+1)+m"},
                   scheduler, workers, log)
-    g = open_fit(out_path)
-    ok = g["status"][:] == STATUS_OK
-    mpr = g["mpr"][:][ok]
-    return {
-        "model": f"sh-{hemisphere}-{n * n}", "texels": res["texels"], "fitted": int(ok.sum()),
-        "too_few_observations": int((res["status"] == STATUS_TOO_FEW).sum()),
-        "failed": int((res["status"] == STATUS_FAILED).sum()),
-        "seconds": res["seconds"], "texels_per_second": res["texels_per_second"],
-        "mean_percentage_residual": np.nanmean(mpr, 0).tolist() if ok.any() else None,
-        "median_percentage_residual": np.nanmedian(mpr, 0).tolist() if ok.any() else None,
-        "rmse": np.nanmean(g["rmse"][:][ok], 0).tolist() if ok.any() else None,
-        "scheduler": scheduler, "workers": workers,
-    }
+    return fit_summary(out_path, res, f"sh-{hemisphere}-{n * n}", scheduler=scheduler,
+                       workers=workers)
 
 
 def sh_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path, name: str,
@@ -372,7 +361,7 @@ def sh_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path, 
     """Coefficient maps of the first bands, residual maps and lobe plots."""
     from ..fitting import open_fit
     from ..observation import open_observation_map
-    from ..report import default_lobe_texels, plot_lobes, plot_maps
+    from ..report import fit_figures, plot_maps
 
     g = open_fit(fit_path)
     obs = open_observation_map(obs_path)
@@ -385,16 +374,5 @@ def sh_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path, 
             for i, (l, m) in enumerate(zip(l_, m_, strict=True)) if l < 3}
     paths = [plot_maps(maps, out_dir / f"{name}_params.png",
                        f"{name}: coefficients of bands 0-2", cols=5, symmetric=True)]
-    mpr = g["mpr"][:].astype(float)
-    paths.append(plot_maps({f"mean % residual {ch}": mpr[..., i] for i, ch in enumerate("RGB")}
-                           | {"RMSE (mean of RGB)": g["rmse"][:].astype(float).mean(-1)},
-                           out_dir / f"{name}_residuals.png", f"{name}: residuals", cols=4))
-    entries = []
-    for r, col in texels or default_lobe_texels(g.attrs["S"], g.attrs["T"]):
-        v = obs["valid"][r, col]
-        d = obs["direction"][r, col][v]
-        entries.append({"label": f"texel [{r}, {col}]", "direction": d,
-                        "measured": obs["radiance"][r, col][v], "fitted": sh_eval(c[r, col], d)})
-    paths.append(plot_lobes(entries, out_dir / f"{name}_lobes.png",
-                            f"{name}: measured (dots) and reconstructed (crosses)"))
-    return paths
+    return paths + fit_figures(g, obs, out_dir, name,
+                               lambda r, col, d: sh_eval(c[r, col], d), texels)

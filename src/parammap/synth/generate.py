@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import shutil
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -29,6 +28,7 @@ from ..geometry import (
     unit,
 )
 from ..imageio import write_image_atomic
+from ..stores import executor
 from .sampling import sample_directions
 from .scene import Scene, build_scene, mh_truth, true_radiance
 
@@ -368,7 +368,7 @@ def generate(
             for k, (R, t) in enumerate(poses)]
     views_yaml = []
     ext = preset.image_format
-    with ProcessPoolExecutor(max_workers=workers) if workers > 1 else _Serial() as ex:
+    with executor(workers) as ex:
         for k, photos in enumerate(ex.map(_render_view_job, jobs)):
             exps = []
             for e, img in enumerate(photos):
@@ -441,20 +441,6 @@ def generate(
         tmp.replace(final)
     log(f"synth {name}: wrote {out} and {truth} in {time.perf_counter() - t0:.1f} s")
     return out
-
-
-class _Serial:
-    """Stand-in for an executor that runs jobs in this process."""
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-    @staticmethod
-    def map(fn, jobs):
-        return map(fn, jobs)
 
 
 def preset_with(name: str, **changes) -> Preset:

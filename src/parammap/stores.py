@@ -1,0 +1,53 @@
+"""Small helpers shared by the stages that write zarr stores and run process pools."""
+
+from __future__ import annotations
+
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import zarr
+
+__all__ = ["COMPLETE_ATTR", "executor", "open_complete", "store_bytes"]
+
+# Set on a store's group only after every chunk is written and just before the rename
+# from its temporary name: a store without it is never accepted.
+COMPLETE_ATTR = "parammap_complete"
+
+
+class _Serial:
+    """Stand-in for an executor that runs jobs in this process."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    @staticmethod
+    def map(fn, jobs):
+        return map(fn, jobs)
+
+
+def executor(workers: int):
+    """A process pool of ``workers``, or in-process execution for one worker."""
+    return ProcessPoolExecutor(workers) if workers > 1 else _Serial()
+
+
+def store_bytes(path: str | Path) -> int:
+    """Bytes on disk of a file or a directory store."""
+    path = Path(path)
+    if path.is_file():
+        return path.stat().st_size
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+
+
+def open_complete(path: str | Path, error: type[Exception], what: str) -> zarr.Group:
+    """Open a finished zarr group; ``error`` names a missing or incomplete one."""
+    path = Path(path)
+    try:
+        g = zarr.open_group(path, mode="r")
+    except (FileNotFoundError, zarr.errors.GroupNotFoundError) as exc:
+        raise error(f"{path}: no {what} ({exc})") from None
+    if not g.attrs.get(COMPLETE_ATTR):
+        raise error(f"{path}: incomplete {what} (interrupted run?)")
+    return g
