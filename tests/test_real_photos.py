@@ -133,3 +133,12 @@ def test_bracket_only_capture_gets_response_hdr_and_reexposure_metrics(tmp_path)
     assert (tmp_path / "reexposure.png").is_file()
     # Poses cannot run without a board; the message says why.
     assert main(["calibrate", str(root), "--out", str(out)]) == 2
+
+
+def test_robertson_option_gives_a_usable_curve():
+    files, stack = _frob()
+    t = np.array([exif_exposure_time(f) for f in files])
+    g = recover_response([stack], [t], method="robertson", samples=2000)
+    assert np.isfinite(g).all() and np.all(np.diff(g, axis=0) > 0)
+    rad, _, _ = merge_bracket(stack, t, g)
+    assert reexposure_error(stack, t, rad, g).mean() < 2.0

@@ -199,6 +199,13 @@ def recover_response(
             for p in range(b0)]
         crf = cv2.createCalibrateRobertson().process(strips, t0.astype(np.float32))
         g = np.log(np.maximum(crf[:, 0, ::-1].astype(float), 1e-12))
+        # Levels no sample showed come back NaN from OpenCV: interpolate them.
+        z = np.arange(256)
+        for c in range(3):
+            ok = np.isfinite(g[:, c])
+            if ok.sum() < 2:
+                raise HdrError("robertson: too few distinct levels in the pixel sample")
+            g[:, c] = np.interp(z, z[ok], g[ok, c])
         g -= g[128]
     else:
         raise HdrError(f"unknown response method {method!r}")
