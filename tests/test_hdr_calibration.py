@@ -141,3 +141,44 @@ def test_linear_16bit_input_merges_without_a_response(tmp_path):
     rad, sat, _ = read_hdr(tmp_path / "v.exr")
     assert sat[0, 0] and sat.sum() == 1
     np.testing.assert_allclose(rad[~sat], L[~sat], rtol=0.01)
+
+
+def test_chessboard_squares_across_and_down(tmp_path):
+    """A chessboard of 9 x 7 squares (capture.yaml counts squares; OpenCV wants the
+    8 x 6 inner corners), rendered by homographies from a known camera."""
+    import cv2
+
+    from parammap.geometry import look_at
+
+    sx, sy, sq, px = 9, 7, 20.0, 10  # squares, mm per square, texture px per mm
+    tex = np.full(((sy + 2) * int(sq) * px, (sx + 2) * int(sq) * px), 255, np.uint8)
+    for i in range(sy):
+        for j in range(sx):
+            if (i + j) % 2 == 0:
+                y0, x0 = (i + 1) * int(sq) * px, (j + 1) * int(sq) * px
+                tex[y0:y0 + int(sq) * px, x0:x0 + int(sq) * px] = 0
+    K = np.array([[800.0, 0, 319.5], [0, 800.0, 239.5], [0, 0, 1]])
+    # texture pixel (u, v) -> board mm (x right, y down from the first inner corner)
+    T_tex = np.array([[1 / px, 0, -sq], [0, 1 / px, -sq], [0, 0, 1]])
+    rng = np.random.default_rng(3)
+    (tmp_path / "cal").mkdir()
+    centre = np.array([(sx - 2) * sq / 2, (sy - 2) * sq / 2, 0.0])
+    for k in range(8):
+        d = np.array([rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5), -1.0])
+        C = centre + 420 * d / np.linalg.norm(d)
+        R, t = look_at(C, centre + [rng.uniform(-10, 10), rng.uniform(-10, 10), 0],
+                       rng.uniform(-0.3, 0.3))
+        H = K @ np.c_[R[:, 0], R[:, 1], t] @ T_tex
+        img = cv2.warpPerspective(tex, H, (640, 480), flags=cv2.INTER_AREA,
+                                  borderValue=255)
+        cv2.imwrite(str(tmp_path / "cal" / f"c{k}.png"), img)
+    y = {"surface": {"id": "cb", "width_mm": 100, "height_mm": 100},
+         "calibration": {"board": "chessboard", "squares_x": sx, "squares_y": sy,
+                         "square_mm": sq, "images": "cal/*.png"},
+         "views": [{"id": "v0", "exposures": [{"file": "cal/c0.png", "exposure_s": 1}]}]}
+    (tmp_path / "capture.yaml").write_text(yaml.safe_dump(y))
+    intr = calibrate(load_capture(tmp_path), min_images=6, log=lambda *_: None)
+    assert intr.images_used >= 6
+    assert abs(intr.K[0, 0] / 800 - 1) < 0.01 and abs(intr.K[1, 1] / 800 - 1) < 0.01
+    assert np.hypot(intr.K[0, 2] - 319.5, intr.K[1, 2] - 239.5) < 3
+    assert intr.rms_px < 0.3
