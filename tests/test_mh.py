@@ -127,3 +127,12 @@ def test_bad_settings_are_clear_errors(tmp_path):
         parse_lobes("two")
     with pytest.raises(FitError, match="incomplete|no fit store"):
         open_fit(tmp_path / "nothing.zarr")
+
+
+def test_batch_and_per_texel_polish_agree():
+    case = phong_case(lights=((1500, 1500, 2000), (-1500, -1500, 2000)),
+                      intensities=(1.0, 0.8), noise=0.002)
+    a = _fit(case, 2, polish="batch")
+    b = _fit(case, 2, polish="texel")
+    np.testing.assert_allclose(a["rmse"], b["rmse"], rtol=1e-3)
+    np.testing.assert_allclose(a["params"], b["params"], rtol=2e-3, atol=1e-5)
