@@ -275,6 +275,7 @@ def _x_to_params_batch(X: np.ndarray, s: np.ndarray) -> np.ndarray:
     return P
 
 
+BATCH_EVALS = 25  # evaluations of the stacked-texel polish before the per-texel fallback
 KS_CAP = 20.0  # Ks <= KS_CAP x the texel's brightest observation (scaled units)
 
 
@@ -463,7 +464,8 @@ def polish_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, P0: np.ndarray,
     opt.set_min_objective(fn)
     opt.set_ftol_rel(cfg.ftol_rel)
     opt.set_xtol_rel(cfg.xtol_rel)
-    opt.set_maxeval(cfg.max_evals)
+    # few evaluations: texels that need more are better served alone afterwards
+    opt.set_maxeval(min(cfg.max_evals, BATCH_EVALS))
     try:
         opt.optimize(X0.ravel())
         code = int(opt.last_optimize_result())
@@ -499,7 +501,7 @@ class MhFitConfig:
     xtol_rel: float = 1e-8
     bic_margin: float = 10.0  # auto-K adds a lobe only if BIC drops by more
     bic_floor: float = 1e-3  # residuals below this fraction of the radiance are noise
-    polish: str = "batch"  # batch (one nlopt run per tile) | texel (one per texel)
+    polish: str = "texel"  # texel (one nlopt run per texel) | batch (stacked texels first)
 
 
 @dataclass
