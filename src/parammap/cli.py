@@ -453,6 +453,12 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    import cv2
+
+    # OpenCV's parallel reductions (calibration, detection) differ in the last bits from
+    # run to run; one thread makes every stage reproducible. Parallelism comes from
+    # Snakemake jobs and worker processes instead.
+    cv2.setNumThreads(1)
     args = _parser().parse_args(argv)
     try:
         return _COMMANDS[args.command](args)
