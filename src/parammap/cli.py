@@ -181,7 +181,6 @@ def _poses(a: argparse.Namespace) -> int:
     from .exr import ExrError
     from .hdr import read_hdr
     from .metrics import write_metrics
-    from .report import plot_hemisphere, plot_reprojection
 
     cfg = _stage_config(a)["poses"]
     cap = load_capture(a.capture)
@@ -221,14 +220,9 @@ def _poses(a: argparse.Namespace) -> int:
         "max_rms_px": float(np.max(rms)) if rms else None,
         "rms_px": {r["id"]: r["rms_px"] for r in kept}})
     if a.figures:
-        fig = Path(a.figures)
-        plot_reprojection(records, fig / "pose_reprojection.png")
-        if kept:
-            C = np.array([r["centre_mm"] for r in kept]) - [cap.width_mm / 2, cap.height_mm / 2, 0]
-            plot_hemisphere(C / np.linalg.norm(C, axis=1, keepdims=True),
-                            fig / "view_directions.png",
-                            holdout=np.array([r["holdout"] for r in kept]),
-                            title=f"{cap.surface_id}: camera directions from poses")
+        from .figures import make_figures
+
+        make_figures("poses", a.capture, out, a.figures)
     _log(f"poses: kept {len(kept)} of {len(records)} views")
     return 0
 
