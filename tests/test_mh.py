@@ -136,3 +136,28 @@ def test_batch_and_per_texel_polish_agree():
     b = _fit(case, 2, polish="texel")
     np.testing.assert_allclose(a["rmse"], b["rmse"], rtol=1e-3)
     np.testing.assert_allclose(a["params"], b["params"], rtol=2e-3, atol=1e-5)
+
+
+def test_robust_loss_resists_outliers():
+    case = phong_case(noise=0.002)
+    rad = case.radiance.copy()
+    rng = np.random.default_rng(5)
+    hit = rng.random(rad.shape[:3]) < 0.05  # 5 % of the observations 3x too bright
+    rad[hit] *= 3.0
+    outl = phong_case(noise=0.002)
+    outl.radiance = rad
+    truth = case.truth[TILE].reshape(16, -1)
+    err = {}
+    for loss in ("linear", "soft_l1"):
+        p = _fit(outl, 1, loss=loss, f_scale=0.02)["params"].reshape(16, -1).astype(float)
+        err[loss] = np.median(np.abs(p[:, :3] / truth[:, :3] - 1))
+    assert err["soft_l1"] < 0.02 < err["linear"], err
+
+
+def test_unknown_scheduler_is_a_clear_error(tmp_path):
+    case = phong_case(texels=4, level=1)
+    obs = write_observation_arrays(tmp_path / "obs.zarr", case.radiance, case.direction,
+                                   case.valid, 1000.0, 1000.0, tile=4)
+    with pytest.raises(FitError, match="unknown scheduler 'gpu'"):
+        fit_mh_map(obs, tmp_path / "mh-1.zarr", 1, {}, "gpu", 1, log=lambda *_: None)
+    assert not (tmp_path / "mh-1.zarr").exists()
