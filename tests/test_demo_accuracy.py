@@ -65,9 +65,7 @@ def test_every_kept_pose_matches_truth(demo):
         rot.append(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
         rms.append(r["rms_px"])
     assert max(centre) < 1.0, max(centre)
-    # Issue 3 asks 0.1 deg for every view: the median is well inside, the worst view
-    # (near the normal, where tilt trades against shift) measured 0.117 deg (open).
-    assert np.median(rot) < 0.1 and max(rot) < 0.15, (np.median(rot), max(rot))
+    assert max(rot) < 0.1, max(rot)
     assert np.median(rms) < 0.3, np.median(rms)
 
 
@@ -81,7 +79,7 @@ def test_observation_map_matches_truth(demo):
     d = g["direction"][:].reshape(T * S, N, 3)
     L = g["radiance"][:].reshape(T * S, N, 3)
     ang = np.degrees(np.arccos(np.clip((d * d_true).sum(-1), -1, 1)))[v]
-    assert np.median(ang) < 0.05, np.median(ang)
+    assert ang.max() < 0.05, ang.max()  # every valid observation
     ok = v[..., None] & (L_true > 1e-3)
     scale = np.median(L_true[ok] / L[ok])
     rel = np.abs(L[ok] * scale - L_true[ok]) / L_true[ok]

@@ -7,6 +7,7 @@ conventions.md: ``p_cam = R @ p_world + t`` with the surface in z = 0 (mm).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -168,8 +169,8 @@ def marker_views(cap: Capture, intr: Intrinsics, frames, min_markers: int = 4,
     """Surface-marker correspondences of captured views, for :func:`calibrate`.
 
     ``frames`` yields (view id, linear radiance (H, W, 3)). Corners are edge-refined
-    with the board intrinsics ``intr``; views with fewer than ``min_markers`` markers
-    are skipped.
+    with the board intrinsics ``intr``; only markers measured on all four edges are
+    used, and views with fewer than ``min_markers`` of them are skipped.
     """
     if len(cap.marker_ids) == 0:
         return []
@@ -182,7 +183,12 @@ def marker_views(cap: Capture, intr: Intrinsics, frames, min_markers: int = 4,
         if len(use) < min_markers:
             continue
         lum = np.asarray(rad, np.float32) @ np.array([0.2126, 0.7152, 0.0722], np.float32)
-        c = refine_marker_corners(lum, np.asarray(corners, float)[use], intr, cells)
+        c, measured = refine_marker_corners(lum, np.asarray(corners, float)[use], intr, cells,
+                                            return_measured=True)
+        # only markers measured on all four edges: ArUco's corners would bias the focal
+        use, c = [k for k, ok in zip(use, measured, strict=True) if ok], c[measured]
+        if len(use) < min_markers:
+            continue
         obj = np.concatenate([np.c_[cap.marker_corners[known[int(ids[k])]], np.zeros(4)]
                               for k in use])
         out.append((vid, obj, c.reshape(-1, 2)))
@@ -248,18 +254,93 @@ def _to_pixels(xy: np.ndarray, intr: Intrinsics) -> np.ndarray:
                      K[1, 1] * d[..., 1] + K[1, 2]], -1)
 
 
+def _edge_points(lum: np.ndarray, a: np.ndarray, b: np.ndarray, outward: np.ndarray,
+                 dark_band: float, bright_reach: float = 3.0) -> np.ndarray:
+    """Sub-pixel points of a dark-to-bright step edge near the segment a-b.
+
+    Area method: along each pixel column (or row, for a steep edge) crossing the edge,
+    the pixel values normalised between the dark and the bright level sum to the
+    length of the bright part of the window, so the edge position is that length from
+    the window's end: exact for a box-filtered straight step at any angle, and for
+    any symmetric blur that fits in the window (no interpolation, no threshold).
+
+    Parameters
+    ----------
+    lum : (H, W) linear luminance.
+    a, b : (2,) approximate end points (pixels); the middle 60 % is measured.
+    outward : (2,) unit normal pointing to the bright side.
+    dark_band : width of the dark band behind the edge (pixels, along the normal):
+        the window's dark side stays inside it.
+    bright_reach : pixels taken on the bright side (along the normal).
+
+    Returns
+    -------
+    (n, 2) edge points in pixels (x, y).
+    """
+    ax = 0 if abs(outward[1]) >= abs(outward[0]) else 1  # 0: walk columns, 1: walk rows
+    if ax == 1:  # transpose the problem: swap x and y
+        lum, a, b, outward = lum.T, a[::-1], b[::-1], outward[::-1]
+    H, W = lum.shape
+    x0, x1 = sorted((a[0] + 0.2 * (b[0] - a[0]), a[0] + 0.8 * (b[0] - a[0])))
+    xs = np.arange(math.ceil(x0), math.floor(x1) + 1)
+    if len(xs) < 4 or abs(b[0] - a[0]) < 1e-9:
+        return np.zeros((0, 2))
+    yc = np.round(a[1] + (xs - a[0]) * (b[1] - a[1]) / (b[0] - a[0])).astype(int)
+    sgn = 1 if outward[1] > 0 else -1  # +1: the bright side is at larger y
+    # along a column the band is 1/|n_y| times wider than along the normal
+    band = dark_band / abs(outward[1])
+    rb = max(2, int(math.ceil(bright_reach / abs(outward[1]))))
+    # The detected corners can be a pixel off on small markers: find each column's
+    # crossing first (from the bright side), then put the window around it.
+    o = np.arange(-3, rb + 4)
+    rows = yc[:, None] + sgn * o
+    ok = (rows.min(1) >= 0) & (rows.max(1) < H) & (xs >= 0) & (xs < W)
+    xs, rows = xs[ok], rows[ok]
+    if len(xs) < 4:
+        return np.zeros((0, 2))
+    prof = lum[rows, xs[:, None]].astype(float)
+    mn = prof.min(1)
+    below = prof < (mn + 0.15 * (prof.max(1) - mn))[:, None]  # clearly dark
+    # the bright-most pixel of a dark run, nearest the expected edge (other edges,
+    # e.g. printed texture beyond a narrow gap, may lie further out)
+    step = below[:, :-1] & ~below[:, 1:]
+    dist = np.where(step, np.abs(o[:-1]), np.inf)
+    last = np.argmin(dist, axis=1)
+    yt = rows[np.arange(len(xs)), last]
+    # That pixel's centre lies 0.35-1.35 px inside the edge (>= 85 % dark), and the
+    # window's dark end must stay inside the band: k more pixels.
+    k = max(0, int(math.floor(band - 1.85)))
+    o2 = np.arange(-k, rb + 1)  # dark end first
+    rows = yt[:, None] + sgn * o2
+    ok = step.any(1) & (rows.min(1) >= 0) & (rows.max(1) < H)
+    xs, rows = xs[ok], rows[ok]
+    if len(xs) < 4:
+        return np.zeros((0, 2))
+    vals = lum[rows, xs[:, None]].astype(float)  # (n, k + rb + 1), dark end first
+    lo = float(np.median(vals[:, 0]))  # the dark band: one level along the edge
+    hi = vals[:, -2:].mean(1)
+    span = hi - lo
+    good = (span > 0.25 * np.maximum(hi, 1e-12)) & (np.abs(vals[:, 0] - lo) < 0.1 * span) \
+        & (np.abs(vals[:, -1] - vals[:, -2]) < 0.1 * span)
+    u = np.clip((vals - lo) / np.maximum(span, 1e-12)[:, None], 0.0, 1.0)
+    dark = (1.0 - u).sum(1)  # length of the dark part, from the dark end
+    y = rows[:, 0] + sgn * (dark - 0.5)
+    pts = np.stack([xs, y], 1)[good]
+    return pts[:, ::-1] if ax == 1 else pts
+
+
 def refine_marker_corners(
     lum: np.ndarray, corners: np.ndarray, intr: Intrinsics, cells: int = 6,
-    max_shift_px: float = 1.5,
-) -> np.ndarray:
+    max_shift_px: float = 1.5, return_measured: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Refine marker outer corners by fitting lines to the four outer edges.
 
     ArUco's corner refinement treats the convex marker corner like a saddle point and
-    lands ~0.25 px inside it on anti-aliased edges. Here every edge is located at the
-    half-way crossing between the black border and the white surround along its normal
-    (exact for a box-filtered step in *linear* radiance), at many points away from the
-    corners; a line is fitted to them in undistorted normalised coordinates (so lens
-    distortion does not bend it) and adjacent lines are intersected.
+    lands ~0.25 px inside it on anti-aliased edges. Here each outer edge (black border
+    to the lighter surround) is located column by column with the area method of
+    :func:`_edge_points` in *linear* radiance, away from the corners; a line is fitted
+    to those points in undistorted normalised coordinates (so lens distortion does not
+    bend it) and adjacent lines are intersected.
 
     Parameters
     ----------
@@ -267,20 +348,22 @@ def refine_marker_corners(
     corners : (M, 4, 2) ArUco corners in pixels (clockwise from top-left).
     intr : camera intrinsics, for the undistortion.
     cells : marker width in cells, border included (bits + 2).
-    max_shift_px : a refined corner further than this from ArUco's is not trusted.
+    max_shift_px : a refined corner further than this from ArUco's is not trusted
+        (with all four edges measured: up to a quarter of the shortest edge).
+    return_measured : also return which markers had all four edges measured.
 
     Returns
     -------
     (M, 4, 2) refined corners; a marker whose edges cannot be measured keeps its input.
+    With ``return_measured``, also (M,) bool.
     """
     lum = np.ascontiguousarray(lum, np.float32)
     out = np.array(corners, float, copy=True)
+    done = np.zeros(len(out), bool)
     for m, quad in enumerate(np.asarray(corners, float)):
-        edges = np.linalg.norm(np.roll(quad, -1, axis=0) - quad, axis=1)
-        if edges.min() < 3.0 * cells:
-            continue  # cells under ~3 px (grazing or distant): profiles would mix cells
         centre = quad.mean(0)
-        lines = []
+        edges = np.linalg.norm(np.roll(quad, -1, axis=0) - quad, axis=1)
+        lines, measured = [], 0
         for k in range(4):
             a, b = quad[k], quad[(k + 1) % 4]
             length = np.linalg.norm(b - a)
@@ -288,41 +371,29 @@ def refine_marker_corners(
             n = np.array([e[1], -e[0]])
             if np.dot((a + b) / 2 - centre, n) < 0:
                 n = -n
-            w = float(np.clip(0.4 * length / cells, 1.0, 3.0))
-            f = np.linspace(0.2, 0.8, max(5, int(length * 0.6 / 1.0)))
-            o = np.arange(-w, w + 1e-9, 0.125)
-            pts = a + f[:, None] * (b - a)
-            prof_xy = pts[:, None, :] + o[None, :, None] * n
-            prof = cv2.remap(lum, prof_xy[..., 0].astype(np.float32),
-                             prof_xy[..., 1].astype(np.float32), cv2.INTER_LINEAR,
-                             borderMode=cv2.BORDER_REPLICATE)
-            lo = prof[:, o <= -w + 0.5].mean(1)
-            hi = prof[:, o >= w - 0.5].mean(1)
-            good = hi - lo > 0.25 * np.maximum(hi, 1e-12)
-            half = (lo + hi) / 2
-            edge = []
-            for i in np.flatnonzero(good):
-                above = prof[i] >= half[i]
-                cross = np.flatnonzero(~above[:-1] & above[1:])
-                if len(cross) != 1:
-                    continue
-                j = cross[0]
-                t = (half[i] - prof[i, j]) / max(prof[i, j + 1] - prof[i, j], 1e-12)
-                edge.append(pts[i] + (o[j] + t * (o[j + 1] - o[j])) * n)
-            if len(edge) < 4:
-                break
-            xy = _to_normalized(np.array(edge), intr)
+            # the black border's width across this edge: the marker's extent along n
+            # over the cell count; the window's dark side must stay inside it
+            band = float(np.max((quad - a) @ -n)) / cells
+            edge = np.zeros((0, 2))
+            if band >= 2.0 and length >= 2.0 * cells:
+                edge = _edge_points(lum, a, b, n, min(band, 6.0))
+            if len(edge) >= 4:
+                measured += 1
+            else:  # too thin to measure: the line through the two detected corners
+                edge = np.array([a, b])
+            xy = _to_normalized(edge, intr)
             c = xy.mean(0)
             _, _, vt = np.linalg.svd(xy - c)
             nrm = vt[1]
-            resid = (xy - c) @ nrm
-            keep = np.abs(resid) <= max(3 * np.median(np.abs(resid)), 1e-9)
-            if keep.sum() >= 4 and not keep.all():
-                c = xy[keep].mean(0)
-                _, _, vt = np.linalg.svd(xy[keep] - c)
-                nrm = vt[1]
+            if len(xy) >= 5:
+                resid = (xy - c) @ nrm
+                keep = np.abs(resid) <= max(3 * np.median(np.abs(resid)), 1e-9)
+                if keep.sum() >= 4 and not keep.all():
+                    c = xy[keep].mean(0)
+                    _, _, vt = np.linalg.svd(xy[keep] - c)
+                    nrm = vt[1]
             lines.append((nrm, float(nrm @ c)))
-        if len(lines) != 4:
+        if measured == 0:
             continue
         new = []
         for k in range(4):
@@ -334,9 +405,16 @@ def refine_marker_corners(
         if len(new) != 4:
             continue
         px = _to_pixels(np.array(new), intr)
-        if np.all(np.linalg.norm(px - quad, axis=1) <= max_shift_px):
+        # ArUco's corners of small, oblique markers can be pixels off; four measured
+        # edges are trusted further than a mix with ArUco's own edges
+        limit = max_shift_px if measured < 4 else max(max_shift_px, 0.25 * edges.min())
+        if np.all(np.linalg.norm(px - quad, axis=1) <= limit):
             out[m] = px
-    return out
+            done[m] = measured == 4
+    return (out, done) if return_measured else out
+
+
+MIN_MEASURED_MARKERS = 4  # markers with four measured edges that suffice for a pose
 
 
 def estimate_pose(
@@ -347,7 +425,8 @@ def estimate_pose(
 
     IPPE on all detected corners (planar), then Levenberg-Marquardt refinement. With
     ``radiance`` (H, W, 3 linear) the corners are first refined on the marker edges
-    (:func:`refine_marker_corners`).
+    (:func:`refine_marker_corners`), and when at least ``MIN_MEASURED_MARKERS``
+    markers had all four edges measured only those enter the solve.
 
     Returns
     -------
@@ -366,7 +445,12 @@ def estimate_pose(
         lum = np.asarray(radiance, np.float32) @ np.array([0.2126, 0.7152, 0.0722], np.float32)
         cells = aruco_dictionary(cap.marker_dictionary).markerSize + 2
         corners = np.array(corners, float)
-        corners[use] = refine_marker_corners(lum, corners[use], intr, cells)
+        corners[use], measured = refine_marker_corners(lum, corners[use], intr, cells,
+                                                       return_measured=True)
+        # Detected corners of small oblique markers can be pixels off: with enough
+        # markers measured on all four edges, leave the others out of the solve.
+        if measured.sum() >= MIN_MEASURED_MARKERS:
+            use = [k for k, ok in zip(use, measured, strict=True) if ok]
     obj = np.concatenate([np.c_[cap.marker_corners[known[int(ids[k])]], np.zeros(4)]
                           for k in use]).astype(np.float64)
     img = np.concatenate([corners[k] for k in use]).astype(np.float64)
