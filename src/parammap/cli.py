@@ -251,22 +251,31 @@ def _observe(a: argparse.Namespace) -> int:
     return 0
 
 
-@_command("fit-mh")
-def _fit_mh(a: argparse.Namespace) -> int:
+def _run_fit(a: argparse.Namespace, name: str, fit, figures, family: str,
+             model_args: tuple) -> dict:
+    """Fit one model (``family``: the ``fit`` config section, mh or sh) over the
+    observation map; write its metrics and figures."""
     from .metrics import write_metrics
-    from .models.mh import fit_mh_map, mh_figures, parse_lobes
 
     full = _stage_config(a)
     cfg = full["fit"]
     out = Path(a.out)
-    K = parse_lobes(a.lobes)
-    name = f"mh-{K}"
-    m = fit_mh_map(out / "observation.zarr", out / "fit" / f"{name}.zarr", K, cfg["mh"],
-                   cfg["scheduler"], a.workers or cfg["workers"] or full["workers"], log=_log)
+    m = fit(out / "observation.zarr", out / "fit" / f"{name}.zarr", *model_args, cfg[family],
+            cfg["scheduler"], a.workers or cfg["workers"] or full["workers"], log=_log)
     write_metrics(out / "metrics" / f"fit-{name}.json", m)
     if a.figures:
-        mh_figures(out / "fit" / f"{name}.zarr", out / "observation.zarr", a.figures, name,
-                   [tuple(x) for x in full["observation"]["lobe_texels"]] or None)
+        figures(out / "fit" / f"{name}.zarr", out / "observation.zarr", a.figures, name,
+                [tuple(x) for x in full["observation"]["lobe_texels"]] or None)
+    return m
+
+
+@_command("fit-mh")
+def _fit_mh(a: argparse.Namespace) -> int:
+    from .models.mh import fit_mh_map, mh_figures, parse_lobes
+
+    K = parse_lobes(a.lobes)
+    name = f"mh-{K}"
+    m = _run_fit(a, name, fit_mh_map, mh_figures, "mh", (K,))
     _log(f"fit-mh: {name} mean % residual {m['mean_percentage_residual']}, "
          f"{m['failed']} failed, {m['texels_per_second']:.1f} texels/s")
     return 0
@@ -274,20 +283,11 @@ def _fit_mh(a: argparse.Namespace) -> int:
 
 @_command("fit-sh")
 def _fit_sh(a: argparse.Namespace) -> int:
-    from .metrics import write_metrics
     from .models.sh import fit_sh_map, parse_sh_model, sh_figures
 
-    full = _stage_config(a)
-    cfg = full["fit"]
-    out = Path(a.out)
     hemi, n = parse_sh_model(a.model)
     name = f"sh-{hemi}-{n * n}"
-    m = fit_sh_map(out / "observation.zarr", out / "fit" / f"{name}.zarr", hemi, n, cfg["sh"],
-                   cfg["scheduler"], a.workers or cfg["workers"] or full["workers"], log=_log)
-    write_metrics(out / "metrics" / f"fit-{name}.json", m)
-    if a.figures:
-        sh_figures(out / "fit" / f"{name}.zarr", out / "observation.zarr", a.figures, name,
-                   [tuple(x) for x in full["observation"]["lobe_texels"]] or None)
+    m = _run_fit(a, name, fit_sh_map, sh_figures, "sh", (hemi, n))
     _log(f"fit-sh: {name} mean % residual {m['mean_percentage_residual']}, "
          f"{m['texels_per_second']:.1f} texels/s")
     return 0
