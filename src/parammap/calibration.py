@@ -29,6 +29,7 @@ __all__ = [
     "load_intrinsics",
     "marker_views",
     "refine_marker_corners",
+    "rotation_sd_per_px",
     "save_intrinsics",
     "to_gray8",
 ]
@@ -414,6 +415,22 @@ def refine_marker_corners(
     return (out, done) if return_measured else out
 
 
+def rotation_sd_per_px(obj: np.ndarray, rvec: np.ndarray, tvec: np.ndarray,
+                       intr: Intrinsics) -> float:
+    """Predicted standard deviation (degrees) of a pose's rotation for 1 px of
+    independent corner noise: sqrt(trace) of the rotation block of (J^T J)^-1, J the
+    Jacobian of the projected points (n, 3) with respect to the six pose parameters.
+    Multiply by the corner noise (e.g. the reprojection RMS) for the pose's own.
+    Large for few, small or grazing markers, where rotation trades against shift."""
+    _, J = cv2.projectPoints(np.asarray(obj, np.float64), rvec, tvec, intr.K, intr.dist)
+    J = J[:, :6]
+    try:
+        cov = np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return math.inf
+    return math.degrees(math.sqrt(max(float(np.trace(cov[:3, :3])), 0.0)))
+
+
 MIN_MEASURED_MARKERS = 4  # markers with four measured edges that suffice for a pose
 
 
@@ -431,13 +448,15 @@ def estimate_pose(
     Returns
     -------
     dict with ``ok``, ``reason`` (when not ok), ``R`` (3x3), ``t`` (3,), ``centre_mm``,
-    ``rms_px``, ``markers`` (ids used).
+    ``rms_px``, ``markers`` (ids used in the solve), ``detected`` (surface marker ids
+    found), ``rotation_sd_deg_per_px`` (:func:`rotation_sd_per_px`).
     """
     if len(cap.marker_ids) == 0:
         return {"ok": False, "reason": "capture.yaml lists no surface markers", "markers": []}
     ids, corners = detect_markers(gray, cap.marker_dictionary)
     known = {int(i): k for k, i in enumerate(cap.marker_ids)}
     use = [k for k, i in enumerate(ids) if int(i) in known]
+    known_found = list(use)
     if len(use) < min_markers:
         return {"ok": False, "reason": f"{len(use)} surface markers found, need {min_markers}",
                 "markers": [int(ids[k]) for k in use]}
@@ -451,6 +470,7 @@ def estimate_pose(
         # markers measured on all four edges, leave the others out of the solve.
         if measured.sum() >= MIN_MEASURED_MARKERS:
             use = [k for k, ok in zip(use, measured, strict=True) if ok]
+    detected = sorted(int(ids[k]) for k in known_found)
     obj = np.concatenate([np.c_[cap.marker_corners[known[int(ids[k])]], np.zeros(4)]
                           for k in use]).astype(np.float64)
     img = np.concatenate([corners[k] for k in use]).astype(np.float64)
@@ -466,5 +486,6 @@ def estimate_pose(
     if C[2] <= 0:
         return {"ok": False, "reason": "camera below the surface plane", "rms_px": rms,
                 "markers": [int(ids[k]) for k in use]}
-    return {"ok": True, "R": R, "t": t, "centre_mm": C, "rms_px": rms,
+    return {"ok": True, "R": R, "t": t, "centre_mm": C, "rms_px": rms, "detected": detected,
+            "rotation_sd_deg_per_px": rotation_sd_per_px(obj, rvec, tvec, intr),
             "markers": sorted(int(ids[k]) for k in use)}

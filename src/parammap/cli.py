@@ -186,7 +186,7 @@ def _poses(a: argparse.Namespace) -> int:
     cap = load_capture(a.capture)
     out = Path(a.out)
     intr = load_intrinsics(out / "camera" / "intrinsics.yaml")
-    records = []
+    recs = []
     for v in cap.views:
         try:
             rad, _, _ = read_hdr(out / "hdr" / f"{v.id}.exr")
@@ -197,14 +197,27 @@ def _poses(a: argparse.Namespace) -> int:
             if rec["ok"] and rec["rms_px"] > cfg["max_rms_px"]:
                 rec.update(ok=False, reason=f"reprojection RMS {rec['rms_px']:.2f} px above "
                                             f"{cfg['max_rms_px']} px")
+        recs.append((v, rec))
+    # pose uncertainty: corner noise taken as the view's RMS, at least the capture's
+    # median (a view with few points can fit its own noise)
+    med = float(np.median([r["rms_px"] for _, r in recs if r["ok"]] or [0.0]))
+    records = []
+    for v, rec in recs:
+        if rec["ok"]:
+            sd = rec["rotation_sd_deg_per_px"] * max(rec["rms_px"], med)
+            rec["rotation_sd_deg"] = sd
+            if sd > cfg["max_rotation_sd_deg"]:
+                rec.update(ok=False, reason=f"rotation uncertain: {sd:.3f} deg (1 sd, from "
+                           f"{len(rec['markers'])} markers) above {cfg['max_rotation_sd_deg']}")
         if not rec["ok"]:
             _log(f"poses: dropping view {v.id}: {rec['reason']}")
         records.append({"id": v.id, "holdout": v.holdout, "kept": bool(rec["ok"]),
                         **({"reason": rec["reason"]} if not rec["ok"] else {}),
                         **{k: np.asarray(rec[k]).tolist() for k in ("R", "t", "centre_mm")
                            if k in rec},
-                        **({"rms_px": float(rec["rms_px"])} if "rms_px" in rec else {}),
-                        "markers": rec.get("markers", [])})
+                        **{k: float(rec[k]) for k in ("rms_px", "rotation_sd_deg") if k in rec},
+                        "markers": rec.get("markers", []),
+                        **({"detected": rec["detected"]} if "detected" in rec else {})})
     import yaml
 
     path = out / "camera" / "poses.yaml"
@@ -218,6 +231,7 @@ def _poses(a: argparse.Namespace) -> int:
         "dropped": {r["id"]: r["reason"] for r in records if not r["kept"]},
         "median_rms_px": float(np.median(rms)) if rms else None,
         "max_rms_px": float(np.max(rms)) if rms else None,
+        "max_rotation_sd_deg": max((r["rotation_sd_deg"] for r in kept), default=None),
         "rms_px": {r["id"]: r["rms_px"] for r in kept}})
     if a.figures:
         from .figures import make_figures
