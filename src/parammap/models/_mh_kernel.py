@@ -114,26 +114,39 @@ def _gram_loop(A: np.ndarray, Y: np.ndarray, w: np.ndarray):
     G = np.zeros((B, P, P), A.dtype)
     R = np.zeros((B, C, P), A.dtype)
     yy = np.zeros(B, A.dtype)
+    At = np.empty((P, N), A.dtype)  # one texel's weighted design, column-major
+    Yt = np.empty((C, N), A.dtype)
     for b in range(B):
         for n in range(N):
             wn = w[b, n]
-            if wn == 0:
-                continue
             for p in range(P):
-                a = A[b, n, p] * wn
-                for q in range(p, P):
-                    G[b, p, q] += a * A[b, n, q]
-                for c in range(C):
-                    R[b, c, p] += a * Y[b, n, c]
+                At[p, n] = A[b, n, p] * wn
             for c in range(C):
-                yy[b] += wn * Y[b, n, c] * Y[b, n, c]
+                Yt[c, n] = Y[b, n, c]
         for p in range(P):
-            for q in range(p):
-                G[b, p, q] = G[b, q, p]
+            for q in range(p, P):
+                s = 0.0
+                for n in range(N):
+                    s += At[p, n] * A[b, n, q]
+                G[b, p, q] = s
+                G[b, q, p] = s
+            for c in range(C):
+                s = 0.0
+                for n in range(N):
+                    s += At[p, n] * Yt[c, n]
+                R[b, c, p] = s
+        s = 0.0
+        for c in range(C):
+            for n in range(N):
+                s += w[b, n] * Yt[c, n] * Yt[c, n]
+        yy[b] = s
     return G, R, yy
 
 
-_gram_compiled = njit(cache=True, nogil=True)(_gram_loop) if njit is not None else None
+# fastmath: lets the sums vectorise (reassociation only changes the last bits)
+_gram_compiled = njit(cache=True, nogil=True, fastmath=True)(_gram_loop) \
+    if njit is not None else None
+GRAM_LOOP_MAX_P = 4  # above this, numpy's batched matmul is the faster one
 
 
 def gram(A: np.ndarray, Y: np.ndarray, w: np.ndarray):
@@ -141,8 +154,9 @@ def gram(A: np.ndarray, Y: np.ndarray, w: np.ndarray):
 
     A : (B, N, P) design, Y : (B, N, C) targets, w : (B, N) weights.
     Returns G = A^T W A (B, P, P), R = Y^T W A (B, C, P) and yy = sum w Y^2 (B,).
-    Compiled where numba is present (batched matmul with P of a few is slow in numpy).
+    Compiled for P <= ``GRAM_LOOP_MAX_P`` where numba is present (numpy's batched
+    matmul is slow for a P of a few, and faster beyond).
     """
-    if _gram_compiled is None:
+    if _gram_compiled is None or A.shape[2] > GRAM_LOOP_MAX_P:
         return _gram_numpy(A, Y, w)
     return _gram_compiled(A, Y, w.astype(A.dtype, copy=False))
