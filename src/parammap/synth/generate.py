@@ -191,18 +191,13 @@ def render_radiance(shade, size, K, dist, R, t, ss: int = 2, block: int = 64,
     for r0 in range(0, h, block):
         rows = slice(r0, min(h, r0 + block))
         uv = _rays(size, K, dist, ss, rows)
-        P, hit = pixel_to_plane(uv.reshape(-1, 2), K, dist, R, t)
-        rad = np.zeros((P.shape[0], 3))
-        if hit.any():
-            rad[hit] = shade(P[hit], C)
+        rad, ok = _shade_samples(shade, uv.reshape(-1, 2), K, dist, R, t, C, refine)
         rad = rad.reshape(uv.shape[0], w, n, 3)
         out[rows] = rad.mean(axis=2)
         if edge_ss > ss:
             spread = (rad.max(axis=2) - rad.min(axis=2)).max(-1)
             inner[rows] = spread > 0.02 * rad.mean(axis=2).max(-1)
             if refine is not None:
-                ok = np.zeros(P.shape[0], bool)
-                ok[hit] = refine(P[hit])
                 cheap[rows] = ok.reshape(uv.shape[0], w, n).all(-1)
     if edge_ss <= ss:
         return out
@@ -219,12 +214,22 @@ def render_radiance(shade, size, K, dist, R, t, ss: int = 2, block: int = 64,
     for i in range(0, len(yy), step):
         y, x = yy[i:i + step], xx[i:i + step]
         uv2 = np.stack([x[:, None] + ou, y[:, None] + ov], -1)
-        P2, hit2 = pixel_to_plane(uv2.reshape(-1, 2), K, dist, R, t)
-        rad2 = np.zeros((P2.shape[0], 3))
-        if hit2.any():
-            rad2[hit2] = shade(P2[hit2], C)
+        rad2, _ = _shade_samples(shade, uv2.reshape(-1, 2), K, dist, R, t, C)
         out[y, x] = rad2.reshape(len(y), -1, 3).mean(1)
     return out
+
+
+def _shade_samples(shade, uv, K, dist, R, t, C, refine=None):
+    """Radiance (M, 3) at pixel positions uv (M, 2) (0 where the ray misses the plane)
+    and, with ``refine``, whether each sample's plane point satisfies it (M,)."""
+    P, hit = pixel_to_plane(uv, K, dist, R, t)
+    rad = np.zeros((P.shape[0], 3))
+    ok = np.zeros(P.shape[0], bool)
+    if hit.any():
+        rad[hit] = shade(P[hit], C)
+        if refine is not None:
+            ok[hit] = refine(P[hit])
+    return rad, ok
 
 
 def _expose(radiance, t_s, response: Response, preset: Preset, rng) -> np.ndarray:
