@@ -291,8 +291,8 @@ def _edge_points(lum: np.ndarray, a: np.ndarray, b: np.ndarray, outward: np.ndar
     # along a column the band is 1/|n_y| times wider than along the normal
     band = dark_band / abs(outward[1])
     rb = max(2, int(math.ceil(bright_reach / abs(outward[1]))))
-    # The detected corners can be a pixel off on small markers: find each column's
-    # crossing first (from the bright side), then put the window around it.
+    # The detected corners can be pixels off on small markers: find each column's
+    # step first (in a wider search window), then put the measuring window around it.
     o = np.arange(-3, rb + 4)
     rows = yc[:, None] + sgn * o
     ok = (rows.min(1) >= 0) & (rows.max(1) < H) & (xs >= 0) & (xs < W)
