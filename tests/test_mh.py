@@ -197,3 +197,17 @@ def test_gram_matches_numpy():
     w = (rng.random((5, 40)) > 0.3).astype(float)
     for got, want in zip(gram(A, Y, w), _gram_numpy(A, Y, w), strict=True):
         np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+
+
+def test_fit_without_numba_gives_the_same_parameters(monkeypatch):
+    """The numpy fallback (no numba installed) fits to the same optimum."""
+    import parammap.models._mh_kernel as kern
+    import parammap.models.mh as mh
+
+    case = phong_case(noise=0.002)
+    with_numba = _fit(case, 1)
+    monkeypatch.setattr(mh, "cost_grad", None)
+    monkeypatch.setattr(kern, "_gram_compiled", None)
+    without = _fit(case, 1)
+    assert (without["status"] == STATUS_OK).all()
+    np.testing.assert_allclose(without["params"], with_numba["params"], rtol=1e-4, atol=1e-6)
