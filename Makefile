@@ -5,9 +5,17 @@ VENV := .venv
 BIN := $(VENV)/bin
 CORES ?= all
 
-.PHONY: demo test lint report clean-reports setup browser
+.PHONY: demo test lint report clean-reports setup setup-pbr browser
 
 setup: $(VENV)/.installed
+
+# The physically based test captures (Mitsuba 3): an optional extra, installed for the
+# tests and benchmarks, never needed by the pipeline itself.
+setup-pbr: $(VENV)/.installed-pbr
+
+$(VENV)/.installed-pbr: $(VENV)/.installed requirements-pbr.lock
+	$(BIN)/python -m pip install --quiet -r requirements-pbr.lock
+	touch $@
 
 $(VENV)/.installed: pyproject.toml requirements.lock
 	$(PYTHON) -m venv $(VENV)
@@ -33,7 +41,7 @@ browser:
 	  && (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium) \
 	  >/dev/null 2>&1 || echo "note: chromium not installed; viewer tests will be skipped"; }
 
-test: setup browser
+test: setup setup-pbr browser
 	$(BIN)/ruff check src tests workflow/scripts benchmarks
 	$(BIN)/snakemake --lint --cores 1 --dry-run >/dev/null
 	$(BIN)/python -m pytest -q

@@ -34,3 +34,33 @@ def test_schema_file_is_shared_with_workflow():
     wf = ROOT / "workflow" / "schemas" / "config.schema.yaml"
     pkg = ROOT / "src" / "parammap" / "schemas" / "config.schema.yaml"
     assert wf.resolve() == pkg.resolve()
+
+
+def test_surface_overrides_merge_and_name_bad_keys():
+    from parammap.config import surface_config
+
+    cfg = validate_config({"captures": {"a": "x", "b": "y"},
+                           "overrides": {"a": {"observation": {"texels_x": 64}}}})
+    assert cfg["observation"]["texels_x"] == "auto"
+    assert surface_config(cfg, "a")["observation"]["texels_x"] == 64
+    assert surface_config(cfg, "a")["observation"]["tile"] == 32
+    assert surface_config(cfg, "b")["observation"]["texels_x"] == "auto"
+    bad = validate_config({"captures": {"a": "x"},
+                           "overrides": {"a": {"observation": {"texels_x": "big"}}}})
+    with pytest.raises(ConfigError, match=r"observation.texels_x.*overrides.a"):
+        surface_config(bad, "a")
+
+
+def test_auto_map_resolution_and_budget():
+    from types import SimpleNamespace
+
+    from parammap.poses import OBS_BYTES_PER_SAMPLE, map_resolution
+
+    cap = SimpleNamespace(width_mm=200.0, height_mm=100.0)
+    g = map_resolution(cap, [1.5, 2.0, 2.5], 50, "auto", None, 4.0)
+    assert (g["S"], g["T"], g["source"]) == (400, 200, "auto") and not g["capped_by_budget"]
+    small = 400 * 200 * 50 * OBS_BYTES_PER_SAMPLE / 4 / 2**30
+    g = map_resolution(cap, [1.5, 2.0, 2.5], 50, "auto", None, small)
+    assert g["capped_by_budget"] and abs(g["S"] - 200) <= 1 and abs(g["T"] - 100) <= 1
+    g = map_resolution(cap, [2.0], 50, 64, None, 4.0)
+    assert (g["S"], g["T"], g["source"]) == (64, 32, "config")

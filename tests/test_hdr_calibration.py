@@ -3,6 +3,8 @@ and their errors on bad input."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import yaml
@@ -221,8 +223,10 @@ def test_marker_edge_refinement_is_sub_tenth_pixel(yaw_deg):
 
 
 def test_uncertain_poses_are_dropped_with_reason(tiny_processed, tmp_path):
-    """The predicted rotation uncertainty grows when fewer markers carry the pose, and a
-    view above ``poses.max_rotation_sd_deg`` is dropped with that reason."""
+    """The predicted rotation uncertainty grows when fewer markers carry the pose; the
+    view policy drops a fitted view whose predicted surface-point shift is above
+    ``poses.max_texel_shift`` (with the reason), but keeps held-out views with a
+    warning."""
     import shutil
 
     import cv2
@@ -233,8 +237,9 @@ def test_uncertain_poses_are_dropped_with_reason(tiny_processed, tmp_path):
     cap_dir, truth, out = tiny_processed
     cap = load_capture(cap_dir)
     intr = load_intrinsics(out / "camera" / "intrinsics.yaml")
-    rec = yaml.safe_load((out / "camera" / "poses.yaml").read_text())["views"][0]
-    assert rec["kept"] and 0 < rec["rotation_sd_deg"] < 0.1
+    recs = yaml.safe_load((out / "camera" / "poses.yaml").read_text())["views"]
+    rec = recs[0]
+    assert rec["kept"] and 0 < rec["texel_shift"] < 0.5 and rec["direction_sd_deg"] > 0
     known = {int(i): k for k, i in enumerate(cap.marker_ids)}
     rvec = cv2.Rodrigues(np.array(rec["R"]))[0]
     t = np.array(rec["t"])
@@ -247,8 +252,14 @@ def test_uncertain_poses_are_dropped_with_reason(tiny_processed, tmp_path):
     assert sd(rec["markers"][:2]) > 2 * sd(rec["markers"])
     work = tmp_path / "proc"
     shutil.copytree(out, work)
-    limit = 0.5 * rec["rotation_sd_deg"]
+    limit = 0.5 * min(r["texel_shift"] for r in recs if "texel_shift" in r)
     assert main(["poses", str(cap_dir), "--out", str(work),
-                 "--set", f"poses.max_rotation_sd_deg={limit}"]) == 0
-    again = yaml.safe_load((work / "camera" / "poses.yaml").read_text())["views"][0]
-    assert not again["kept"] and "rotation uncertain" in again["reason"]
+                 "--set", f"poses.max_texel_shift={limit}"]) == 0
+    again = yaml.safe_load((work / "camera" / "poses.yaml").read_text())["views"]
+    fitted = [r for r in again if not r["holdout"]]
+    held = [r for r in again if r["holdout"]]
+    assert all(not r["kept"] and "sampling width" in r["reason"] for r in fitted)
+    assert held and all(r["kept"] and "sampling width" in r["warning"] for r in held)
+    m = json.loads((work / "metrics" / "poses.json").read_text())
+    assert set(m["dropped"]) == {r["id"] for r in fitted}
+    assert set(m["held_out_warnings"]) == {r["id"] for r in held}

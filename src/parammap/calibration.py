@@ -29,6 +29,7 @@ __all__ = [
     "load_intrinsics",
     "marker_views",
     "refine_marker_corners",
+    "refine_pose_edges",
     "rotation_sd_per_px",
     "save_intrinsics",
     "to_gray8",
@@ -332,8 +333,8 @@ def _edge_points(lum: np.ndarray, a: np.ndarray, b: np.ndarray, outward: np.ndar
 
 def refine_marker_corners(
     lum: np.ndarray, corners: np.ndarray, intr: Intrinsics, cells: int = 6,
-    max_shift_px: float = 1.5, return_measured: bool = False,
-) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    max_shift_px: float = 1.5, return_measured: bool = False, return_edges: bool = False,
+) -> np.ndarray | tuple:
     """Refine marker outer corners by fitting lines to the four outer edges.
 
     ArUco's corner refinement treats the convex marker corner like a saddle point and
@@ -352,19 +353,24 @@ def refine_marker_corners(
     max_shift_px : a refined corner further than this from ArUco's is not trusted
         (with all four edges measured: up to a quarter of the shortest edge).
     return_measured : also return which markers had all four edges measured.
+    return_edges : also return the measured edge points, per marker a list of four
+        (n, 2) pixel arrays (edge k runs from corner k to corner k + 1; empty when
+        that edge could not be measured), for :func:`refine_pose_edges`.
 
     Returns
     -------
     (M, 4, 2) refined corners; a marker whose edges cannot be measured keeps its input.
-    With ``return_measured``, also (M,) bool.
+    With ``return_measured``, also (M,) bool; with ``return_edges``, also the edges.
     """
     lum = np.ascontiguousarray(lum, np.float32)
     out = np.array(corners, float, copy=True)
     done = np.zeros(len(out), bool)
+    all_edges = []
     for m, quad in enumerate(np.asarray(corners, float)):
         centre = quad.mean(0)
         edges = np.linalg.norm(np.roll(quad, -1, axis=0) - quad, axis=1)
         lines, measured = [], 0
+        all_edges.append([np.zeros((0, 2))] * 4)
         for k in range(4):
             a, b = quad[k], quad[(k + 1) % 4]
             length = np.linalg.norm(b - a)
@@ -380,6 +386,7 @@ def refine_marker_corners(
                 edge = _edge_points(lum, a, b, n, min(band, 6.0))
             if len(edge) >= 4:
                 measured += 1
+                all_edges[m][k] = edge
             else:  # too thin to measure: the line through the two detected corners
                 edge = np.array([a, b])
             xy = _to_normalized(edge, intr)
@@ -412,7 +419,97 @@ def refine_marker_corners(
         if np.all(np.linalg.norm(px - quad, axis=1) <= limit):
             out[m] = px
             done[m] = measured == 4
-    return (out, done) if return_measured else out
+    res = (out,) + ((done,) if return_measured else ()) + ((all_edges,) if return_edges else ())
+    return res if len(res) > 1 else out
+
+
+def refine_pose_edges(
+    quads_mm: np.ndarray, edges: list[list[np.ndarray]], corners_px: np.ndarray,
+    corner_used: np.ndarray, R: np.ndarray, t: np.ndarray, intr: Intrinsics,
+    corner_noise_px: float,
+) -> dict | None:
+    """Refine a pose jointly on the measured marker edges and the remaining corners.
+
+    Every measured edge point must lie on the line through its edge's two projected
+    corners (in undistorted normalised coordinates, where lines stay straight): tens
+    of points per edge instead of one corner, and usable where a marker's other edges
+    are too thin to measure (foreshortened borders at grazing views, which constrain
+    only one direction). Corners of markers not measured on all four edges
+    (``corner_used``) keep the other direction pinned. Residuals are weighted by their
+    noise, re-estimated from the solution (two rounds); the points of one edge share
+    its systematic error (blur, dark level), so an edge counts as two independent
+    measurements (offset and angle), not one per point.
+
+    Parameters
+    ----------
+    quads_mm : (M, 4, 2) marker corners on the surface (mm), corner order of ``edges``.
+    edges : per marker, four (n, 2) arrays of edge points in pixels (may be empty).
+    corners_px : (M, 4, 2) image corners; corner_used : (M,) bool, markers whose
+        corners enter.
+    R, t : starting pose (the corner solution); corner_noise_px : its corner noise per
+        coordinate.
+
+    Returns
+    -------
+    None without at least 12 edge points; else a dict with ``R``, ``t``, ``cov`` (6, 6)
+    covariance of (rvec, tvec), ``edge_noise_px``, ``n`` (edge points).
+    """
+    from scipy.optimize import least_squares
+
+    pts, xa, xb, n_edges = [], [], [], 0
+    for quad, per in zip(quads_mm, edges, strict=True):
+        for k, e in enumerate(per):
+            if len(e) == 0:
+                continue
+            pts.append(_to_normalized(np.asarray(e, float), intr))
+            xa.append(np.repeat([[*quad[k], 0.0]], len(e), 0))
+            xb.append(np.repeat([[*quad[(k + 1) % 4], 0.0]], len(e), 0))
+            n_edges += 1
+    if not pts or sum(len(x) for x in pts) < 12:
+        return None
+    pts, xa, xb = (np.concatenate(a) for a in (pts, xa, xb))
+    cobj = np.array([[*c, 0.0] for q, u in zip(quads_mm, corner_used, strict=True) if u
+                     for c in q]).reshape(-1, 3)
+    cimg = _to_normalized(np.asarray(corners_px, float)[np.asarray(corner_used, bool)]
+                          .reshape(-1, 2), intr) if len(cobj) else np.zeros((0, 2))
+    f = 0.5 * (intr.K[0, 0] + intr.K[1, 1])
+    w_corr = math.sqrt(2.0 * n_edges / len(pts))
+
+    def parts(p):
+        Rm, _ = cv2.Rodrigues(p[:3])
+        A = xa @ Rm.T + p[3:]
+        B = xb @ Rm.T + p[3:]
+        a, b = A[:, :2] / A[:, 2:], B[:, :2] / B[:, 2:]
+        d = b - a
+        n = np.stack([-d[:, 1], d[:, 0]], 1) / np.linalg.norm(d, axis=1, keepdims=True)
+        re = f * np.sum((pts - a) * n, 1)
+        P = cobj @ Rm.T + p[3:]
+        rc = f * (P[:, :2] / P[:, 2:] - cimg).ravel()
+        return re, rc
+
+    rvec, _ = cv2.Rodrigues(np.asarray(R, float))
+    p = np.r_[rvec.ravel(), np.asarray(t, float).ravel()]
+    s_e, s_c = 0.3, max(corner_noise_px, 1e-3)
+    for _ in range(2):
+        def whitened(q, se=s_e, sc=s_c):
+            re, rc = parts(q)
+            return np.r_[re * (w_corr / se), rc / sc]
+
+        sol = least_squares(whitened, p, method="lm", x_scale="jac")
+        p = sol.x
+        re, rc = parts(p)
+        s_e = max(float(np.sqrt(np.mean(re ** 2))), 1e-3)
+        if len(rc) > 6:
+            s_c = max(float(np.sqrt(np.mean(rc ** 2))), 1e-3)
+    J = sol.jac
+    try:
+        cov = np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return None
+    if not np.isfinite(cov).all():
+        return None
+    Rn, _ = cv2.Rodrigues(p[:3])
+    return {"R": Rn, "t": p[3:].copy(), "cov": cov, "edge_noise_px": s_e, "n": len(pts)}
 
 
 def rotation_sd_per_px(obj: np.ndarray, rvec: np.ndarray, tvec: np.ndarray,
@@ -449,7 +546,13 @@ def estimate_pose(
     -------
     dict with ``ok``, ``reason`` (when not ok), ``R`` (3x3), ``t`` (3,), ``centre_mm``,
     ``rms_px``, ``markers`` (ids used in the solve), ``detected`` (surface marker ids
-    found), ``rotation_sd_deg_per_px`` (:func:`rotation_sd_per_px`).
+    found), ``rotation_sd_deg_per_px`` (:func:`rotation_sd_per_px`), ``cov`` (predicted
+    covariance of rvec, tvec from the residuals' own noise), ``noise_px`` (that noise
+    per coordinate, corrected for the six fitted parameters: corner noise, or edge noise
+    after the edge refinement) and ``edge_points`` (0 when corners alone were used).
+
+    With ``radiance`` the pose is finally refined on the measured edge points
+    (:func:`refine_pose_edges`), when at least two markers have measured edges.
     """
     if len(cap.marker_ids) == 0:
         return {"ok": False, "reason": "capture.yaml lists no surface markers", "markers": []}
@@ -460,12 +563,14 @@ def estimate_pose(
     if len(use) < min_markers:
         return {"ok": False, "reason": f"{len(use)} surface markers found, need {min_markers}",
                 "markers": [int(ids[k]) for k in use]}
+    edges = None
     if radiance is not None and len(use):
         lum = np.asarray(radiance, np.float32) @ np.array([0.2126, 0.7152, 0.0722], np.float32)
         cells = aruco_dictionary(cap.marker_dictionary).markerSize + 2
         corners = np.array(corners, float)
-        corners[use], measured = refine_marker_corners(lum, corners[use], intr, cells,
-                                                       return_measured=True)
+        corners[use], measured, edges = refine_marker_corners(
+            lum, corners[use], intr, cells, return_measured=True, return_edges=True)
+        edge_use = list(use)
         # Detected corners of small oblique markers can be pixels off: with enough
         # markers measured on all four edges, leave the others out of the solve.
         if measured.sum() >= MIN_MEASURED_MARKERS:
@@ -482,10 +587,32 @@ def estimate_pose(
     rms = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img) ** 2, 1))))
     R, _ = cv2.Rodrigues(rvec)
     t = tvec.ravel()
+    # corner solution: covariance from the 2-D residuals' noise per coordinate
+    n_res = 2 * len(obj)
+    noise = rms / math.sqrt(2) * math.sqrt(n_res / max(n_res - 6, 1))
+    _, J = cv2.projectPoints(obj, rvec, t, intr.K, intr.dist)
+    try:
+        cov = np.linalg.inv(J[:, :6].T @ J[:, :6]) * noise**2
+    except np.linalg.LinAlgError:
+        cov = np.full((6, 6), np.inf)
+    edge_points = 0
+    if edges is not None and np.isfinite(cov).all():
+        quads = np.array([cap.marker_corners[known[int(ids[k])]] for k in edge_use])
+        ref = refine_pose_edges(quads, edges, corners[edge_use], ~measured, R, t, intr, noise)
+        # taken where it agrees with the corner solution within that solution's own
+        # uncertainty (chi-square, 6 dof, 99.9 %)
+        if ref is not None:
+            r2, _ = cv2.Rodrigues(ref["R"])
+            d = np.r_[r2.ravel() - rvec.ravel(), ref["t"] - t]
+            if float(d @ np.linalg.solve(cov, d)) < 22.5:
+                R, t, cov, noise = ref["R"], ref["t"], ref["cov"], ref["edge_noise_px"]
+                rvec, _ = cv2.Rodrigues(R)
+                edge_points = ref["n"]
     C = camera_centre(R, t)
     if C[2] <= 0:
         return {"ok": False, "reason": "camera below the surface plane", "rms_px": rms,
                 "markers": [int(ids[k]) for k in use]}
     return {"ok": True, "R": R, "t": t, "centre_mm": C, "rms_px": rms, "detected": detected,
-            "rotation_sd_deg_per_px": rotation_sd_per_px(obj, rvec, tvec, intr),
+            "rotation_sd_deg_per_px": rotation_sd_per_px(obj, rvec, t, intr),
+            "cov": cov, "noise_px": noise, "edge_points": edge_points,
             "markers": sorted(int(ids[k]) for k in use)}

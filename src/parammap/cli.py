@@ -36,6 +36,11 @@ def _log(msg: str) -> None:
 
 @_command("synth")
 def _synth(a: argparse.Namespace) -> int:
+    if a.preset.startswith("pbr-"):
+        from .synth.pbr import generate_pbr
+
+        generate_pbr(a.out, a.truth, preset=a.preset, seed=a.seed, surface_id=a.id, log=_log)
+        return 0
     from .synth.generate import generate
 
     generate(a.out, a.truth, preset=a.preset, seed=a.seed, workers=a.workers,
@@ -176,68 +181,19 @@ def _calibrate(a: argparse.Namespace) -> int:
 
 @_command("poses")
 def _poses(a: argparse.Namespace) -> int:
-    from .calibration import estimate_pose, load_intrinsics, to_gray8
     from .capture import load_capture
-    from .exr import ExrError
-    from .hdr import read_hdr
     from .metrics import write_metrics
+    from .poses import run_poses
 
-    cfg = _stage_config(a)["poses"]
+    full = _stage_config(a)
     cap = load_capture(a.capture)
     out = Path(a.out)
-    intr = load_intrinsics(out / "camera" / "intrinsics.yaml")
-    recs = []
-    for v in cap.views:
-        try:
-            rad, _, _ = read_hdr(out / "hdr" / f"{v.id}.exr")
-        except ExrError as exc:
-            rec = {"ok": False, "reason": str(exc)}
-        else:
-            rec = estimate_pose(cap, intr, to_gray8(rad), cfg["min_markers"], radiance=rad)
-            if rec["ok"] and rec["rms_px"] > cfg["max_rms_px"]:
-                rec.update(ok=False, reason=f"reprojection RMS {rec['rms_px']:.2f} px above "
-                                            f"{cfg['max_rms_px']} px")
-        recs.append((v, rec))
-    # pose uncertainty: corner noise taken as the view's RMS, at least the capture's
-    # median (a view with few points can fit its own noise)
-    med = float(np.median([r["rms_px"] for _, r in recs if r["ok"]] or [0.0]))
-    records = []
-    for v, rec in recs:
-        if rec["ok"]:
-            sd = rec["rotation_sd_deg_per_px"] * max(rec["rms_px"], med)
-            rec["rotation_sd_deg"] = sd
-            if sd > cfg["max_rotation_sd_deg"]:
-                rec.update(ok=False, reason=f"rotation uncertain: {sd:.3f} deg (1 sd, from "
-                           f"{len(rec['markers'])} markers) above {cfg['max_rotation_sd_deg']}")
-        if not rec["ok"]:
-            _log(f"poses: dropping view {v.id}: {rec['reason']}")
-        records.append({"id": v.id, "holdout": v.holdout, "kept": bool(rec["ok"]),
-                        **({"reason": rec["reason"]} if not rec["ok"] else {}),
-                        **{k: np.asarray(rec[k]).tolist() for k in ("R", "t", "centre_mm")
-                           if k in rec},
-                        **{k: float(rec[k]) for k in ("rms_px", "rotation_sd_deg") if k in rec},
-                        "markers": rec.get("markers", []),
-                        **({"detected": rec["detected"]} if "detected" in rec else {})})
-    import yaml
-
-    path = out / "camera" / "poses.yaml"
-    tmp = path.with_name(".poses.yaml.tmp")
-    tmp.write_text(yaml.safe_dump({"views": records}, sort_keys=False))
-    tmp.replace(path)
-    kept = [r for r in records if r["kept"]]
-    rms = [r["rms_px"] for r in kept]
-    write_metrics(out / "metrics" / "poses.json", {
-        "views": len(records), "kept": len(kept),
-        "dropped": {r["id"]: r["reason"] for r in records if not r["kept"]},
-        "median_rms_px": float(np.median(rms)) if rms else None,
-        "max_rms_px": float(np.max(rms)) if rms else None,
-        "max_rotation_sd_deg": max((r["rotation_sd_deg"] for r in kept), default=None),
-        "rms_px": {r["id"]: r["rms_px"] for r in kept}})
+    m = run_poses(cap, out, full["poses"], full["observation"], log=_log)
+    write_metrics(out / "metrics" / "poses.json", m)
     if a.figures:
         from .figures import make_figures
 
         make_figures("poses", a.capture, out, a.figures)
-    _log(f"poses: kept {len(kept)} of {len(records)} views")
     return 0
 
 
@@ -386,7 +342,9 @@ def _parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True, metavar="<stage>")
 
     s = sub.add_parser("synth", help="write a synthetic capture and its ground truth")
-    s.add_argument("--preset", default="demo", help="tiny | demo | paper (default demo)")
+    s.add_argument("--preset", default="demo",
+                   help="tiny | demo | paper (analytic, default demo) | pbr-tiny | pbr-bench | "
+                        "pbr-two-lights (Mitsuba 3, needs parammap[pbr])")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", required=True, help="capture directory to write")
     s.add_argument("--truth", help="ground-truth directory (default <out>.truth)")

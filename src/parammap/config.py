@@ -14,7 +14,7 @@ from typing import Any
 import jsonschema
 import yaml
 
-__all__ = ["ConfigError", "load_config", "schema", "validate_config"]
+__all__ = ["ConfigError", "load_config", "schema", "surface_config", "validate_config"]
 
 
 class ConfigError(ValueError):
@@ -90,3 +90,23 @@ def apply_settings(cfg: dict[str, Any], settings: list[str]) -> dict[str, Any]:
                 raise ConfigError(f"config: --set {item!r}: {part} is not a section")
         node[leaf] = yaml.safe_load(value)
     return validate_config(cfg)
+
+
+def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) \
+            else copy.deepcopy(v)
+    return out
+
+
+def surface_config(cfg: dict[str, Any], surface_id: str) -> dict[str, Any]:
+    """The configuration one surface runs with: ``overrides[surface_id]`` merged over
+    the sections, validated again (so a bad override names its key)."""
+    over = (cfg.get("overrides") or {}).get(surface_id)
+    if not over:
+        return cfg
+    try:
+        return validate_config(_merge(cfg, over))
+    except ConfigError as exc:
+        raise ConfigError(f"{exc} (from overrides.{surface_id})") from None

@@ -6,7 +6,8 @@ Each ``kind`` writes into ``reports/<id>/``:
 - ``response``: response.png (recovered curve; a reference beside it when given)
 - ``hdr``: reexposure.png (re-exposure self-check per view)
 - ``calibration``: calibration.png (per-photo RMS of the board calibration)
-- ``poses``: view_directions.png, pose_reprojection.png
+- ``poses``: view_directions.png, pose_reprojection.png, poses.csv (every view, kept
+  or dropped and why)
 - ``observation``: observation_valid_count.png, observation_lobes.png
 - ``model``: <model>_params.png, <model>_residuals.png, <model>_lobes.png
 - ``holdout``: holdout.csv, holdout/<view>.png (photo / render / difference per model)
@@ -61,6 +62,14 @@ def _poses(proc: Path, out: Path, width_mm: float, height_mm: float, sid: str) -
 
     records = yaml.safe_load((proc / "camera" / "poses.yaml").read_text())["views"]
     paths = [plot_reprojection(records, out / "pose_reprojection.png")]
+    paths.append(_write_csv(out / "poses.csv", [{
+        "view": r["id"], "holdout": r["holdout"], "kept": r["kept"],
+        "markers": len(r.get("markers", [])),
+        "rms_px": f"{r['rms_px']:.3f}" if "rms_px" in r else "",
+        "shift_mm": f"{r['shift_mm']:.3f}" if "shift_mm" in r else "",
+        "texel_shift": f"{r['texel_shift']:.3f}" if "texel_shift" in r else "",
+        "direction_sd_deg": f"{r['direction_sd_deg']:.4f}" if "direction_sd_deg" in r else "",
+        "reason": r.get("reason", r.get("warning", ""))} for r in records]))
     kept = [r for r in records if r["kept"]]
     if kept:
         C = np.array([r["centre_mm"] for r in kept]) - [width_mm / 2, height_mm / 2, 0]
@@ -85,7 +94,7 @@ def _holdout(proc: Path, out: Path) -> list[Path]:
                          "mean_diff_8bit": f"{s['mean_diff_8bit']:.2f}",
                          "std_diff_8bit": f"{s['std_diff_8bit']:.2f}",
                          "psnr_db": f"{s['psnr_db']:.2f}" if s["psnr_db"] else "",
-                         "pixels": s["pixels"]})
+                         "pixels": s["pixels"], "pose_warning": rec.get("pose_warning", "")})
         names = list(rec["models"])
         fig, axes = plt.subplots(len(names), 3, figsize=(7.5, 2.1 * len(names)), squeeze=False)
         photo = read_image(proc / "holdout" / f"{vid}_photo.png")

@@ -125,6 +125,9 @@ def holdout_comparison(
         renders["nearest-view"] = reproject_frame(read_hdr(near.hdr)[0], intr, near.R, near.t,
                                                   P, inside)
         row = {"gamma": gamma, "nearest_view": near.id, "models": {}}
+        if r.get("warning"):  # the pose policy would have dropped a fitted view like it
+            row["pose_warning"] = r["warning"]
+            log(f"holdout: {vid}: poor pose, compared all the same: {r['warning']}")
         photo8 = tone_map(np.where(inside[..., None], photo, 0), gamma)
         write_image_atomic(out_dir / f"{vid}_photo.png", photo8)
         for name, img in renders.items():

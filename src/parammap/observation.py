@@ -79,8 +79,18 @@ class ViewPose:
         return -self.R.T @ self.t
 
 
-def texel_grid(cap: Capture, texels_x: int, texels_y: int | None = None) -> tuple[int, int]:
-    """Map size ``(S, T)``; T follows the region's aspect ratio when not given."""
+def texel_grid(cap: Capture, texels_x: int | str, texels_y: int | None = None,
+               poses_yaml: str | Path | None = None) -> tuple[int, int]:
+    """Map size ``(S, T)``; T follows the region's aspect ratio when not given.
+    ``texels_x`` ``auto`` takes the map the pose stage chose (``map`` in
+    ``camera/poses.yaml``, see :mod:`parammap.poses`)."""
+    if texels_x == "auto":
+        try:
+            grid = yaml.safe_load(Path(poses_yaml).read_text())["map"]
+            return int(grid["S"]), int(grid["T"])
+        except (OSError, TypeError, KeyError, yaml.YAMLError) as exc:
+            raise ObservationError(f"{poses_yaml}: observation.texels_x auto needs the map "
+                                   f"the poses stage chose ({exc}); rerun poses") from None
     S = int(texels_x)
     T = int(texels_y) if texels_y else max(1, round(S * cap.height_mm / cap.width_mm))
     return S, T
@@ -241,7 +251,7 @@ def build_observation_map(
     cap: Capture,
     processed: str | Path,
     out: str | Path,
-    texels_x: int = 64,
+    texels_x: int | str = "auto",
     texels_y: int | None = None,
     tile: int = 32,
     max_zenith_deg: float = 85.0,
@@ -258,7 +268,8 @@ def build_observation_map(
     processed : ``data/processed/<id>`` with ``camera/intrinsics.yaml``,
         ``camera/poses.yaml`` and ``hdr/<view>.exr``.
     out : the store to write (replaced atomically).
-    texels_x, texels_y : map size S x T (T from the aspect ratio when None).
+    texels_x, texels_y : map size S x T (T from the aspect ratio when None); ``auto``
+        uses the map chosen by the pose stage.
     tile : texel tile edge of the chunks.
 
     Returns
@@ -273,8 +284,11 @@ def build_observation_map(
     for v in views:
         if not v.hdr.is_file():
             raise ObservationError(f"{v.hdr}: HDR frame of kept view {v.id} is missing")
-    S, T = texel_grid(cap, texels_x, texels_y)
+    S, T = texel_grid(cap, texels_x, texels_y, processed / "camera" / "poses.yaml")
     N = len(views)
+    log(f"observation: map {S}x{T} texels ({cap.width_mm / S:.3f} mm) x {N} views"
+        + (" (auto: about one texel per photo pixel at the median view)"
+           if texels_x == "auto" else ""))
     tile = int(min(tile, S, T))
     tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
     scratch = tmp / "scratch.zarr"
@@ -347,7 +361,9 @@ def build_observation_map(
     on_disk = store_bytes(out)
     uncompressed = T * S * N * (3 * 4 + 3 * 4 + 1)
     return {
-        "texels": S * T, "S": S, "T": T, "views": N, "held_out_views": len(held),
+        "texels": S * T, "S": S, "T": T, "texel_mm": cap.width_mm / S,
+        "resolution": "auto" if texels_x == "auto" else "config",
+        "views": N, "held_out_views": len(held),
         "valid_fraction": nvalid / (S * T * N), "build_seconds": seconds,
         "sample_seconds": t_sample, "hdr_bytes_read": bytes_read,
         "read_mb_per_s": bytes_read / 1e6 / max(t_sample, 1e-9),

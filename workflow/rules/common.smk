@@ -4,7 +4,7 @@ import re
 import shlex
 import sys
 
-from parammap.config import validate_config
+from parammap.config import surface_config, validate_config
 
 # Stops the run naming the bad key before any job starts.
 config = validate_config(config)
@@ -24,11 +24,16 @@ wildcard_constraints:
 
 
 def config_arg(*sections):
-    """The config sections a stage reads, passed to its CLI as JSON: the CLI sees the
-    same (command-line extended) config as the workflow, and a change to one section
-    reruns only the stages that read it."""
-    part = {k: config[k] for k in sections} | {"workers": config["workers"]}
-    return "--config-json " + shlex.quote(json.dumps(part, sort_keys=True))
+    """The config sections a stage reads (with the surface's ``overrides``), passed to
+    its CLI as JSON: the CLI sees the same (command-line extended) config as the
+    workflow, and a change to one section reruns only the stages that read it."""
+
+    def arg(wildcards):
+        cfg = surface_config(config, wildcards.sid)
+        part = {k: cfg[k] for k in sections} | {"workers": cfg["workers"]}
+        return "--config-json " + shlex.quote(json.dumps(part, sort_keys=True))
+
+    return arg
 
 
 def capture_dir(wildcards):

@@ -93,7 +93,7 @@ rule poses:
         f"{PROC}/{{sid}}/metrics/poses.json",
     params:
         cli=PARAMMAP,
-        cfg=config_arg("poses"),
+        cfg=config_arg("poses", "observation"),
         out=lambda wc: f"{PROC}/{wc.sid}",
     log:
         "logs/poses/{sid}.log",

@@ -96,6 +96,12 @@ rule fig_poses:
             category="1 Capture",
             subcategory="{sid}",
         ),
+        table=report(
+            f"{REPORTS}/{{sid}}/poses.csv",
+            caption="../report/poses_table.rst",
+            category="1 Capture",
+            subcategory="{sid}",
+        ),
     params:
         cli=PARAMMAP,
         out=lambda wc: f"{PROC}/{wc.sid}",

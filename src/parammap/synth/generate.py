@@ -292,6 +292,27 @@ def _view_pose(direction, preset: Preset, K, items, rng):
     return R, t
 
 
+def board_poses(rng, n: int, bw: float, bh: float, focal_px: float,
+                size: tuple[int, int], max_tilt_deg: float = 42.0,
+                ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Camera poses (R, t) of ``n`` calibration photos of a ``bw x bh`` mm board.
+
+    Board frame: x right, y down, z into the board; the camera sits at z < 0, tilted
+    5 to ``max_tilt_deg`` deg, aimed off-centre so the board also covers the image's
+    edges and corners, where distortion is strongest.
+    """
+    out = []
+    for _ in range(n):
+        tilt = np.radians(rng.uniform(5, max_tilt_deg))
+        az = rng.uniform(0, 2 * np.pi)
+        dvec = np.array([np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), -np.cos(tilt)])
+        d = focal_px * max(bw, bh) / (rng.uniform(0.5, 0.8) * min(size))
+        shift = rng.uniform(-0.45, 0.45, 2) * [bw, bh]
+        target = np.array([bw / 2 + shift[0], bh / 2 + shift[1], 0.0])
+        out.append(look_at(target + d * dvec, target, np.radians(rng.uniform(-180, 180))))
+    return out
+
+
 def _board(calib: dict) -> cv2.aruco.CharucoBoard:
     return cv2.aruco.CharucoBoard(
         (calib["squares_x"], calib["squares_y"]), float(calib["square_mm"]),
@@ -448,21 +469,10 @@ def generate(
         ppmm = 8.0
         bw, bh = calib["squares_x"] * sq, calib["squares_y"] * sq
         tex = board.generateImage((int(bw * ppmm), int(bh * ppmm)), marginSize=0)
-        bjobs, cposes = [], []
-        for k in range(preset.calib_images):
-            # Board frame: x right, y down, z into the board; the camera sits at z < 0.
-            tilt = np.radians(rng.uniform(5, 42))
-            az = rng.uniform(0, 2 * np.pi)
-            dvec = np.array([np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), -np.cos(tilt)])
-            d = preset.focal_px * max(bw, bh) / (rng.uniform(0.5, 0.8) * min(w, h))
-            # Aim off-centre so the board also covers the image's edges and corners,
-            # where distortion is strongest.
-            shift = rng.uniform(-0.45, 0.45, 2) * [bw, bh]
-            target = np.array([bw / 2 + shift[0], bh / 2 + shift[1], 0.0])
-            R, t = look_at(target + d * dvec, target, np.radians(rng.uniform(-180, 180)))
-            cposes.append((R, t))
-            bjobs.append((tex, ppmm, preset, K, R, t, 0.7 / 0.8,
-                response, int(seeds[len(all_dirs) + k]), 0.8, 0.04))
+        cposes = board_poses(rng, preset.calib_images, bw, bh, preset.focal_px, (w, h))
+        bjobs = [(tex, ppmm, preset, K, R, t, 0.7 / 0.8, response,
+                  int(seeds[len(all_dirs) + k]), 0.8, 0.04)
+                 for k, (R, t) in enumerate(cposes)]
         for k, img in enumerate(ex.map(_render_board_job, bjobs)):
             write_image_atomic(tmp_out / f"calibration/board_{k:02d}.{ext}", img)
 

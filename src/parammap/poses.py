@@ -1,0 +1,281 @@
+"""The pose stage: each view's pose from the surface markers, the map resolution, and
+which views the map can use.
+
+A view is good enough when what the map needs from it is good enough, not when its
+rotation is below a fixed angle: the uncertainty of a planar pose is mostly a tilt
+traded against a shift that barely moves the surface in the image. From the predicted
+pose covariance (corner noise x marker geometry, :func:`pose_covariance`) two figures
+are propagated, each 1 sd:
+
+- ``texel_shift``: how far the surface point seen at a pixel moves, worst over the
+  region, in texels of the map (``poses.max_texel_shift``);
+- ``direction_sd_deg``: how far the view direction from the region's centre to the
+  camera turns, as a fraction of the angular spacing of the captured views (median
+  nearest-neighbour angle; ``poses.max_direction_fraction``).
+
+Corner noise is each view's reprojection residual corrected for the six fitted pose
+parameters, at least the capture's median (a view with few points can fit its own
+noise). Held-out views are never dropped by this policy: a poor one is kept with a
+``warning`` that the held-out comparison reports.
+
+``observation.texels_x: auto`` picks about one texel per photo pixel at the median view
+(:func:`map_resolution`), capped so the observation map stays within
+``observation.max_map_gib``; the choice is written to ``camera/poses.yaml`` (``map``)
+so the observation stage uses the same map the policy judged.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import yaml
+
+from .calibration import Intrinsics, estimate_pose, load_intrinsics, to_gray8
+from .capture import Capture
+from .exr import ExrError
+from .geometry import unit
+
+__all__ = ["map_resolution", "pose_covariance", "run_poses", "view_spacing_deg",
+           "view_uncertainty"]
+
+# bytes per texel and view in the observation map: radiance and direction float32 x 3,
+# valid bool
+OBS_BYTES_PER_SAMPLE = 25
+
+
+def pose_covariance(obj: np.ndarray, R: np.ndarray, t: np.ndarray,
+                    intr: Intrinsics) -> np.ndarray:
+    """(6, 6) covariance of (rvec, tvec) for 1 px^2 of independent corner noise per
+    coordinate: ``(J^T J)^-1``, J the Jacobian of the projected points ``obj`` (n, 3)."""
+    rvec, _ = cv2.Rodrigues(np.asarray(R, float))
+    _, J = cv2.projectPoints(np.asarray(obj, np.float64), rvec, np.asarray(t, float),
+                             intr.K, intr.dist)
+    J = J[:, :6]
+    try:
+        return np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return np.full((6, 6), np.inf)
+
+
+def _region_grid(cap: Capture, n: int = 5) -> np.ndarray:
+    x = np.linspace(0, cap.width_mm, n)
+    y = np.linspace(0, cap.height_mm, n)
+    X, Y = np.meshgrid(x, y)
+    return np.stack([X.ravel(), Y.ravel(), np.zeros(X.size)], 1)
+
+
+def _proj_jac(P: np.ndarray, R, t, intr: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel positions (m, 2) of plane points P (m, 3) and their Jacobian (m, 2, 6)."""
+    rvec, _ = cv2.Rodrigues(np.asarray(R, float))
+    uv, J = cv2.projectPoints(P.astype(np.float64), rvec, np.asarray(t, float),
+                              intr.K, intr.dist)
+    return uv.reshape(-1, 2), J[:, :6].reshape(-1, 2, 6)
+
+
+def _plane_jac(P: np.ndarray, R, t, intr: Intrinsics, eps: float = 1e-3) -> np.ndarray:
+    """d(pixel)/d(plane x, y) at plane points P: (m, 2, 2)."""
+    rvec, _ = cv2.Rodrigues(np.asarray(R, float))
+    cols = []
+    for d in ([eps, 0, 0], [0, eps, 0]):
+        a, _ = cv2.projectPoints((P + d).astype(np.float64), rvec, np.asarray(t, float),
+                                 intr.K, intr.dist)
+        b, _ = cv2.projectPoints((P - d).astype(np.float64), rvec, np.asarray(t, float),
+                                 intr.K, intr.dist)
+        cols.append((a - b).reshape(-1, 2) / (2 * eps))
+    return np.stack(cols, -1)
+
+
+def px_per_mm(cap: Capture, R, t, intr: Intrinsics) -> float:
+    """Photo pixels per mm of surface at the region's centre (geometric mean of the two
+    axes, so foreshortening counts)."""
+    c = np.array([[cap.width_mm / 2, cap.height_mm / 2, 0.0]])
+    return float(math.sqrt(abs(np.linalg.det(_plane_jac(c, R, t, intr)[0]))))
+
+
+def view_uncertainty(cov: np.ndarray, R: np.ndarray, t: np.ndarray, intr: Intrinsics,
+                     cap: Capture, texel_mm: float) -> dict[str, float]:
+    """Surface-point shift and view-direction error, 1 sd, of a pose with covariance
+    ``cov`` (rvec, tvec).
+
+    Returns
+    -------
+    dict with ``shift_mm`` (worst over a 5x5 grid of the region), ``texel_shift`` (the
+    shift over the width a texel's observation averages over in this view: the texel
+    widened by the photo pixel's footprint on the surface, per direction, so a grazing
+    view whose pixels span several texels is judged at its own resolution; worst over
+    the grid) and ``direction_sd_deg`` (at the region's centre).
+    """
+    P = _region_grid(cap)
+    _, B = _proj_jac(P, R, t, intr)
+    A = _plane_jac(P, R, t, intr)
+    # the plane point seen at a fixed pixel moves by -A^-1 B dp
+    M = np.linalg.solve(A, B)  # (m, 2, 6)
+    cxy = np.einsum("mij,jk,mlk->mil", M, cov, M)
+    shift = float(np.sqrt(np.max(np.trace(cxy, axis1=1, axis2=2))))
+    Ai = np.linalg.inv(A)  # a pixel's footprint on the surface (mm per px)
+    width2 = texel_mm**2 * np.eye(2) + Ai @ np.swapaxes(Ai, 1, 2)
+    rel = float(np.sqrt(np.max(np.trace(np.linalg.solve(width2, cxy), axis1=1, axis2=2))))
+    # camera centre C = -R^T t as a function of (rvec, tvec), by central differences
+    rvec, _ = cv2.Rodrigues(np.asarray(R, float))
+    p0 = np.r_[rvec.ravel(), np.asarray(t, float).ravel()]
+
+    def centre(p):
+        Rm, _ = cv2.Rodrigues(p[:3])
+        return -Rm.T @ p[3:]
+    JC = np.stack([(centre(p0 + e) - centre(p0 - e)) / 2e-6 for e in np.eye(6) * 1e-6], 1)
+    cC = JC @ cov @ JC.T
+    X0 = np.array([cap.width_mm / 2, cap.height_mm / 2, 0.0])
+    v = centre(p0) - X0
+    dist = float(np.linalg.norm(v))
+    u = v / dist
+    Pp = np.eye(3) - np.outer(u, u)
+    ang = math.sqrt(max(float(np.trace(Pp @ cC @ Pp)), 0.0)) / dist
+    return {"shift_mm": shift, "texel_shift": rel, "direction_sd_deg": math.degrees(ang)}
+
+
+def view_spacing_deg(centres: np.ndarray, cap: Capture) -> float:
+    """Median angle (deg) from each view direction (region centre to camera) to its
+    nearest neighbour: the angular spacing of the captured views."""
+    if len(centres) < 2:
+        return 180.0
+    X0 = np.array([cap.width_mm / 2, cap.height_mm / 2, 0.0])
+    d = unit(np.asarray(centres, float) - X0)
+    cosang = np.clip(d @ d.T, -1, 1)
+    np.fill_diagonal(cosang, -1)
+    return float(np.degrees(np.median(np.arccos(cosang.max(1)))))
+
+
+def map_resolution(cap: Capture, ppmm: list[float], n_views: int, texels_x: int | str,
+                   texels_y: int | None, max_gib: float) -> dict[str, Any]:
+    """The map size: ``texels_x`` as configured, or for ``auto`` about one texel per
+    photo pixel at the median view (``ppmm``: pixels per mm of each fitted view),
+    capped so the observation map (``n_views`` views) stays within ``max_gib``.
+
+    Returns
+    -------
+    dict with ``S``, ``T``, ``texel_mm``, ``source`` (config | auto), and for auto
+    ``px_per_mm_median`` and ``capped_by_budget``.
+    """
+    out: dict[str, Any] = {}
+    if texels_x == "auto":
+        med = float(np.median(ppmm)) if len(ppmm) else 1.0
+        S = max(8, int(round(cap.width_mm * med)))
+        T = int(texels_y) if texels_y else max(8, int(round(S * cap.height_mm / cap.width_mm)))
+        budget = max_gib * 2**30 / (OBS_BYTES_PER_SAMPLE * max(n_views, 1))
+        capped = S * T > budget
+        if capped:
+            k = math.sqrt(budget / (S * T))
+            S, T = max(8, int(S * k)), max(8, int(T * k))
+        out = {"source": "auto", "px_per_mm_median": med, "capped_by_budget": bool(capped),
+               "max_map_gib": max_gib}
+    else:
+        S = int(texels_x)
+        T = int(texels_y) if texels_y else max(1, round(S * cap.height_mm / cap.width_mm))
+        out = {"source": "config"}
+    return {"S": S, "T": T, "texel_mm": cap.width_mm / S, **out}
+
+
+def run_poses(cap: Capture, processed: str | Path, cfg: dict, obs_cfg: dict,
+              log=print) -> dict[str, Any]:
+    """Poses of every view, the map resolution and the view policy; writes
+    ``camera/poses.yaml`` and returns the figures for ``metrics/poses.json``."""
+    from .hdr import read_hdr
+
+    out = Path(processed)
+    intr = load_intrinsics(out / "camera" / "intrinsics.yaml")
+    recs = []
+    for v in cap.views:
+        try:
+            rad, _, _ = read_hdr(out / "hdr" / f"{v.id}.exr")
+        except ExrError as exc:
+            rec = {"ok": False, "reason": str(exc)}
+        else:
+            rec = estimate_pose(cap, intr, to_gray8(rad), cfg["min_markers"], radiance=rad)
+            if rec["ok"] and rec["rms_px"] > cfg["max_rms_px"]:
+                rec.update(ok=False, reason=f"reprojection RMS {rec['rms_px']:.2f} px above "
+                                            f"{cfg['max_rms_px']} px")
+        recs.append((v, rec))
+    posed = [(v, r) for v, r in recs if r["ok"]]
+    fitted = [(v, r) for v, r in posed if not v.holdout]
+    grid = map_resolution(cap, [px_per_mm(cap, r["R"], r["t"], intr) for _, r in fitted],
+                          len(fitted), obs_cfg["texels_x"], obs_cfg["texels_y"],
+                          obs_cfg["max_map_gib"])
+    spacing = view_spacing_deg(np.array([r["centre_mm"] for _, r in fitted]), cap)
+    max_dir = cfg["max_direction_fraction"] * spacing
+    max_shift_mm = cfg["max_texel_shift"] * grid["texel_mm"]
+    # noise floors per kind of solution (edge points are far less noisy than corners)
+    med = {kind: float(np.median([r["noise_px"] for _, r in posed
+                                  if (r["edge_points"] > 0) == kind] or [0.0]))
+           for kind in (True, False)}
+    log(f"poses: map {grid['S']}x{grid['T']} texels ({grid['texel_mm']:.3f} mm, "
+        f"{grid['source']}); view spacing {spacing:.2f} deg; limits (1 sd) "
+        f"{cfg['max_texel_shift']} texel = {max_shift_mm:.3f} mm, direction {max_dir:.3f} deg")
+    records = []
+    for v, rec in recs:
+        row: dict[str, Any] = {"id": v.id, "holdout": v.holdout}
+        if rec["ok"]:
+            # a view can fit its own noise: at least the capture's median noise level
+            noise = max(rec["noise_px"], med[rec["edge_points"] > 0])
+            cov = rec["cov"] * (noise / max(rec["noise_px"], 1e-9)) ** 2
+            u = view_uncertainty(cov, rec["R"], rec["t"], intr, cap, grid["texel_mm"])
+            rot = math.degrees(math.sqrt(max(float(np.trace(cov[:3, :3])), 0.0)))
+            rec.update(texel_shift=u["texel_shift"], shift_mm=u["shift_mm"],
+                       direction_sd_deg=u["direction_sd_deg"], rotation_sd_deg=rot,
+                       corner_noise_px=noise)
+            why = []
+            if rec["texel_shift"] > cfg["max_texel_shift"]:
+                why.append(f"surface points uncertain by {rec['shift_mm']:.2f} mm = "
+                           f"{rec['texel_shift']:.2f} of the sampling width (1 sd) above "
+                           f"{cfg['max_texel_shift']}")
+            if rec["direction_sd_deg"] > max_dir:
+                why.append(f"view direction uncertain by {rec['direction_sd_deg']:.3f} deg "
+                           f"(1 sd) above {cfg['max_direction_fraction']} x {spacing:.2f} deg "
+                           "view spacing")
+            if cfg.get("max_rotation_sd_deg") is not None and rot > cfg["max_rotation_sd_deg"]:
+                why.append(f"rotation uncertain: {rot:.3f} deg (1 sd) above "
+                           f"{cfg['max_rotation_sd_deg']}")
+            if why and v.holdout:
+                row["warning"] = "; ".join(why)
+                log(f"poses: held-out view {v.id} kept for the comparison, but {row['warning']}")
+            elif why:
+                rec.update(ok=False, reason="; ".join(why))
+        if not rec["ok"]:
+            log(f"poses: dropping view {v.id}: {rec['reason']}")
+        row["kept"] = bool(rec["ok"])
+        if not rec["ok"]:
+            row["reason"] = rec["reason"]
+        row.update({k: np.asarray(rec[k]).tolist() for k in ("R", "t", "centre_mm") if k in rec})
+        row.update({k: float(rec[k]) for k in ("rms_px", "corner_noise_px", "texel_shift",
+                                               "shift_mm", "direction_sd_deg",
+                                               "rotation_sd_deg") if k in rec})
+        if "edge_points" in rec:
+            row["edge_points"] = int(rec["edge_points"])
+        row["markers"] = rec.get("markers", [])
+        if "detected" in rec:
+            row["detected"] = rec["detected"]
+        records.append(row)
+    path = out / "camera" / "poses.yaml"
+    tmp = path.with_name(".poses.yaml.tmp")
+    tmp.write_text(yaml.safe_dump({"map": grid, "view_spacing_deg": spacing,
+                                   "views": records}, sort_keys=False))
+    tmp.replace(path)
+    kept = [r for r in records if r["kept"]]
+    rms = [r["rms_px"] for r in kept]
+    log(f"poses: kept {len(kept)} of {len(records)} views")
+    return {
+        "views": len(records), "kept": len(kept),
+        "kept_fraction": len(kept) / max(len(records), 1),
+        "dropped": {r["id"]: r["reason"] for r in records if not r["kept"]},
+        "held_out_warnings": {r["id"]: r["warning"] for r in records if "warning" in r},
+        "map": grid, "view_spacing_deg": spacing,
+        "limits": {"max_texel_shift": cfg["max_texel_shift"],
+                   "max_shift_mm": max_shift_mm, "max_direction_sd_deg": max_dir},
+        "median_rms_px": float(np.median(rms)) if rms else None,
+        "max_rms_px": float(np.max(rms)) if rms else None,
+        "max_texel_shift": max((r["texel_shift"] for r in kept), default=None),
+        "max_direction_sd_deg": max((r["direction_sd_deg"] for r in kept), default=None),
+        "rms_px": {r["id"]: r["rms_px"] for r in kept}}

@@ -1,0 +1,155 @@
+"""Stage outputs measured against a generator's ground truth (tests and benchmarks).
+
+The pipeline never imports this module: it reads the ``<capture>.truth`` folder that
+:func:`parammap.synth.generate.generate` and :func:`parammap.synth.pbr.generate_pbr`
+write beside a capture. Radiance is relative (one unknown global scale, conventions.md),
+so every radiance comparison first fits that one scale (median ratio).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from ..capture import load_capture
+from ..hdr import load_bracket, merge_bracket, read_hdr
+
+__all__ = ["hdr_errors", "holdout_against_truth", "intrinsics_errors", "pose_errors",
+           "true_directions"]
+
+
+def _scale(ref: np.ndarray, est: np.ndarray) -> float:
+    return float(np.median(ref / est))
+
+
+def hdr_errors(capture: str | Path, truth: str | Path, processed: str | Path,
+               view_ids: list[str], low: int = 5, high: int = 250) -> dict:
+    """Relative radiance error of the merged HDR frames against the radiance the photos
+    were exposed from (either generator), next to an oracle merge of the same photos with the true
+    response, on the same pixels (unsaturated, not black, in both merges).
+
+    Returns
+    -------
+    dict with ``median``, ``p95`` (ours) and ``oracle_median``, ``oracle_p95``, as
+    fractions, and ``pixels``.
+    """
+    from .pbr import read_truth_radiance
+
+    cap = load_capture(capture)
+    exposure = np.load(Path(truth) / "response.npz")["exposure"]
+    g_true = np.log(np.maximum(exposure, 1e-12))
+    g_true = np.maximum.accumulate(g_true + 1e-9 * np.arange(256)[:, None], axis=0)
+    ours, oracle = [], []
+    pbr = (Path(truth) / "radiance").is_dir()
+    for vid in view_ids:
+        if pbr:
+            true = read_truth_radiance(truth, vid)
+        else:
+            from .generate import true_view_radiance
+
+            true = true_view_radiance(capture, truth, vid)
+        rad, sat, dark = read_hdr(Path(processed) / "hdr" / f"{vid}.exr")
+        stack, t = load_bracket(cap.view(vid))
+        orc, osat, odark = merge_bracket(stack, t, g_true, low, high)
+        ok = ~(sat | dark | osat | odark) & (true.min(-1) > 0)
+        ours.append((rad[ok], true[ok]))
+        oracle.append((orc[ok], true[ok]))
+    out = {}
+    for name, pairs in (("", ours), ("oracle_", oracle)):
+        est = np.concatenate([p[0] for p in pairs])
+        ref = np.concatenate([p[1] for p in pairs])
+        rel = np.abs(est * _scale(ref, est) - ref) / ref
+        out[f"{name}median"] = float(np.median(rel))
+        out[f"{name}p95"] = float(np.percentile(rel, 95))
+    out["pixels"] = int(sum(len(p[0]) for p in ours))
+    return out
+
+
+def intrinsics_errors(truth: str | Path, processed: str | Path) -> dict:
+    """Focal lengths (relative) and principal point (px) against the truth."""
+    K = np.array(yaml.safe_load((Path(truth) / "camera.yaml").read_text())["K"])
+    est = yaml.safe_load((Path(processed) / "camera" / "intrinsics.yaml").read_text())
+    Ke = np.array(est["K"])
+    return {"fx_rel": float(Ke[0, 0] / K[0, 0] - 1), "fy_rel": float(Ke[1, 1] / K[1, 1] - 1),
+            "principal_px": float(np.hypot(Ke[0, 2] - K[0, 2], Ke[1, 2] - K[1, 2])),
+            "rms_px": float(est["rms_px"])}
+
+
+def pose_errors(truth: str | Path, processed: str | Path) -> dict:
+    """Camera centre (mm) and rotation (deg) errors of every view with a pose, kept
+    or not: ``{view id: {"centre_mm", "rotation_deg", "kept", "holdout"}}``."""
+    P = np.load(Path(truth) / "poses.npz")
+    ids = list(P["view_ids"])
+    recs = yaml.safe_load((Path(processed) / "camera" / "poses.yaml").read_text())["views"]
+    out = {}
+    for r in recs:
+        if "R" not in r:
+            continue
+        k = ids.index(r["id"])
+        C = -P["R"][k].T @ P["t"][k]
+        dR = np.array(r["R"]) @ P["R"][k].T
+        out[r["id"]] = {
+            "centre_mm": float(np.linalg.norm(np.array(r["centre_mm"]) - C)),
+            "rotation_deg": float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1)))),
+            "kept": bool(r["kept"]), "holdout": bool(r.get("holdout", False))}
+    return out
+
+
+def true_directions(truth: str | Path, view_ids: list[str], S: int, T: int, width_mm: float,
+                    height_mm: float) -> np.ndarray:
+    """True view directions (T, S, N, 3) of every texel centre in the given views."""
+    from ..geometry import texel_centres, unit
+
+    P = np.load(Path(truth) / "poses.npz")
+    ids = list(P["view_ids"])
+    k = [ids.index(v) for v in view_ids]
+    C = np.einsum("nji,nj->ni", P["R"][k], -P["t"][k])
+    ctr = texel_centres(S, T, width_mm, height_mm)
+    return unit(C[None, None] - ctr[:, :, None, :])
+
+
+def holdout_against_truth(capture: str | Path, truth: str | Path, processed: str | Path,
+                          models: list[str]) -> dict[str, dict[str, float]]:
+    """Mean 8-bit difference of each model's render against the clean (high-sample)
+    render of every held-out view of a physically based capture.
+
+    The pipeline's held-out stage compares with the held-out photo (noise included);
+    this compares with what the photo should have shown. The clean render is brought to
+    the capture's relative radiance scale (median ratio to the merged photo inside the
+    region), then both are tone-mapped with the held-out stage's gamma for that view.
+
+    Returns
+    -------
+    ``{view id: {model: mean 8-bit difference}}``.
+    """
+    from ..calibration import load_intrinsics
+    from ..holdout import choose_gamma, compare, marker_pixels
+    from ..params import read_param_map
+    from ..render import render, surface_points
+    from .pbr import read_truth_radiance
+
+    cap = load_capture(capture)
+    processed = Path(processed)
+    intr = load_intrinsics(processed / "camera" / "intrinsics.yaml")
+    recs = yaml.safe_load((processed / "camera" / "poses.yaml").read_text())["views"]
+    maps = {m: read_param_map(processed / "params" / f"{m}.exr") for m in models}
+    out = {}
+    for r in recs:
+        if not (r.get("holdout") and r.get("kept")):
+            continue
+        R, t = np.asarray(r["R"], float), np.asarray(r["t"], float)
+        photo, sat, _ = read_hdr(processed / "hdr" / f"{r['id']}.exr")
+        clean = read_truth_radiance(truth, r["id"], clean=True)
+        P, inside = surface_points(intr, R, t, cap.width_mm, cap.height_mm,
+                                   (photo.shape[1], photo.shape[0]))
+        mask = inside & ~sat & ~marker_pixels(cap, P)
+        ok = mask[..., None] & (clean > 0) & (photo > 0)
+        clean = clean * float(np.median(photo[ok] / clean[ok]))
+        gamma = choose_gamma(photo, mask)
+        out[r["id"]] = {name: compare(clean, render(pm, intr, R, t, (photo.shape[1],
+                                                                      photo.shape[0]))[0],
+                                      mask, gamma)["mean_diff_8bit"]
+                        for name, pm in maps.items()}
+    return out

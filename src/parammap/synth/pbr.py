@@ -1,0 +1,610 @@
+"""Physically based synthetic captures rendered with Mitsuba 3 (``parammap synth
+--preset pbr-*``; needs the optional extra ``pip install parammap[pbr]``).
+
+An independent test bed next to the analytic generator of :mod:`.generate`: nothing
+here is in the MH or SH family. The surface is a grid of patches with microfacet
+BSDFs (rough plastic and rough conductors with GGX, Disney's principled BSDF, matte
+paper) over a finely printed albedo, lit by rectangular and disc area lights and a dim
+environment, rendered by Monte Carlo path tracing (so the photos carry sampling
+noise). The rig is part of the preset and varies between presets: image size, focal
+length, principal point, lens distortion, marker dictionary, count (4-12) and layout,
+ChArUco board and its dictionary, the number and spacing of exposures, a filmic
+response with a toe and a shoulder, sensor noise.
+
+Mitsuba has no lens distortion: each view is rendered through a pinhole camera wide
+enough to cover the distorted image at ``render_scale`` times the resolution, then
+resampled through OpenCV's distortion model, ``render_scale**2`` bilinear samples per
+photo pixel (a box filter over the pixel's area).
+
+The capture follows ``capture-format.md`` exactly. The ground truth goes to a separate
+folder the pipeline never reads: ``camera.yaml`` (K, distortion), ``poses.npz`` (R, t
+per view and per board photo), ``response.npz`` (normalised exposure per 8-bit level),
+``radiance/<view>.exr`` (the radiance each photo was exposed from, Monte Carlo noise
+included), ``clean/<view>.exr`` (high-sample renders of the held-out views),
+``scene.json`` (patches, materials, lights) and ``generator.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from ..capture import aruco_dictionary
+from ..exr import write_exr
+from ..geometry import undistort_normalized
+from ..imageio import write_image_atomic
+from .generate import _expose, _view_pose, board_poses
+from .sampling import sample_directions
+
+__all__ = ["PBR_PRESETS", "FilmicResponse", "Light", "PbrPreset", "generate_pbr",
+           "patch_labels", "read_truth_radiance"]
+
+
+@dataclass(frozen=True)
+class Light:
+    """An area light aimed at the surface's centre.
+
+    ``shape`` rect (``size_mm`` = width, height) or disc (``size_mm[0]`` = radius);
+    ``position_mm`` relative to the surface's centre; ``radiance`` RGB.
+    """
+
+    shape: str = "rect"
+    position_mm: tuple[float, float, float] = (120.0, 160.0, 520.0)
+    size_mm: tuple[float, float] = (90.0, 60.0)
+    radiance: tuple[float, float, float] = (30.0, 29.0, 27.0)
+
+
+@dataclass(frozen=True)
+class FilmicResponse:
+    """Hable's filmic curve (a toe and a shoulder) followed by a display gamma, the
+    same in every channel: ``level = 255 * (h(w X) / h(w)) ** (1 / gamma)`` with
+    ``h(x) = (x (a x + c b) + d e) / (x (a x + b) + d f) - e / f``, X the normalised
+    exposure (1 = white, level 255)."""
+
+    a: float = 0.15  # shoulder strength
+    b: float = 0.50  # linear strength
+    c: float = 0.10  # linear angle
+    d: float = 0.20  # toe strength
+    e: float = 0.02  # toe numerator
+    f: float = 0.30  # toe denominator
+    white: float = 11.2
+    gamma: float = 2.2
+
+    def _h(self, x):
+        a, b, c, d, e, f = self.a, self.b, self.c, self.d, self.e, self.f
+        return (x * (a * x + c * b) + d * e) / (x * (a * x + b) + d * f) - e / f
+
+    def __call__(self, X: np.ndarray) -> np.ndarray:
+        x = np.clip(np.asarray(X, float), 0.0, 1.0) * self.white
+        return 255.0 * np.clip(self._h(x) / self._h(self.white), 0, 1) ** (1 / self.gamma)
+
+    def inverse(self, level: np.ndarray) -> np.ndarray:
+        """Normalised exposure at real-valued levels in [0, 255] (numerical inverse)."""
+        X = np.geomspace(1e-7, 1.0, 20001)
+        return np.interp(np.asarray(level, float), self(X), X)
+
+
+@dataclass(frozen=True)
+class PbrPreset:
+    """Everything about one physically based capture and its rig."""
+
+    width_mm: float = 200.0
+    height_mm: float = 150.0
+    patches: tuple[int, int] = (3, 2)  # columns, rows of material patches
+    texture_px_per_mm: float = 4.0
+    image_size: tuple[int, int] = (640, 480)
+    focal_px: float = 760.0
+    aspect: float = 1.0015  # fy / fx
+    principal_offset: tuple[float, float] = (0.02, -0.015)  # of the image size
+    dist: tuple[float, ...] = (-0.09, 0.04, 0.0005, -0.0004, 0.0)
+    scheme: str = "spiral"
+    views: int = 30
+    max_zenith_deg: float = 75.0
+    holdout: int = 3
+    exposures: int = 3
+    stops: float = 2.0  # between neighbouring exposures
+    markers: int = 5
+    marker_dictionary: str = "DICT_5X5_250"
+    marker_frac: float = 0.22  # marker edge over the shorter side of the region
+    board: tuple[int, int] = (9, 7)  # ChArUco squares across, down
+    board_max_tilt_deg: float = 55.0
+    board_dictionary: str = "DICT_5X5_100"
+    calib_images: int = 24
+    spp: int = 4  # samples per render pixel (render_scale^2 render pixels per photo pixel)
+    clean_spp: int = 32
+    render_scale: int = 2
+    lights: tuple[Light, ...] = (Light(),)
+    environment: float = 0.03
+    response: FilmicResponse = field(default_factory=FilmicResponse)
+    shot_noise: float = 3e-5
+    read_noise: float = 3e-4
+    image_format: str = "png"
+    jpeg_quality: int = 95
+
+
+PBR_PRESETS = {
+    # test suite: about a minute of rendering on 2 cores
+    "pbr-tiny": PbrPreset(),
+    # benchmarks: larger photos, more views and exposures, another rig
+    "pbr-bench": PbrPreset(
+        width_mm=240.0, height_mm=180.0, patches=(4, 3), image_size=(1024, 768),
+        focal_px=1180.0, aspect=0.999, principal_offset=(-0.015, 0.02),
+        dist=(0.06, -0.11, -0.0006, 0.0003, 0.02), views=96, max_zenith_deg=80.0,
+        holdout=6, exposures=5, stops=1.5, markers=10, marker_dictionary="DICT_6X6_250",
+        marker_frac=0.14, board=(9, 7), board_dictionary="DICT_APRILTAG_36h11",
+        calib_images=16,
+        spp=8, clean_spp=96, response=FilmicResponse(white=8.0, gamma=2.0),
+        image_format="jpg"),
+    # two area lights (a rectangle and a disc): two highlights per texel
+    "pbr-two-lights": PbrPreset(
+        views=40, markers=8, marker_dictionary="DICT_4X4_100", marker_frac=0.18,
+        exposures=4, stops=1.7, board=(8, 6), board_dictionary="DICT_4X4_50",
+        lights=(Light("rect", (140.0, 120.0, 480.0), (80.0, 50.0), (26.0, 25.0, 24.0)),
+                Light("disc", (-160.0, -90.0, 430.0), (30.0, 0.0), (14.0, 16.0, 20.0))),
+        response=FilmicResponse(a=0.22, d=0.3, white=9.0, gamma=2.4)),
+}
+
+MATERIAL_KINDS = ("roughplastic", "roughconductor", "principled", "diffuse")
+
+
+def _mitsuba():
+    try:
+        import mitsuba as mi
+    except ImportError:
+        raise ValueError("the pbr presets need Mitsuba 3: pip install 'parammap[pbr]'") from None
+    # the scalar CPU variant: no JIT compiler needed, multi-threaded over image blocks
+    mi.set_variant("scalar_rgb")
+    return mi
+
+
+def _quad_transform(tl, tr, bl):
+    """Mitsuba ``rectangle`` ([-1, 1]^2 in local x, y) onto the quad with corners
+    top-left ``tl``, top-right ``tr``, bottom-left ``bl``; its normal is
+    (tr - tl) x (tl - bl)."""
+    tl, tr, bl = (np.asarray(p, float) for p in (tl, tr, bl))
+    ex, ey = (tr - tl) / 2, (tl - bl) / 2
+    ez = np.cross(ex, ey)
+    M = np.eye(4)
+    M[:3, 0], M[:3, 1], M[:3, 2] = ex, ey, ez / np.linalg.norm(ez)
+    M[:3, 3] = tl + ex - ey
+    import mitsuba as mi
+
+    return mi.ScalarTransform4f(M.tolist())
+
+
+def _bitmap(mi, image: np.ndarray, nearest: bool = False) -> dict:
+    """Texture from an (h, w, 3) float image whose row 0 is the quad's top edge
+    (Mitsuba's v runs bottom-up)."""
+    return {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(
+        np.flipud(image), np.float32)), "filter_type": "nearest" if nearest else "bilinear",
+        "raw": True}
+
+
+def _albedo_texture(preset: PbrPreset, rng) -> np.ndarray:
+    """(h, w, 3) albedo in [0.05, 0.85]: a base colour per patch, smooth blotches and
+    fine print (text, hairlines, dots) finer than most photos resolve."""
+    ppmm = preset.texture_px_per_mm
+    w, h = int(round(preset.width_mm * ppmm)), int(round(preset.height_mm * ppmm))
+    nx, ny = preset.patches
+    base = rng.uniform(0.25, 0.8, (ny, nx, 3))
+    tex = cv2.resize(base.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
+    blot = cv2.resize(rng.uniform(0.8, 1.2, (6, 8, 3)).astype(np.float32), (w, h),
+                      interpolation=cv2.INTER_CUBIC)
+    tex = tex * blot
+    ink = np.zeros((h, w), np.uint8)
+    words = ["parammap", "glossy", "foil", "lobe", "texel", "capture", "GGX", "0.4 mm"]
+    for _ in range(int(0.02 * w * h / 100)):
+        org = (int(rng.integers(0, w)), int(rng.integers(0, h)))
+        cv2.putText(ink, str(rng.choice(words)), org, cv2.FONT_HERSHEY_SIMPLEX,
+                    float(rng.uniform(0.3, 0.9)), 255, 1, cv2.LINE_AA)
+    for _ in range(int(w * h / 8000)):
+        p0 = (int(rng.integers(0, w)), int(rng.integers(0, h)))
+        p1 = (p0[0] + int(rng.integers(-200, 200)), p0[1] + int(rng.integers(-200, 200)))
+        cv2.line(ink, p0, p1, 255, 1, cv2.LINE_AA)
+    for _ in range(int(w * h / 3000)):
+        cv2.circle(ink, (int(rng.integers(0, w)), int(rng.integers(0, h))),
+                   int(rng.integers(1, 4)), 255, -1, cv2.LINE_AA)
+    a = (ink.astype(np.float32) / 255.0)[..., None]
+    inkcol = rng.uniform(0.02, 0.15, 3).astype(np.float32)
+    return np.clip(tex * (1 - a) + inkcol * a, 0.05, 0.85)
+
+
+def _materials(preset: PbrPreset, rng) -> list[dict]:
+    """One BSDF description per patch, every kind present, seeded."""
+    n = preset.patches[0] * preset.patches[1]
+    kinds = [MATERIAL_KINDS[k % len(MATERIAL_KINDS)] for k in range(n)]
+    rng.shuffle(kinds)
+    out = []
+    for kind in kinds:
+        if kind == "roughplastic":
+            out.append({"kind": kind, "alpha": float(rng.uniform(0.06, 0.3)), "int_ior": 1.5})
+        elif kind == "roughconductor":
+            out.append({"kind": kind, "alpha": float(rng.uniform(0.1, 0.35)),
+                        "material": str(rng.choice(["Au", "Cu", "Al", "Ag"]))})
+        elif kind == "principled":
+            out.append({"kind": kind, "roughness": float(rng.uniform(0.25, 0.6)),
+                        "metallic": float(rng.uniform(0.0, 0.5)), "specular": 0.5})
+        else:
+            out.append({"kind": kind})
+    return out
+
+
+def _bsdf(mi, m: dict, albedo: np.ndarray) -> dict:
+    tex = _bitmap(mi, albedo)
+    if m["kind"] == "roughplastic":
+        return {"type": "roughplastic", "distribution": "ggx", "alpha": m["alpha"],
+                "int_ior": m["int_ior"], "diffuse_reflectance": tex}
+    if m["kind"] == "roughconductor":
+        return {"type": "roughconductor", "distribution": "ggx", "alpha": m["alpha"],
+                "material": m["material"]}
+    if m["kind"] == "principled":
+        return {"type": "principled", "base_color": tex, "roughness": m["roughness"],
+                "metallic": m["metallic"], "specular": m["specular"]}
+    return {"type": "diffuse", "reflectance": tex}
+
+
+def _marker_layout(preset: PbrPreset, rng) -> list[dict]:
+    """``preset.markers`` (4-12) markers outside the region: the corners first, then
+    the edge midpoints, then points at a quarter of each edge; random ids."""
+    W, H = preset.width_mm, preset.height_mm
+    s = preset.marker_frac * min(W, H)
+    g = 0.06 * min(W, H)
+    lo_x, hi_x, lo_y, hi_y = -g - s, W + g, -g - s, H + g
+    cands = [(lo_x, hi_y), (hi_x, hi_y), (hi_x, lo_y), (lo_x, lo_y),
+             (W / 2 - s / 2, hi_y), (hi_x, H / 2 - s / 2), (W / 2 - s / 2, lo_y),
+             (lo_x, H / 2 - s / 2),
+             (W / 4 - s / 2, hi_y), (hi_x, 3 * H / 4 - s / 2), (3 * W / 4 - s / 2, lo_y),
+             (lo_x, H / 4 - s / 2)]
+    n = int(np.clip(preset.markers, 4, len(cands)))
+    size = aruco_dictionary(preset.marker_dictionary).bytesList.shape[0]
+    ids = sorted(int(i) for i in rng.choice(size, n, replace=False))
+    items = []
+    for k, (x0, y0) in enumerate(cands[:n]):
+        corners = [[x0, y0 + s], [x0 + s, y0 + s], [x0 + s, y0], [x0, y0]]
+        items.append({"id": ids[k],
+                      "corners_mm": [[round(a, 4), round(b, 4)] for a, b in corners]})
+    return items
+
+
+def _marker_image(dictionary: str, marker_id: int, cell_px: int = 12) -> np.ndarray:
+    """Marker with a one-cell white quiet zone, albedo 0.04 / 0.8, (h, w, 3)."""
+    d = aruco_dictionary(dictionary)
+    n = (d.markerSize + 2) * cell_px
+    img = cv2.aruco.generateImageMarker(d, marker_id, n, borderBits=1)
+    img = cv2.copyMakeBorder(img, cell_px, cell_px, cell_px, cell_px, cv2.BORDER_CONSTANT,
+                             value=255)
+    return np.repeat(np.where(img > 127, 0.8, 0.04).astype(np.float32)[..., None], 3, -1)
+
+
+def _light(L: Light, target: np.ndarray) -> dict:
+    import mitsuba as mi
+
+    pos = target + np.asarray(L.position_mm, float)
+    axis = np.asarray(L.position_mm, float) / np.linalg.norm(L.position_mm)
+    to = mi.ScalarTransform4f().look_at(origin=pos.tolist(), target=target.tolist(),
+                                        up=[0, 0, 1] if abs(axis[2]) < 0.9 else [0, 1, 0])
+    if L.shape == "disc":
+        shape = {"type": "disk", "to_world": to @ mi.ScalarTransform4f().scale(
+            [L.size_mm[0], L.size_mm[0], 1.0])}
+    elif L.shape == "rect":
+        shape = {"type": "rectangle", "to_world": to @ mi.ScalarTransform4f().scale(
+            [L.size_mm[0] / 2, L.size_mm[1] / 2, 1.0])}
+    else:
+        raise ValueError(f"unknown light shape {L.shape!r}; rect or disc")
+    shape["emitter"] = {"type": "area", "radiance": {"type": "rgb", "value": list(L.radiance)}}
+    return shape
+
+
+def _surface_scene(mi, preset: PbrPreset, items: list[dict], mats: list[dict],
+                   albedo: np.ndarray):
+    W, H = preset.width_mm, preset.height_mm
+    ppmm = preset.texture_px_per_mm
+    d: dict = {"type": "scene", "integrator": {"type": "path", "max_depth": 3}}
+    ext = 3 * max(W, H)
+    # a mid-grey card under everything, 0.3 mm below the surface plane
+    d["card"] = {"type": "rectangle", "to_world": _quad_transform(
+        [W / 2 - ext, H / 2 + ext, -0.3], [W / 2 + ext, H / 2 + ext, -0.3],
+        [W / 2 - ext, H / 2 - ext, -0.3]),
+        "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.45, 0.45, 0.42]}}}
+    nx, ny = preset.patches
+    th, tw = albedo.shape[:2]
+    for k, m in enumerate(mats):
+        i, j = divmod(k, nx)  # patch row from the top, column
+        x0, x1 = j * W / nx, (j + 1) * W / nx
+        y1, y0 = H - i * H / ny, H - (i + 1) * H / ny
+        crop = albedo[int(round((H - y1) * ppmm)):int(round((H - y0) * ppmm)) or th,
+                      int(round(x0 * ppmm)):int(round(x1 * ppmm)) or tw]
+        d[f"patch{k}"] = {"type": "rectangle",
+                          "to_world": _quad_transform([x0, y1, 0], [x1, y1, 0], [x0, y0, 0]),
+                          "bsdf": _bsdf(mi, m, crop)}
+    for it in items:
+        c = np.asarray(it["corners_mm"], float)
+        cell = (c[1, 0] - c[0, 0]) / (aruco_dictionary(preset.marker_dictionary).markerSize + 2)
+        tl, tr, bl = c[0] + [-cell, cell], c[1] + [cell, cell], c[3] + [-cell, -cell]
+        d[f"marker{it['id']}"] = {
+            "type": "rectangle",
+            "to_world": _quad_transform(np.r_[tl, 0], np.r_[tr, 0], np.r_[bl, 0]),
+            "bsdf": {"type": "diffuse", "reflectance": _bitmap(
+                mi, _marker_image(preset.marker_dictionary, it["id"]), nearest=True)}}
+    centre = np.array([W / 2, H / 2, 0.0])
+    for k, L in enumerate(preset.lights):
+        d[f"light{k}"] = _light(L, centre)
+    if preset.environment > 0:
+        d["env"] = {"type": "constant",
+                    "radiance": {"type": "rgb", "value": [preset.environment] * 3}}
+    return mi.load_dict(d)
+
+
+def _board_scene(mi, calib: dict, board_img: np.ndarray):
+    """The ChArUco board in its own frame (x right, y down, z into the board) under a
+    uniform white sky, a grey wall 0.5 mm behind it."""
+    bw = calib["squares_x"] * calib["square_mm"]
+    bh = calib["squares_y"] * calib["square_mm"]
+    ext = 4 * max(bw, bh)
+    alb = np.repeat(np.where(board_img > 127, 0.8, 0.04).astype(np.float32)[..., None], 3, -1)
+    d = {"type": "scene", "integrator": {"type": "direct"},
+         "board": {"type": "rectangle",
+                   "to_world": _quad_transform([0, 0, 0], [bw, 0, 0], [0, bh, 0]),
+                   "bsdf": {"type": "diffuse", "reflectance": _bitmap(mi, alb, nearest=True)}},
+         "wall": {"type": "rectangle",
+                  "to_world": _quad_transform([-ext, -ext, 0.5], [ext, -ext, 0.5],
+                                              [-ext, ext, 0.5]),
+                  "bsdf": {"type": "diffuse",
+                           "reflectance": {"type": "rgb", "value": [0.3, 0.3, 0.3]}}},
+         "sky": {"type": "constant", "radiance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}}}
+    return mi.load_dict(d)
+
+
+@dataclass
+class _Camera:
+    """The pinhole Mitsuba renders and the resampling to the distorted photo."""
+
+    f: float
+    size: tuple[int, int]
+    map_x: np.ndarray  # (H, W, n) render-pixel coordinates of each photo pixel's samples
+    map_y: np.ndarray
+
+    @classmethod
+    def build(cls, K: np.ndarray, dist, size: tuple[int, int], scale: int) -> _Camera:
+        w, h = size
+        off = (np.arange(scale) + 0.5) / scale - 0.5
+        ou, ov = (a.ravel() for a in np.meshgrid(off, off))
+        u = np.arange(w)[None, :, None] + ou
+        v = np.arange(h)[:, None, None] + ov
+        u, v = np.broadcast_arrays(u, v)
+        yd = (v - K[1, 2]) / K[1, 1]
+        xd = (u - K[0, 2] - K[0, 1] * yd) / K[0, 0]
+        xy = undistort_normalized(np.stack([xd, yd], -1), dist)
+        f = scale * K[0, 0]
+        half = np.abs(xy).reshape(-1, 2).max(0) * f + 2
+        rw, rh = 2 * int(math.ceil(half[0])), 2 * int(math.ceil(half[1]))
+        mx = (f * xy[..., 0] + rw / 2 - 0.5).astype(np.float32)
+        my = (f * xy[..., 1] + rh / 2 - 0.5).astype(np.float32)
+        return cls(f, (rw, rh), mx, my)
+
+    def sensor(self, mi, R: np.ndarray, t: np.ndarray, spp: int) -> object:
+        C = -R.T @ t
+        M = np.eye(4)
+        # Mitsuba's camera looks down +z with x left and y up; OpenCV's x right, y down
+        M[:3, :3] = R.T @ np.diag([-1.0, -1.0, 1.0])
+        M[:3, 3] = C
+        fov = math.degrees(2 * math.atan(self.size[0] / 2 / self.f))
+        return mi.load_dict({
+            "type": "perspective", "fov": fov, "fov_axis": "x", "near_clip": 1.0,
+            "far_clip": 1e5, "to_world": mi.ScalarTransform4f(M.tolist()),
+            "film": {"type": "hdrfilm", "width": self.size[0], "height": self.size[1],
+                     "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+            "sampler": {"type": "independent", "sample_count": spp}})
+
+    def photo(self, render: np.ndarray) -> np.ndarray:
+        """Resample a pinhole render (rh, rw, 3) into the distorted photo (H, W, 3)."""
+        src = np.ascontiguousarray(render[..., :3], np.float32)
+        acc = np.zeros(self.map_x.shape[:2] + (3,), np.float32)
+        for k in range(self.map_x.shape[2]):
+            acc += cv2.remap(src, self.map_x[..., k], self.map_y[..., k], cv2.INTER_LINEAR,
+                             borderMode=cv2.BORDER_REPLICATE)
+        return acc / self.map_x.shape[2]
+
+
+def _render(mi, scene, cam: _Camera, R, t, spp: int, seed: int) -> np.ndarray:
+    img = mi.render(scene, sensor=cam.sensor(mi, R, t, spp), seed=seed, spp=spp)
+    return cam.photo(np.array(img))
+
+
+def _write_photo(path: Path, img: np.ndarray, preset: PbrPreset) -> None:
+    if preset.image_format == "jpg":
+        path.parent.mkdir(parents=True, exist_ok=True)
+        ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(img[..., ::-1]),
+                               [cv2.IMWRITE_JPEG_QUALITY, preset.jpeg_quality])
+        if not ok:
+            raise OSError(f"{path}: could not encode JPEG")
+        tmp = path.with_name(f".{path.name}.tmp")
+        tmp.write_bytes(buf.tobytes())
+        tmp.replace(path)
+    else:
+        write_image_atomic(path, img)
+
+
+def generate_pbr(
+    out: str | Path,
+    truth: str | Path | None = None,
+    preset: str | PbrPreset = "pbr-tiny",
+    seed: int = 0,
+    surface_id: str | None = None,
+    log=print,
+) -> Path:
+    """Render a physically based capture to ``out`` and its ground truth to ``truth``
+    (default ``<out>.truth``); both replaced atomically when complete.
+
+    Seeded: the same preset and seed give the same scene, rig and noise (Mitsuba's
+    multi-threaded rendering is deterministic per seed as well).
+    """
+    mi = _mitsuba()
+    name = preset if isinstance(preset, str) else "custom"
+    if isinstance(preset, str):
+        try:
+            preset = PBR_PRESETS[preset]
+        except KeyError:
+            raise ValueError(f"unknown preset {preset!r}; one of {sorted(PBR_PRESETS)}") from None
+    out = Path(out)
+    truth = Path(truth) if truth else out.with_name(out.name + ".truth")
+    tmp_out = out.with_name(f".{out.name}.partial")
+    tmp_truth = truth.with_name(f".{truth.name}.partial")
+    for p in (tmp_out, tmp_truth):
+        shutil.rmtree(p, ignore_errors=True)
+        p.mkdir(parents=True)
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    sid = surface_id or f"synth-{name}"
+    w, h = preset.image_size
+    K = np.array([[preset.focal_px, 0.0, w / 2 - 0.5 + preset.principal_offset[0] * w],
+                  [0.0, preset.focal_px * preset.aspect,
+                   h / 2 - 0.5 + preset.principal_offset[1] * h], [0.0, 0.0, 1.0]])
+    cam = _Camera.build(K, preset.dist, preset.image_size, preset.render_scale)
+
+    albedo = _albedo_texture(preset, rng)
+    mats = _materials(preset, rng)
+    items = _marker_layout(preset, rng)
+    scene = _surface_scene(mi, preset, items, mats, albedo)
+
+    kw = {"n": preset.views} if preset.scheme == "spiral" else {"n_side": int(
+        math.ceil(math.sqrt(preset.views)))}
+    dirs = sample_directions(preset.scheme, preset.max_zenith_deg, **kw)[: preset.views]
+    hold = sample_directions("stratified", preset.max_zenith_deg - 5, n_side=8,
+                             seed=seed + 1)[rng.choice(64, preset.holdout, replace=False)]
+    all_dirs = np.concatenate([dirs, hold])
+    is_hold = np.r_[np.zeros(len(dirs), bool), np.ones(len(hold), bool)]
+    poses = [_view_pose(d, preset, K, items, rng) for d in all_dirs]
+    view_ids = [f"v{k:03d}" for k in range(len(all_dirs))]
+    seeds = rng.integers(0, 2**31, len(all_dirs) + preset.calib_images)
+    log(f"synth {name}: {len(dirs)} views + {len(hold)} held out, {w}x{h} px, "
+        f"{len(mats)} material patches, {len(items)} {preset.marker_dictionary} markers, "
+        f"{len(preset.lights)} light(s), Mitsuba {mi.__version__} scalar_rgb")
+
+    radiance = []
+    for k, (R, t) in enumerate(poses):
+        rad = _render(mi, scene, cam, R, t, preset.spp, int(seeds[k]) % 2**31)
+        radiance.append(rad)
+        write_exr(tmp_truth / "radiance" / f"{view_ids[k]}.exr",
+                  {"R": rad[..., 0], "G": rad[..., 1], "B": rad[..., 2]},
+                  {"view_id": view_ids[k], "units": "scene radiance (exposure = radiance * t)"})
+        if is_hold[k]:
+            clean = _render(mi, scene, cam, R, t, preset.clean_spp, int(seeds[k]) % 2**31 + 1)
+            write_exr(tmp_truth / "clean" / f"{view_ids[k]}.exr",
+                      {"R": clean[..., 0], "G": clean[..., 1], "B": clean[..., 2]},
+                      {"view_id": view_ids[k], "spp": str(preset.clean_spp)})
+        if (k + 1) % 10 == 0 or k + 1 == len(poses):
+            log(f"  rendered {k + 1}/{len(poses)} views ({time.perf_counter() - t0:.0f} s)")
+
+    # The bracket a photographer would choose: the shortest exposure keeps all but the
+    # brightest 0.05 % of the surface below level ~240, then fixed steps of `stops`.
+    hi = max(float(np.percentile(r.max(-1), 99.95)) for r in radiance)
+    t_short = float(preset.response.inverse(240.0)) / hi
+    times = [float(f"{t_short * 2.0 ** (preset.stops * k):.6g}")
+             for k in range(preset.exposures)][::-1]
+    views_yaml = []
+    ext = preset.image_format
+    for k, rad in enumerate(radiance):
+        nrng = np.random.default_rng(int(seeds[k]))
+        exps = []
+        for e, te in enumerate(times):
+            rel = f"views/{view_ids[k]}_{e}.{ext}"
+            _write_photo(tmp_out / rel, _expose(rad, te, preset.response, preset, nrng), preset)
+            exps.append({"file": rel, "exposure_s": te})
+        views_yaml.append({"id": view_ids[k], "holdout": bool(is_hold[k]), "exposures": exps})
+
+    sx, sy = preset.board
+    sq = round(0.6 * min(preset.width_mm, preset.height_mm) / max(sx, sy), 3)
+    calib = {"board": "charuco", "squares_x": sx, "squares_y": sy, "square_mm": sq,
+             "marker_mm": round(0.75 * sq, 3), "dictionary": preset.board_dictionary}
+    board = cv2.aruco.CharucoBoard((sx, sy), sq, calib["marker_mm"],
+                                   aruco_dictionary(preset.board_dictionary))
+    ppmm = 40.0 / sq  # 40 texture pixels per square
+    board_img = board.generateImage((int(sx * sq * ppmm), int(sy * sq * ppmm)), marginSize=0)
+    bscene = _board_scene(mi, calib, board_img)
+    cposes = board_poses(rng, preset.calib_images, sx * sq, sy * sq, preset.focal_px, (w, h),
+                         preset.board_max_tilt_deg)
+    for k, (R, t) in enumerate(cposes):
+        rad = _render(mi, bscene, cam, R, t, max(4, preset.spp // 2),
+                      int(seeds[len(all_dirs) + k]) % 2**31)
+        img = _expose(rad, 0.6 / 0.8, preset.response, preset,
+                      np.random.default_rng(int(seeds[len(all_dirs) + k])))
+        _write_photo(tmp_out / f"calibration/board_{k:02d}.{ext}", img, preset)
+    log(f"  rendered {len(cposes)} board photos ({time.perf_counter() - t0:.0f} s)")
+
+    cap = {
+        "surface": {"id": sid, "width_mm": preset.width_mm, "height_mm": preset.height_mm},
+        "markers": {"dictionary": preset.marker_dictionary, "items": items},
+        "calibration": {**calib, "images": f"calibration/*.{ext}", "intrinsics": None},
+        "camera": {"response": "auto"},
+        "views": views_yaml,
+    }
+    (tmp_out / "capture.yaml").write_text(
+        f"# Physically based synthetic capture (Mitsuba 3; preset {name}, seed {seed})\n"
+        + yaml.safe_dump(cap, sort_keys=False, default_flow_style=None, width=100))
+
+    np.savez_compressed(
+        tmp_truth / "response.npz", levels=np.arange(256),
+        exposure=np.repeat(preset.response.inverse(np.arange(256.0))[:, None], 3, 1))
+    np.savez_compressed(
+        tmp_truth / "poses.npz", view_ids=np.array(view_ids), holdout=is_hold,
+        R=np.array([p[0] for p in poses]), t=np.array([p[1] for p in poses]),
+        directions=all_dirs, calib_R=np.array([p[0] for p in cposes]),
+        calib_t=np.array([p[1] for p in cposes]))
+    (tmp_truth / "camera.yaml").write_text(yaml.safe_dump({
+        "image_size": list(preset.image_size), "K": K.tolist(), "dist": list(preset.dist)}))
+    nx, ny = preset.patches
+    (tmp_truth / "scene.json").write_text(json.dumps({
+        "renderer": f"mitsuba {mi.__version__} scalar_rgb",
+        "patches": [{"row": k // nx, "col": k % nx,
+                     "rect_mm": [(k % nx) * preset.width_mm / nx,
+                                 preset.height_mm - (k // nx + 1) * preset.height_mm / ny,
+                                 (k % nx + 1) * preset.width_mm / nx,
+                                 preset.height_mm - (k // nx) * preset.height_mm / ny],
+                     **m} for k, m in enumerate(mats)],
+        "lights": [asdict(L) for L in preset.lights], "environment": preset.environment},
+        indent=1))
+    np.savez_compressed(tmp_truth / "albedo.npz", albedo=albedo.astype(np.float16),
+                        px_per_mm=preset.texture_px_per_mm)
+    (tmp_truth / "generator.json").write_text(json.dumps(
+        {"preset": name, "seed": seed, "settings": asdict(preset), "exposure_s": times,
+         "radiance_p9995": hi}, indent=1))
+    for tmp, final in ((tmp_out, out), (tmp_truth, truth)):
+        shutil.rmtree(final, ignore_errors=True)
+        final.parent.mkdir(parents=True, exist_ok=True)
+        tmp.replace(final)
+    log(f"synth {name}: wrote {out} and {truth} in {time.perf_counter() - t0:.1f} s")
+    return out
+
+
+def read_truth_radiance(truth_dir: str | Path, view_id: str, clean: bool = False) -> np.ndarray:
+    """The radiance (H, W, 3) a generated photo was exposed from (``clean``: the
+    high-sample render of a held-out view)."""
+    from ..exr import read_exr
+
+    ch, _ = read_exr(Path(truth_dir) / ("clean" if clean else "radiance") / f"{view_id}.exr")
+    return np.stack([ch["R"], ch["G"], ch["B"]], -1)
+
+
+def patch_labels(truth_dir: str | Path, S: int, T: int, width_mm: float,
+                 height_mm: float) -> np.ndarray:
+    """(T, S) int: the material patch under each texel centre (conventions.md texel
+    mapping), from ``scene.json``."""
+    from ..geometry import texel_centres
+
+    patches = json.loads((Path(truth_dir) / "scene.json").read_text())["patches"]
+    ctr = texel_centres(S, T, width_mm, height_mm)
+    lab = np.full((T, S), -1, int)
+    for k, p in enumerate(patches):
+        x0, y0, x1, y1 = p["rect_mm"]
+        lab[(ctr[..., 0] >= x0) & (ctr[..., 0] < x1) & (ctr[..., 1] >= y0)
+            & (ctr[..., 1] < y1)] = k
+    return lab
