@@ -39,7 +39,7 @@ def run(preset: str, root: Path, models: list[str], seed: int) -> dict:
                   ["export", *named], ["holdout", *named]):
         t0 = time.perf_counter()
         assert main([stage[0], str(cap), "--out", str(out), *stage[1:]]) == 0, stage
-        times[" ".join(stage[:2] if stage[0].startswith("fit") else stage[:1])] = \
+        times[" ".join(stage[:3] if stage[0].startswith("fit") else stage[:1])] = \
             time.perf_counter() - t0
     import yaml
 

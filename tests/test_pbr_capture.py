@@ -98,7 +98,8 @@ def test_auto_resolution(pbr):
     for k in np.flatnonzero(~P["holdout"]):
         uv = [project_points(c + d, np.array(cam["K"]), np.array(cam["dist"]), P["R"][k],
                              P["t"][k])[0] for d in ([0, 0, 0], [1, 0, 0], [0, 1, 0])]
-        ppmm.append(np.sqrt(abs(np.cross(uv[1] - uv[0], uv[2] - uv[0]))))
+        a, b = uv[1] - uv[0], uv[2] - uv[0]
+        ppmm.append(np.sqrt(abs(a[0] * b[1] - a[1] * b[0])))
     expect = cap.width_mm * np.median(ppmm)
     assert 0.9 * expect < obs["S"] < 1.1 * expect, (obs["S"], expect)
 

@@ -141,7 +141,7 @@ PBR_PRESETS = {
         holdout=6, exposures=5, stops=1.5, markers=10, marker_dictionary="DICT_6X6_250",
         marker_frac=0.14, board=(9, 7), board_dictionary="DICT_APRILTAG_36h11",
         calib_images=16,
-        spp=8, clean_spp=96, response=FilmicResponse(white=8.0, gamma=2.0),
+        spp=4, clean_spp=48, response=FilmicResponse(white=8.0, gamma=2.0),
         image_format="jpg"),
     # two area lights (a rectangle and a disc): two highlights per texel
     "pbr-two-lights": PbrPreset(
