@@ -211,3 +211,68 @@ def test_fit_without_numba_gives_the_same_parameters(monkeypatch):
     without = _fit(case, 1)
     assert (without["status"] == STATUS_OK).all()
     np.testing.assert_allclose(without["params"], with_numba["params"], rtol=1e-4, atol=1e-6)
+
+
+def _one_material_tile(n=9, noise=0.002, seed=0, additive=False):
+    """(n, n) texels of one exact one-lobe MH material seen from 80 directions, with
+    relative (or additive, in radiance units) Gaussian noise."""
+    from parammap.synth.sampling import sample_directions
+
+    rng = np.random.default_rng(seed)
+    V = sample_directions("stratified", 75.0, n_side=9, seed=seed)[:80]
+    d = np.array([0.3, -0.2, 0.93])
+    p = np.r_[[0.2, 0.15, 0.1], 40.0, [0.8, 0.7, 0.6], d / np.linalg.norm(d)]
+    L = mh_eval(p, V)
+    eps = noise * rng.standard_normal((n, n) + L.shape)
+    rad = L + eps if additive else np.broadcast_to(L, (n, n) + L.shape) * (1 + eps)
+    dirs = np.broadcast_to(V, (n, n) + V.shape)
+    return p, rad.astype(np.float32), dirs.astype(np.float32), np.ones((n, n, len(V)), bool)
+
+
+def test_repair_refits_a_stuck_texel_from_its_neighbours_and_leaves_good_ones():
+    from parammap.models.mh import n_params, repair_mh_tile, stains
+
+    p, rad, dirs, valid = _one_material_tile()
+    fields = fit_mh_tile(rad, dirs, valid, 1)
+    assert (fields["status"] == STATUS_OK).all()
+    assert len(stains(fields["rmse"], fields["status"])) == 0
+    # a poor minimum in the middle: the lobe pointing elsewhere, its RMSE high
+    bad = p.copy()
+    bad[7:10] = [0.0, 0.6, 0.8]
+    bad[3] = 300.0
+    fields["params"][4, 4] = bad
+    fields["rmse"][4, 4] = np.sqrt(((mh_eval(bad, dirs[4, 4]) - rad[4, 4]) ** 2).mean(0))
+    assert list(stains(fields["rmse"], fields["status"])) == [1]
+    before = {k: v.copy() for k, v in fields.items()}
+    out = repair_mh_tile(fields, rad, dirs, valid, (0, 0), K=1)
+    assert out["changed"].sum() == 1 and out["changed"][4, 4] == 1
+    np.testing.assert_allclose(out["params"][4, 4, :n_params(1)], p, rtol=0.05, atol=0.02)
+    assert out["rmse"][4, 4].max() < 3 * np.median(before["rmse"])
+    keep = np.ones((9, 9), bool)
+    keep[4, 4] = False
+    np.testing.assert_array_equal(out["params"][keep], before["params"][keep])
+
+
+def test_negligible_second_lobe_is_written_as_absent():
+    """One real highlight under homoscedastic noise: the second lobe of mh-2 is merged
+    into the first or written as absent (BIC), so the map reads like mh-1."""
+    p, rad, dirs, valid = _one_material_tile(n=3, noise=0.003, additive=True)
+    r = fit_mh_tile(rad, dirs, valid, 2)
+    q = r["params"].reshape(-1, 16)
+    # the real lobe kept, the second one absent (Ks 0, d +z), not noise
+    np.testing.assert_allclose(q[:, 4:7], np.broadcast_to(p[4:7], (9, 3)), rtol=0.05)
+    np.testing.assert_array_equal(q[:, 10:13], 0.0)
+    np.testing.assert_array_equal(q[:, 13:16], np.broadcast_to([0.0, 0.0, 1.0], (9, 3)))
+
+
+def test_auto_chooses_no_lobe_on_a_matte_texel():
+    """``auto`` starts from K = 0: on matte texels (noise only) no lobe pays for itself;
+    on the glossy ones one lobe does."""
+    p, rad, dirs, valid = _one_material_tile(n=2, noise=0.003, additive=True)
+    matte = np.full_like(rad, 0.3) + 0.003 * np.random.default_rng(1).standard_normal(rad.shape)
+    r = fit_mh_tile(np.concatenate([rad, matte.astype(np.float32)]),
+                    np.concatenate([dirs, dirs]), np.concatenate([valid, valid]), "auto")
+    assert (r["k_used"][:2] == 1).all() and (r["k_used"][2:] == 0).all()
+    q = r["params"][2:].reshape(-1, r["params"].shape[-1])
+    np.testing.assert_allclose(q[:, :3], 0.3, atol=2e-3)
+    assert (q[:, 3] == 1.0).all() and (q[:, 4::6] == 0).all()

@@ -31,9 +31,12 @@ from . import __version__
 from .observation import open_observation_map
 from .stores import COMPLETE_ATTR, open_complete
 
-__all__ = ["COMPLETE_ATTR", "FitError", "fit_map", "fit_summary", "open_fit"]
+__all__ = ["COMPLETE_ATTR", "FitError", "RepairFn", "fit_map", "fit_summary", "open_fit"]
 
 TileFn = Callable[[np.ndarray, np.ndarray, np.ndarray], dict[str, np.ndarray]]
+# (fit arrays of the tile and its halo, radiance, direction, valid of the tile, offset of
+# the tile in the halo arrays) -> the tile's new arrays plus "changed", or None
+RepairFn = Callable[..., dict[str, np.ndarray] | None]
 
 
 class FitError(ValueError):
@@ -51,6 +54,30 @@ def _fit_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path: s
     for name, arr in res.items():
         out[name][r0:r1, c0:c1] = arr
     return np.asarray(res["status"], np.int8)
+
+
+def _repair_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path: str,
+                  repair_fn: RepairFn, halo: int, phase: tuple[int, int]) -> np.ndarray:
+    """One tile of the repair pass: only tiles of this checkerboard ``phase`` work, so
+    no tile rewrites what a neighbour is reading as its halo."""
+    (r0, r1), (c0, c1), _ = block_info[0]["array-location"]
+    bi, bj, _ = block_info[0]["chunk-location"]
+    changed = np.zeros((r1 - r0, c1 - c0), np.int8)
+    if (bi % 2, bj % 2) != phase:
+        return changed
+    out = zarr.open_group(out_path, mode="r+")
+    T, S = out["status"].shape
+    R0, R1, C0, C1 = max(r0 - halo, 0), min(r1 + halo, T), max(c0 - halo, 0), min(c1 + halo, S)
+    fields = {name: out[name][R0:R1, C0:C1] for name in out.array_keys()}
+    g = zarr.open_group(obs_path, mode="r")
+    res = repair_fn(fields, g["radiance"][r0:r1, c0:c1], g["direction"][r0:r1, c0:c1],
+                    np.asarray(valid), (r0 - R0, c0 - C0))
+    if res is None:
+        return changed
+    for name, arr in res.items():
+        if name != "changed":
+            out[name][r0:r1, c0:c1] = arr
+    return np.asarray(res["changed"], np.int8)
 
 
 def _compute(x, scheduler: str, workers: int):
@@ -78,8 +105,15 @@ def fit_map(
     scheduler: str = "processes",
     workers: int = 2,
     log=print,
+    repair_fn: RepairFn | None = None,
+    halo: int = 4,
 ) -> dict[str, Any]:
     """Apply ``tile_fn`` to every texel tile of an observation map into a zarr store.
+
+    With ``repair_fn`` a second pass follows once every tile is fitted: each tile sees
+    its neighbours' results (``halo`` texels around it) and may refit texels that stand
+    out from them (e.g. stuck in a poor local minimum). Tiles run in four checkerboard
+    phases, so no tile is rewritten while a neighbour reads it.
 
     Parameters
     ----------
@@ -122,6 +156,16 @@ def fit_map(
     try:
         with dask.config.set({"optimization.fuse.active": False}):
             status = np.asarray(_compute(status, scheduler, workers))
+            repaired = 0
+            if repair_fn is not None:
+                for phase in ((0, 0), (0, 1), (1, 0), (1, 1)):
+                    ch = valid.map_blocks(
+                        _repair_block, obs_path=str(obs_path), out_path=str(tmp),
+                        repair_fn=repair_fn, halo=halo, phase=phase, drop_axis=2,
+                        dtype=np.int8, meta=np.array((), np.int8), chunks=valid.chunks[:2])
+                    repaired += int(np.asarray(_compute(ch, scheduler, workers)).sum())
+                status = g["status"][:]
+                log(f"fit: repair pass refitted {repaired} texels from their neighbours")
         seconds = time.perf_counter() - t0
         g.attrs[COMPLETE_ATTR] = True
         if out_path.exists():
@@ -132,7 +176,7 @@ def fit_map(
         shutil.rmtree(tmp, ignore_errors=True)
     log(f"fit: {T * S} texels in {seconds:.1f} s ({T * S / seconds:.1f} texels/s)")
     return {"texels": T * S, "seconds": seconds, "texels_per_second": T * S / seconds,
-            "status": status}
+            "status": status, "repaired": repaired}
 
 
 def open_fit(path: str | Path) -> zarr.Group:

@@ -28,6 +28,7 @@ __all__ = [
     "FitResult",
     "MhFitConfig",
     "bic",
+    "drop_negligible_lobes",
     "fit_mh_map",
     "fit_mh_tile",
     "fit_texel",
@@ -41,6 +42,8 @@ __all__ = [
     "parse_lobes",
     "polish_batch",
     "refine_batch",
+    "repair_mh_tile",
+    "stains",
 ]
 
 ALGORITHMS = {
@@ -108,7 +111,8 @@ def bic(rss: float, n: int, K: int, floor: float = 0.0) -> float:
     degrees of freedom, so 4 + 5K free parameters). ``floor`` is the smallest mean
     squared residual taken as real: below it (noise-free data) extra lobes only fit
     round-off, which must not count as evidence."""
-    return n * math.log(max(rss / n, floor, 1e-300)) + (4 + 5 * K) * math.log(n)
+    k = 3 if K == 0 else 4 + 5 * K  # K = 0: Kd alone (no shininess to fit)
+    return n * math.log(max(rss / n, floor, 1e-300)) + k * math.log(n)
 
 
 # ---------------------------------------------------------------------------------
@@ -735,6 +739,14 @@ def fit_mh_tile(
         w = W[b]
         v, y = V[b][w], L[b][w]
         best, best_bic, evals = None, math.inf, 0
+        if K == "auto":
+            # K = 0 first: a lobe must pay for itself against a diffuse texel
+            kd = y.mean(0)
+            p0 = np.r_[kd, M_MIN]
+            floor = (cfg.bic_floor * float(np.mean(np.abs(y)))) ** 2
+            rss0 = float(np.sum((y - kd) ** 2))
+            best, best_bic = (FitResult(p0, rss0, 0, STATUS_OK, 0), 0), bic(rss0, y.size, 0,
+                                                                            floor)
         for k in Ks:
             if k in polished and polished[k][3][j]:
                 P, rss, ev, _, code = polished[k]
@@ -766,12 +778,204 @@ def fit_mh_tile(
     # residual diagnostics for the whole tile at once
     ok = todo[flat["status"][todo] == STATUS_OK]
     if len(ok):
+        flat["params"][ok] = drop_negligible_lobes(flat["params"][ok].astype(float), V[ok],
+                                                   L[ok], W[ok])
         fitted = mh_eval(flat["params"][ok].astype(float), V[ok])
         w = W[ok][..., None]
         n = np.maximum(w.sum(1), 1)
         flat["rmse"][ok] = np.sqrt((np.where(w, fitted - L[ok], 0) ** 2).sum(1) / n)
         flat["mpr"][ok] = mean_percentage_residual(L[ok], fitted, W[ok])
     return out
+
+
+# A texel whose RMSE exceeds this many times the median of its neighbourhood is refit
+# from its neighbours' parameters (the texels of one material share a minimum; a poor
+# local minimum shows as a "stain" of high residual among well-fitted neighbours).
+REPAIR_FACTOR = 3.0
+REPAIR_RADIUS = 4  # neighbourhood (2r + 1)^2 = 9x9 texels
+REPAIR_STARTS = 8  # nearest well-fitted neighbours tried as starts
+# a lobe costs five parameters: fewer observations than that cannot determine it
+MIN_SUPPORT = 5
+
+
+def _neighbourhood_median(e: np.ndarray, radius: int) -> np.ndarray:
+    """Median of ``e`` (H, W) over each texel's (2r + 1)^2 window, NaN ignored."""
+    from numpy.lib.stride_tricks import sliding_window_view
+
+    pad = np.pad(e, radius, constant_values=np.nan)
+    win = sliding_window_view(pad, (2 * radius + 1, 2 * radius + 1))
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            return np.nanmedian(win.reshape(e.shape + (-1,)), -1)
+
+
+def stains(rmse: np.ndarray, status: np.ndarray, factor: float = REPAIR_FACTOR,
+           radius: int = REPAIR_RADIUS) -> np.ndarray:
+    """Sizes (texels) of the connected blobs of texels whose RMSE (mean over channels)
+    exceeds ``factor`` times the median of their (2 ``radius`` + 1)^2 neighbourhood,
+    largest first: ``rmse`` (T, S, 3), ``status`` (T, S)."""
+    from scipy.ndimage import label
+
+    e = np.where(status == STATUS_OK, np.nanmean(rmse, -1), np.nan)
+    with np.errstate(invalid="ignore"):
+        out = e > factor * _neighbourhood_median(e, radius)
+    lab, n = label(out)
+    return np.sort(np.bincount(lab.ravel())[1:])[::-1] if n else np.zeros(0, int)
+
+
+def repair_mh_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
+                   direction: np.ndarray, valid: np.ndarray, offset: tuple[int, int], *,
+                   K: int | str, cfg: MhFitConfig = MhFitConfig(),
+                   factor: float = REPAIR_FACTOR, radius: int = REPAIR_RADIUS,
+                   starts: int = REPAIR_STARTS) -> dict[str, np.ndarray] | None:
+    """Refit the texels of a tile that stand out from their neighbourhood.
+
+    A texel whose RMSE (mean over channels) exceeds ``factor`` times the median over its
+    (2 ``radius`` + 1)^2 neighbourhood is refit with nlopt from the parameters of up to
+    ``starts`` nearest neighbours that do not stand out; the best fit replaces the texel's
+    only if it is better (lower RSS, or for ``auto`` a BIC lower by ``cfg.bic_margin``),
+    so a texel whose own data are good is never changed.
+
+    Parameters
+    ----------
+    fields : the fit store's arrays over the tile and its halo (params, rmse, mpr,
+        k_used, evals, status).
+    radiance, direction, valid : the tile's observations.
+    offset : (row, col) of the tile in the halo arrays.
+
+    Returns
+    -------
+    None when nothing stands out; else the tile's arrays and ``changed`` (t, u) int8.
+    """
+    params, status, kused = fields["params"], fields["status"], fields["k_used"]
+    e = np.where(status == STATUS_OK, np.nanmean(fields["rmse"], -1), np.nan)
+    med = _neighbourhood_median(e, radius)
+    with np.errstate(invalid="ignore"):
+        outlier = e > factor * med
+        good = (status == STATUS_OK) & ~outlier
+    oy, ox = offset
+    t, u = valid.shape[:2]
+    sl = (slice(oy, oy + t), slice(ox, ox + u))
+    bad = np.argwhere(outlier[sl])
+    if len(bad) == 0:
+        return None
+    out = {k: np.array(fields[k][sl]) for k in ("params", "rmse", "mpr", "k_used", "evals",
+                                                "status")}
+    out["changed"] = np.zeros((t, u), np.int8)
+    gy, gx = np.nonzero(good)
+    Kmax = (params.shape[-1] - 4) // 6
+    for i, j in bad:
+        w = valid[i, j] & np.isfinite(radiance[i, j]).all(-1) & np.isfinite(direction[i, j]).all(-1)
+        V, L = direction[i, j][w].astype(float), radiance[i, j][w].astype(float)
+        n = len(V)
+        if n < 4:
+            continue
+        floor = (cfg.bic_floor * float(np.mean(np.abs(L)))) ** 2
+        k0 = int(kused[i + oy, j + ox]) if K == "auto" else int(K)
+        rss0 = float(np.sum(fields["rmse"][i + oy, j + ox] ** 2) * n)
+        crit0 = bic(rss0, L.size, k0, floor) if K == "auto" else rss0
+        d2 = (gy - (i + oy)) ** 2 + (gx - (j + ox)) ** 2
+        near = np.argsort(d2, kind="stable")[:starts]
+        best = None
+        for q in near:
+            a, b = gy[q], gx[q]
+            k = int(kused[a, b]) if K == "auto" else int(K)
+            if k < 1:
+                continue
+            r = fit_texel(V, L, params[a, b, :n_params(k)].astype(float), cfg)
+            out["evals"][i, j] += r.evals
+            if r.status != STATUS_OK:
+                continue
+            crit = bic(r.rss, L.size, k, floor) if K == "auto" else r.rss
+            if best is None or crit < best[0]:
+                best = (crit, r, k)
+        margin = cfg.bic_margin if K == "auto" else 0.0
+        if best is None or not best[0] < crit0 - margin:
+            continue
+        _, r, k = best
+        p = np.zeros(n_params(Kmax))
+        p[: n_params(k)] = r.params
+        for extra in range(k, Kmax):
+            p[9 + 6 * extra] = 1.0
+        fitted = mh_eval(p, V)
+        out["params"][i, j] = p
+        out["k_used"][i, j] = k
+        out["status"][i, j] = STATUS_OK
+        out["rmse"][i, j] = np.sqrt(((fitted - L) ** 2).mean(0))
+        out["mpr"][i, j] = mean_percentage_residual(L, fitted)
+        out["changed"][i, j] = 1
+    return out
+
+
+def drop_negligible_lobes(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
+                          floor: float = 1e-3) -> np.ndarray:
+    """Write lobes the data do not support as absent, instead of noise.
+
+    Two lobes that split one highlight between them are merged into one (Ks summed,
+    direction weighted by strength); then a lobe is written as absent (Ks = 0, d = +z;
+    m = 1 when no lobe is left) when the texel's data do not pay for it, or when fewer
+    than five observations (the lobe's parameter count) see it above twice the noise.
+    Both use the criterion of ``auto`` (BIC): a change is made where ``n ln(RSS'/RSS)``
+    stays below ``5 ln n`` (the five parameters a lobe costs), with the mean squared
+    residual floored at ``(floor x mean radiance)^2`` as in :func:`bic`.
+
+    Parameters
+    ----------
+    P : (n, 4 + 6K) fitted parameters; V, L : (n, N, 3) directions and radiance;
+    W : (n, N) valid.
+    """
+    P = np.array(P, float, copy=True)
+    K = (P.shape[1] - 4) // 6
+    if K == 0:
+        return P
+    w = W.astype(bool)[..., None]
+    nres = 3 * np.maximum(W.sum(1), 1)
+    fl = (floor * np.abs(np.where(w, L, 0)).sum((1, 2)) / nres) ** 2
+
+    def rss(Q):
+        r = np.where(w, mh_eval(Q, V) - L, 0.0)
+        return np.maximum((r ** 2).sum((1, 2)), fl * nres)
+
+    pen = 5 * np.log(nres)
+
+    def better(Q, base):
+        return nres * np.log(rss(Q) / base) < pen
+
+    for k in range(K):
+        for j in range(k + 1, K):
+            a, b = slice(4 + 6 * k, 10 + 6 * k), slice(4 + 6 * j, 10 + 6 * j)
+            wa = P[:, a][:, :3].sum(1, keepdims=True)
+            wb = P[:, b][:, :3].sum(1, keepdims=True)
+            d = P[:, a][:, 3:] * wa + P[:, b][:, 3:] * wb
+            d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+            Q = P.copy()
+            Q[:, a] = np.c_[P[:, a][:, :3] + P[:, b][:, :3], d]
+            Q[:, b] = [0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+            ok = (wa[:, 0] > 0) & (wb[:, 0] > 0) & better(Q, rss(P))
+            P[ok] = Q[ok]
+    for k in range(K):
+        Q = P.copy()
+        Q[:, 4 + 6 * k: 10 + 6 * k] = [0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+        # a lobe costs five parameters: seen above twice the noise in fewer than five
+        # observations, it is not determined by the data (a noise spike, a highlight
+        # that fell between views) and would only sparkle in other views
+        noise = np.sqrt(rss(P) / nres)
+        c = np.clip(np.einsum("nvj,nj->nv", V, P[:, 7 + 6 * k: 10 + 6 * k]), 0, None) \
+            ** P[:, 3:4] * P[:, 4 + 6 * k: 7 + 6 * k].max(1, keepdims=True)
+        support = (W & (c > 2 * noise[:, None])).sum(1)
+        ok = (P[:, 4 + 6 * k: 7 + 6 * k].sum(1) > 0) & (better(Q, rss(P))
+                                                       | (support < MIN_SUPPORT))
+        P[ok] = Q[ok]
+    none = P[:, 4::6].sum(1) + P[:, 5::6].sum(1) + P[:, 6::6].sum(1) == 0
+    P[none, 3] = M_MIN
+    return _sort_lobes_batch(P)
+
+
+def _sort_lobes_batch(P: np.ndarray) -> np.ndarray:
+    return np.array([_sort_lobes(p) for p in P]) if len(P) else P
 
 
 def parse_lobes(K: str | int) -> int | str:
@@ -801,19 +1005,24 @@ def fit_mh_map(obs_path: str | Path, out_path: str | Path, K: int | str, cfg: di
         raise ValueError(f"fit.mh.algorithm: unknown {fcfg.algorithm!r} "
                          f"(one of {', '.join(ALGORITHMS)})")
     K_max = cfg.get("K_max", 3) if K == "auto" else K
+    repair = partial(repair_mh_tile, K=K, cfg=fcfg) if cfg.get("repair", True) else None
     res = fit_map(obs_path, out_path, partial(fit_mh_tile, K=K, cfg=fcfg, K_max=K_max),
                   mh_outputs(K_max),
                   {"model": "mh", "model_version": 1, "lobes": str(K), "K_max": K_max,
                    "layout": "Kd.R Kd.G Kd.B m (lobeK.Ks.R lobeK.Ks.G lobeK.Ks.B lobeK.d.X "
                              "lobeK.d.Y lobeK.d.Z)*K",
-                   "fit": {k: getattr(fcfg, k) for k in MhFitConfig.__dataclass_fields__}},
-                  scheduler, workers, log)
+                   "fit": {k: getattr(fcfg, k) for k in MhFitConfig.__dataclass_fields__},
+                   "repair": {"factor": REPAIR_FACTOR, "radius": REPAIR_RADIUS,
+                              "starts": REPAIR_STARTS} if repair else None},
+                  scheduler, workers, log, repair_fn=repair, halo=REPAIR_RADIUS)
     g = open_fit(out_path)
     ok = g["status"][:] == STATUS_OK
     kused = g["k_used"][:][ok]
     return fit_summary(
         out_path, res, f"mh-{K}", scheduler=scheduler, workers=workers,
         lobes_used={str(k): int((kused == k).sum()) for k in np.unique(kused)},
+        repaired_texels=int(res.get("repaired", 0)),
+        largest_stain_texels=int(next(iter(stains(g["rmse"][:], g["status"][:])), 0)),
         mean_evals=float(g["evals"][:][ok].mean()) if ok.any() else None)
 
 
