@@ -383,6 +383,87 @@ def _exposure_times(lo: float, hi: float, n: int, response: Response) -> list[fl
     return [float(f"{x:.6g}") for x in ts]
 
 
+def resolve_preset(preset, table: dict) -> tuple[str, object]:
+    """(name, preset) for a preset name in ``table`` or a preset object ("custom")."""
+    if not isinstance(preset, str):
+        return "custom", preset
+    try:
+        return preset, table[preset]
+    except KeyError:
+        raise ValueError(f"unknown preset {preset!r}; one of {sorted(table)}") from None
+
+
+def partial_dirs(out: str | Path, truth: str | Path | None
+                 ) -> tuple[Path, Path, Path, Path]:
+    """(out, truth, temporary out, temporary truth): the truth defaults to
+    ``<out>.truth``; the temporary folders are made empty."""
+    out = Path(out)
+    truth = Path(truth) if truth else out.with_name(out.name + ".truth")
+    tmp_out = out.with_name(f".{out.name}.partial")
+    tmp_truth = truth.with_name(f".{truth.name}.partial")
+    for p in (tmp_out, tmp_truth):
+        shutil.rmtree(p, ignore_errors=True)
+        p.mkdir(parents=True)
+    return out, truth, tmp_out, tmp_truth
+
+
+def write_rig_truth(tmp_truth: Path, view_ids: list[str], is_hold: np.ndarray, poses,
+                    directions: np.ndarray, cposes, size, K: np.ndarray, dist) -> None:
+    """The rig's ground truth: ``poses.npz`` (views and board photos) and
+    ``camera.yaml``."""
+    np.savez_compressed(
+        tmp_truth / "poses.npz", view_ids=np.array(view_ids), holdout=is_hold,
+        R=np.array([p[0] for p in poses]), t=np.array([p[1] for p in poses]),
+        directions=directions, calib_R=np.array([p[0] for p in cposes]),
+        calib_t=np.array([p[1] for p in cposes]))
+    (tmp_truth / "camera.yaml").write_text(yaml.safe_dump({
+        "image_size": list(size), "K": np.asarray(K).tolist(), "dist": list(dist)}))
+
+
+def write_capture_yaml(tmp_out: Path, header: str, sid: str, preset, items: list[dict],
+                       calib: dict, ext: str, views_yaml: list[dict]) -> None:
+    """``capture.yaml`` of a generated capture (capture-format.md), under a comment
+    ``header``."""
+    cap = {
+        "surface": {"id": sid, "width_mm": preset.width_mm, "height_mm": preset.height_mm},
+        "markers": {"dictionary": preset.marker_dictionary, "items": items},
+        "calibration": {**calib, "images": f"calibration/*.{ext}", "intrinsics": None},
+        "camera": {"response": "auto"},
+        "views": views_yaml,
+    }
+    (tmp_out / "capture.yaml").write_text(
+        f"# {header}\n"
+        + yaml.safe_dump(cap, sort_keys=False, default_flow_style=None, width=100))
+
+
+def view_rig(dirs: np.ndarray, preset, K: np.ndarray, items: list[dict], rng, seed: int,
+             n_extra_seeds: int) -> tuple:
+    """The captured views (``dirs``) plus ``preset.holdout`` held-out directions (a
+    stratified set within 5 deg less zenith), a camera pose for each, view ids, and one
+    noise seed per view and ``n_extra_seeds`` more.
+
+    Returns
+    -------
+    (all directions, held-out flags, poses [(R, t)], view ids, seeds)
+    """
+    hold = sample_directions("stratified", preset.max_zenith_deg - 5, n_side=8,
+                             seed=seed + 1)[rng.choice(64, preset.holdout, replace=False)]
+    all_dirs = np.concatenate([dirs, hold])
+    is_hold = np.r_[np.zeros(len(dirs), bool), np.ones(len(hold), bool)]
+    poses = [_view_pose(d, preset, K, items, rng) for d in all_dirs]
+    view_ids = [f"v{k:03d}" for k in range(len(all_dirs))]
+    seeds = rng.integers(0, 2**31, len(all_dirs) + n_extra_seeds)
+    return all_dirs, is_hold, poses, view_ids, seeds
+
+
+def publish(pairs) -> None:
+    """Move each finished temporary folder onto its final name."""
+    for tmp, final in pairs:
+        shutil.rmtree(final, ignore_errors=True)
+        final.parent.mkdir(parents=True, exist_ok=True)
+        tmp.replace(final)
+
+
 def generate(
     out: str | Path,
     truth: str | Path | None = None,
@@ -406,19 +487,8 @@ def generate(
     -------
     Path of the capture directory.
     """
-    name = preset if isinstance(preset, str) else "custom"
-    if isinstance(preset, str):
-        try:
-            preset = PRESETS[preset]
-        except KeyError:
-            raise ValueError(f"unknown preset {preset!r}; one of {sorted(PRESETS)}") from None
-    out = Path(out)
-    truth = Path(truth) if truth else out.with_name(out.name + ".truth")
-    tmp_out = out.with_name(f".{out.name}.partial")
-    tmp_truth = truth.with_name(f".{truth.name}.partial")
-    for p in (tmp_out, tmp_truth):
-        shutil.rmtree(p, ignore_errors=True)
-        p.mkdir(parents=True)
+    name, preset = resolve_preset(preset, PRESETS)
+    out, truth, tmp_out, tmp_truth = partial_dirs(out, truth)
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)
     sid = surface_id or f"synth-{name}"
@@ -436,15 +506,10 @@ def generate(
     times = _exposure_times(lo, max(hi, world.marker_white), preset.exposures, response)
 
     dirs = sample_directions(preset.scheme, preset.max_zenith_deg, **dict(preset.scheme_args))
-    hold = sample_directions("stratified", preset.max_zenith_deg - 5, n_side=8,
-                             seed=seed + 1)[rng.choice(64, preset.holdout, replace=False)]
-    all_dirs = np.concatenate([dirs, hold])
-    is_hold = np.r_[np.zeros(len(dirs), bool), np.ones(len(hold), bool)]
-    poses = [_view_pose(d, preset, K, items, rng) for d in all_dirs]
-    view_ids = [f"v{k:03d}" for k in range(len(all_dirs))]
-    seeds = rng.integers(0, 2**31, len(all_dirs) + preset.calib_images)
+    all_dirs, is_hold, poses, view_ids, seeds = view_rig(dirs, preset, K, items, rng, seed,
+                                                         preset.calib_images)
 
-    log(f"synth {name}: {len(dirs)} views + {len(hold)} held out, {preset.exposures} "
+    log(f"synth {name}: {len(dirs)} views + {int(is_hold.sum())} held out, {preset.exposures} "
         f"exposures {times} s, {preset.texels}x{preset.texels} texels, {w}x{h} px")
     jobs = [(world, preset, K, R, t, times, response, int(seeds[k]))
             for k, (R, t) in enumerate(poses)]
@@ -476,16 +541,8 @@ def generate(
         for k, img in enumerate(ex.map(_render_board_job, bjobs)):
             write_image_atomic(tmp_out / f"calibration/board_{k:02d}.{ext}", img)
 
-    cap = {
-        "surface": {"id": sid, "width_mm": preset.width_mm, "height_mm": preset.height_mm},
-        "markers": {"dictionary": preset.marker_dictionary, "items": items},
-        "calibration": {**calib, "images": f"calibration/*.{ext}", "intrinsics": None},
-        "camera": {"response": "auto"},
-        "views": views_yaml,
-    }
-    (tmp_out / "capture.yaml").write_text(
-        f"# Synthetic capture written by parammap synth (preset {name}, seed {seed})\n"
-        + yaml.safe_dump(cap, sort_keys=False, default_flow_style=None, width=100))
+    write_capture_yaml(tmp_out, f"Synthetic capture written by parammap synth (preset {name}, "
+                       f"seed {seed})", sid, preset, items, calib, ext, views_yaml)
 
     # Ground truth, never read by the pipeline.
     scene.save(tmp_truth / "scene.npz")
@@ -495,21 +552,13 @@ def generate(
         tmp_truth / "response.npz", levels=np.arange(256),
         exposure=response.inverse(np.arange(256)[:, None]),
         gamma=np.array(response.gamma), shoulder=np.array(response.shoulder))
-    np.savez_compressed(
-        tmp_truth / "poses.npz", view_ids=np.array(view_ids), holdout=is_hold,
-        R=np.array([p[0] for p in poses]), t=np.array([p[1] for p in poses]),
-        directions=all_dirs, calib_R=np.array([p[0] for p in cposes]),
-        calib_t=np.array([p[1] for p in cposes]))
-    (tmp_truth / "camera.yaml").write_text(yaml.safe_dump({
-        "image_size": list(preset.image_size), "K": K.tolist(), "dist": list(preset.dist)}))
+    write_rig_truth(tmp_truth, view_ids, is_hold, poses, all_dirs, cposes, preset.image_size,
+                    K, preset.dist)
     (tmp_truth / "generator.json").write_text(json.dumps(
         {"preset": name, "seed": seed, "settings": asdict(preset), "exposure_s": times,
          "radiance_range": [lo, hi], "shot_noise": preset.shot_noise,
          "read_noise": preset.read_noise}, indent=1))
-    for tmp, final in ((tmp_out, out), (tmp_truth, truth)):
-        shutil.rmtree(final, ignore_errors=True)
-        final.parent.mkdir(parents=True, exist_ok=True)
-        tmp.replace(final)
+    publish(((tmp_out, out), (tmp_truth, truth)))
     log(f"synth {name}: wrote {out} and {truth} in {time.perf_counter() - t0:.1f} s")
     return out
 

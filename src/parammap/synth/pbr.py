@@ -28,20 +28,27 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
-import yaml
 
 from ..capture import aruco_dictionary
 from ..exr import write_exr
 from ..geometry import undistort_normalized
 from ..imageio import write_image_atomic
-from .generate import _expose, _view_pose, board_poses
+from .generate import (
+    _expose,
+    board_poses,
+    partial_dirs,
+    publish,
+    resolve_preset,
+    view_rig,
+    write_capture_yaml,
+    write_rig_truth,
+)
 from .sampling import sample_directions
 
 __all__ = ["PBR_PRESETS", "FilmicResponse", "Light", "PbrPreset", "generate_pbr",
@@ -448,19 +455,8 @@ def generate_pbr(
     multi-threaded rendering is deterministic per seed as well).
     """
     mi = _mitsuba()
-    name = preset if isinstance(preset, str) else "custom"
-    if isinstance(preset, str):
-        try:
-            preset = PBR_PRESETS[preset]
-        except KeyError:
-            raise ValueError(f"unknown preset {preset!r}; one of {sorted(PBR_PRESETS)}") from None
-    out = Path(out)
-    truth = Path(truth) if truth else out.with_name(out.name + ".truth")
-    tmp_out = out.with_name(f".{out.name}.partial")
-    tmp_truth = truth.with_name(f".{truth.name}.partial")
-    for p in (tmp_out, tmp_truth):
-        shutil.rmtree(p, ignore_errors=True)
-        p.mkdir(parents=True)
+    name, preset = resolve_preset(preset, PBR_PRESETS)
+    out, truth, tmp_out, tmp_truth = partial_dirs(out, truth)
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)
     sid = surface_id or f"synth-{name}"
@@ -478,14 +474,9 @@ def generate_pbr(
     kw = {"n": preset.views} if preset.scheme == "spiral" else {"n_side": int(
         math.ceil(math.sqrt(preset.views)))}
     dirs = sample_directions(preset.scheme, preset.max_zenith_deg, **kw)[: preset.views]
-    hold = sample_directions("stratified", preset.max_zenith_deg - 5, n_side=8,
-                             seed=seed + 1)[rng.choice(64, preset.holdout, replace=False)]
-    all_dirs = np.concatenate([dirs, hold])
-    is_hold = np.r_[np.zeros(len(dirs), bool), np.ones(len(hold), bool)]
-    poses = [_view_pose(d, preset, K, items, rng) for d in all_dirs]
-    view_ids = [f"v{k:03d}" for k in range(len(all_dirs))]
-    seeds = rng.integers(0, 2**31, len(all_dirs) + preset.calib_images)
-    log(f"synth {name}: {len(dirs)} views + {len(hold)} held out, {w}x{h} px, "
+    all_dirs, is_hold, poses, view_ids, seeds = view_rig(dirs, preset, K, items, rng, seed,
+                                                         preset.calib_images)
+    log(f"synth {name}: {len(dirs)} views + {int(is_hold.sum())} held out, {w}x{h} px, "
         f"{len(mats)} material patches, {len(items)} {preset.marker_dictionary} markers, "
         f"{len(preset.lights)} light(s), Mitsuba {mi.__version__} scalar_rgb")
 
@@ -540,27 +531,14 @@ def generate_pbr(
         _write_photo(tmp_out / f"calibration/board_{k:02d}.{ext}", img, preset)
     log(f"  rendered {len(cposes)} board photos ({time.perf_counter() - t0:.0f} s)")
 
-    cap = {
-        "surface": {"id": sid, "width_mm": preset.width_mm, "height_mm": preset.height_mm},
-        "markers": {"dictionary": preset.marker_dictionary, "items": items},
-        "calibration": {**calib, "images": f"calibration/*.{ext}", "intrinsics": None},
-        "camera": {"response": "auto"},
-        "views": views_yaml,
-    }
-    (tmp_out / "capture.yaml").write_text(
-        f"# Physically based synthetic capture (Mitsuba 3; preset {name}, seed {seed})\n"
-        + yaml.safe_dump(cap, sort_keys=False, default_flow_style=None, width=100))
+    write_capture_yaml(tmp_out, f"Physically based synthetic capture (Mitsuba 3; preset "
+                       f"{name}, seed {seed})", sid, preset, items, calib, ext, views_yaml)
 
     np.savez_compressed(
         tmp_truth / "response.npz", levels=np.arange(256),
         exposure=np.repeat(preset.response.inverse(np.arange(256.0))[:, None], 3, 1))
-    np.savez_compressed(
-        tmp_truth / "poses.npz", view_ids=np.array(view_ids), holdout=is_hold,
-        R=np.array([p[0] for p in poses]), t=np.array([p[1] for p in poses]),
-        directions=all_dirs, calib_R=np.array([p[0] for p in cposes]),
-        calib_t=np.array([p[1] for p in cposes]))
-    (tmp_truth / "camera.yaml").write_text(yaml.safe_dump({
-        "image_size": list(preset.image_size), "K": K.tolist(), "dist": list(preset.dist)}))
+    write_rig_truth(tmp_truth, view_ids, is_hold, poses, all_dirs, cposes, preset.image_size,
+                    K, preset.dist)
     nx, ny = preset.patches
     (tmp_truth / "scene.json").write_text(json.dumps({
         "renderer": f"mitsuba {mi.__version__} scalar_rgb",
@@ -577,10 +555,7 @@ def generate_pbr(
     (tmp_truth / "generator.json").write_text(json.dumps(
         {"preset": name, "seed": seed, "settings": asdict(preset), "exposure_s": times,
          "radiance_p9995": hi}, indent=1))
-    for tmp, final in ((tmp_out, out), (tmp_truth, truth)):
-        shutil.rmtree(final, ignore_errors=True)
-        final.parent.mkdir(parents=True, exist_ok=True)
-        tmp.replace(final)
+    publish(((tmp_out, out), (tmp_truth, truth)))
     log(f"synth {name}: wrote {out} and {truth} in {time.perf_counter() - t0:.1f} s")
     return out
 
