@@ -3,19 +3,21 @@ which views the map can use.
 
 A view is good enough when what the map needs from it is good enough, not when its
 rotation is below a fixed angle: the uncertainty of a planar pose is mostly a tilt
-traded against a shift that barely moves the surface in the image. From the predicted
-pose covariance (corner noise x marker geometry, :func:`pose_covariance`) two figures
-are propagated, each 1 sd:
+traded against a shift that barely moves the surface in the image. The predicted pose
+covariance (residual noise x marker geometry, from the pose solve of
+:func:`parammap.calibration.estimate_pose`, on the measured marker edges where it can)
+is propagated to two figures, each 1 sd:
 
 - ``texel_shift``: how far the surface point seen at a pixel moves, worst over the
-  region, in texels of the map (``poses.max_texel_shift``);
+  region, as a fraction of the width a texel's observation averages over in that view
+  (the texel, widened by the view's pixel footprint; ``poses.max_texel_shift``);
 - ``direction_sd_deg``: how far the view direction from the region's centre to the
-  camera turns, as a fraction of the angular spacing of the captured views (median
+  camera turns, against the angular spacing of the captured views (median
   nearest-neighbour angle; ``poses.max_direction_fraction``).
 
-Corner noise is each view's reprojection residual corrected for the six fitted pose
-parameters, at least the capture's median (a view with few points can fit its own
-noise). Held-out views are never dropped by this policy: a poor one is kept with a
+The noise is each view's residual corrected for the six fitted pose parameters, at
+least the capture's median for that kind of solve (a view with few points can fit its
+own noise). Held-out views are never dropped by this policy: a poor one is kept with a
 ``warning`` that the held-out comparison reports.
 
 ``observation.texels_x: auto`` picks about one texel per photo pixel at the median view
@@ -39,26 +41,11 @@ from .capture import Capture
 from .exr import ExrError
 from .geometry import unit
 
-__all__ = ["map_resolution", "pose_covariance", "run_poses", "view_spacing_deg",
-           "view_uncertainty"]
+__all__ = ["map_resolution", "px_per_mm", "run_poses", "view_spacing_deg", "view_uncertainty"]
 
 # bytes per texel and view in the observation map: radiance and direction float32 x 3,
 # valid bool
 OBS_BYTES_PER_SAMPLE = 25
-
-
-def pose_covariance(obj: np.ndarray, R: np.ndarray, t: np.ndarray,
-                    intr: Intrinsics) -> np.ndarray:
-    """(6, 6) covariance of (rvec, tvec) for 1 px^2 of independent corner noise per
-    coordinate: ``(J^T J)^-1``, J the Jacobian of the projected points ``obj`` (n, 3)."""
-    rvec, _ = cv2.Rodrigues(np.asarray(R, float))
-    _, J = cv2.projectPoints(np.asarray(obj, np.float64), rvec, np.asarray(t, float),
-                             intr.K, intr.dist)
-    J = J[:, :6]
-    try:
-        return np.linalg.inv(J.T @ J)
-    except np.linalg.LinAlgError:
-        return np.full((6, 6), np.inf)
 
 
 def _region_grid(cap: Capture, n: int = 5) -> np.ndarray:
