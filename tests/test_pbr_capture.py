@@ -22,6 +22,9 @@ else:
     pytest.importorskip("mitsuba", reason="the pbr presets need parammap[pbr] (Mitsuba 3)")
 
 
+MODELS = ["--model", "mh-1", "--model", "sh-rlsop-36", "--model", "diffuse"]
+
+
 @pytest.fixture(scope="module")
 def pbr(tmp_path_factory):
     from parammap.synth.pbr import generate_pbr
@@ -31,9 +34,8 @@ def pbr(tmp_path_factory):
                        log=lambda *_: None)
     out = root / "proc"
     for stage in (["response"], ["hdr"], ["calibrate"], ["poses"], ["observe"],
-                  ["fit-mh", "--lobes", "1"],
-                  ["export", "--model", "mh-1", "--model", "diffuse"],
-                  ["holdout", "--model", "mh-1", "--model", "diffuse"]):
+                  ["fit-mh", "--lobes", "1"], ["fit-sh", "--model", "sh-rlsop-36"],
+                  ["export", *MODELS], ["holdout", *MODELS]):
         assert main([stage[0], str(cap), "--out", str(out), *stage[1:]]) == 0, stage
     return cap, root / "truth", out
 
@@ -120,16 +122,26 @@ def test_observation_directions(pbr):
     assert np.median(ang) < 0.06 and ang.max() < 0.2, (np.median(ang), ang.max())
 
 
-def test_mh_beats_diffuse_on_every_held_out_view(pbr):
-    """Against the clean renders of the held-out views, and in the held-out stage
-    against the photos."""
+def test_models_beat_diffuse_on_every_held_out_view(pbr):
+    """MH-1 and the default SH-36 against the clean renders of the held-out views, and
+    in the held-out stage against the photos; errors per material patch too."""
     from parammap.synth.evaluate import holdout_against_truth
 
     cap, truth, out = pbr
-    res = holdout_against_truth(cap, truth, out, ["mh-1", "diffuse"])
+    res, patches = holdout_against_truth(cap, truth, out, ["mh-1", "sh-rlsop-36", "diffuse"],
+                                         per_patch=True)
     assert len(res) == 3
-    assert all(r["mh-1"] < r["diffuse"] for r in res.values()), res
+    for m in ("mh-1", "sh-rlsop-36"):
+        assert all(r[m] < r["diffuse"] for r in res.values()), (m, res)
+    # SH-36 within 1.5x of MH (issue 15)
+    mean = {m: np.mean([r[m] for r in res.values()]) for m in ("mh-1", "sh-rlsop-36")}
+    assert mean["sh-rlsop-36"] < 1.5 * mean["mh-1"], mean
+    scene = json.loads((truth / "scene.json").read_text())["patches"]
+    assert len(patches) == len(scene) and all(len(v) == 3 for v in patches.values())
     h = json.loads((out / "metrics" / "holdout.json").read_text())
     assert len(h["views"]) == 3 and not h["skipped"]
-    assert all(v["models"]["mh-1"]["mean_diff_8bit"] < v["models"]["diffuse"]["mean_diff_8bit"]
-               for v in h["views"].values())
+    for m in ("mh-1", "sh-rlsop-36"):
+        assert all(v["models"][m]["mean_diff_8bit"] < v["models"]["diffuse"]["mean_diff_8bit"]
+                   for v in h["views"].values()), m
+    assert h["regions"] and all(set(v["regions"]) == set(h["models"]) for v in
+                                h["views"].values())

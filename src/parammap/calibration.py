@@ -16,6 +16,7 @@ import numpy as np
 import yaml
 
 from .capture import Capture, aruco_dictionary
+from .conventions import LUMINANCE
 from .geometry import camera_centre, distort_normalized, undistort_normalized
 from .imageio import ImageReadError, read_image
 
@@ -184,7 +185,7 @@ def marker_views(cap: Capture, intr: Intrinsics, frames, min_markers: int = 4,
         use = [k for k, i in enumerate(ids) if int(i) in known]
         if len(use) < min_markers:
             continue
-        lum = np.asarray(rad, np.float32) @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+        lum = np.asarray(rad, np.float32) @ LUMINANCE.astype(np.float32)
         c, measured = refine_marker_corners(lum, np.asarray(corners, float)[use], intr, cells,
                                             return_measured=True)
         # only markers measured on all four edges: ArUco's corners would bias the focal
@@ -565,7 +566,7 @@ def estimate_pose(
                 "markers": [int(ids[k]) for k in use]}
     edges = None
     if radiance is not None and len(use):
-        lum = np.asarray(radiance, np.float32) @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+        lum = np.asarray(radiance, np.float32) @ LUMINANCE.astype(np.float32)
         cells = aruco_dictionary(cap.marker_dictionary).markerSize + 2
         corners = np.array(corners, float)
         corners[use], measured, edges = refine_marker_corners(

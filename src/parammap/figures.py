@@ -10,7 +10,8 @@ Each ``kind`` writes into ``reports/<id>/``:
   or dropped and why)
 - ``observation``: observation_valid_count.png, observation_lobes.png
 - ``model``: <model>_params.png, <model>_residuals.png, <model>_lobes.png
-- ``holdout``: holdout.csv, holdout/<view>.png (photo / render / difference per model)
+- ``holdout``: holdout.csv, holdout_regions.csv (per region of similar texels),
+  holdout/<view>.png (photo / render / difference per model)
 - ``tables``: sizes.csv (004 tables 9.1, 11.1, 12.1), models.csv, timings.csv
 """
 
@@ -120,7 +121,29 @@ def _holdout(proc: Path, out: Path) -> list[Path]:
         fig.colorbar(im, ax=axes[:, 2], shrink=0.5, label="8-bit difference")
         paths.append(save_figure(fig, out / "holdout" / f"{vid}.png"))
     paths.insert(0, _write_csv(out / "holdout.csv", rows))
+    paths.insert(1, _write_csv(out / "holdout_regions.csv", region_table(m)))
     return paths
+
+
+def region_table(m: dict) -> list[dict]:
+    """Rows of ``holdout_regions.csv`` from ``metrics/holdout.json``: one per region,
+    its description, then each model's mean 8-bit difference over the held-out views
+    (pixel-weighted)."""
+    names = m.get("models", [])
+    rows = []
+    for reg in m.get("regions", []):
+        j = str(reg["region"])
+        row = {"region": j, "texels": reg["texels"],
+               "mean_radiance": " ".join(f"{x:.3g}" for x in reg["mean_radiance"] or []),
+               "gloss_ratio": f"{reg['gloss_ratio']:.3g}" if reg["gloss_ratio"] else ""}
+        for name in names:
+            per = [rec["regions"][name][j] for rec in m["views"].values()
+                   if j in rec.get("regions", {}).get(name, {})]
+            px = sum(e["pixels"] for e in per)
+            row[name] = f"{sum(e['mean_diff_8bit'] * e['pixels'] for e in per) / px:.2f}" \
+                if px else ""
+        rows.append(row)
+    return rows
 
 
 def _tables(proc: Path, out: Path, models: list[str], timings: list[Path]) -> list[Path]:

@@ -20,6 +20,7 @@ the plane, 004 ch. 3.5).
 from __future__ import annotations
 
 import math
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -27,11 +28,15 @@ import numpy as np
 
 from .calibration import Intrinsics
 from .capture import Capture
+from .conventions import LUMINANCE
 from .observation import kept_poses, open_observation_map
 from .params import ParamMap
 from .render import render, reproject_frame, surface_points, tone_map
 
-__all__ = ["choose_gamma", "compare", "diffuse_map", "holdout_comparison", "marker_pixels"]
+__all__ = ["choose_gamma", "compare", "diffuse_map", "holdout_comparison", "marker_pixels",
+           "pixel_regions", "region_errors", "texel_regions"]
+
+REGIONS = 6  # clusters of similar texels the held-out errors are broken down by
 
 
 def diffuse_map(obs_path: str | Path) -> ParamMap:
@@ -48,6 +53,87 @@ def diffuse_map(obs_path: str | Path) -> ParamMap:
             L = np.nan_to_num(g["radiance"][sl])
             kd[sl] = (L * v).sum(2) / np.maximum(v.sum(2), 1)
     return ParamMap("diffuse", kd, g.attrs["width_mm"], g.attrs["height_mm"])
+
+
+def texel_regions(obs_path: str | Path, k: int = REGIONS, seed: int = 0,
+                  ) -> tuple[np.ndarray, list[dict[str, Any]]]:
+    """Cluster the texels of an observation map into ``k`` regions of similar
+    appearance, for held-out errors per region where no material map is known.
+
+    Features per texel (standardised, k-means): log mean radiance per channel (colour
+    and albedo) and the log ratio of the 95th percentile to the median of its
+    luminance over the views (how glossy). Texels without observations get -1.
+
+    Returns
+    -------
+    labels : (T, S) int; regions : one dict per label (texels, mean radiance,
+        gloss ratio), ordered by label.
+    """
+    from scipy.cluster.vq import kmeans2
+
+    g = open_observation_map(obs_path)
+    T, S, _ = g["valid"].shape
+    tile = g.attrs["tile"]
+    feat = np.full((T, S, 4), np.nan)
+    for r0 in range(0, T, tile):
+        for c0 in range(0, S, tile):
+            sl = (slice(r0, r0 + tile), slice(c0, c0 + tile))
+            v = g["valid"][sl]
+            L = np.where(v[..., None], g["radiance"][sl], np.nan)
+            with warnings.catch_warnings(), np.errstate(all="ignore"):
+                warnings.simplefilter("ignore", RuntimeWarning)  # texels with no views
+                mean = np.nanmean(L, 2)
+                lum = L @ LUMINANCE
+                gloss = np.nanpercentile(lum, 95, 2) / np.nanmedian(lum, 2)
+            feat[sl] = np.concatenate([np.log(np.maximum(mean, 1e-6)),
+                                       np.log(np.maximum(gloss, 1.0))[..., None]], -1)
+    ok = np.isfinite(feat).all(-1)
+    labels = np.full((T, S), -1, int)
+    x = feat[ok]
+    if len(x) < k:
+        return labels, []
+    mu, sd = x.mean(0), x.std(0) + 1e-9
+    _, lab = kmeans2((x - mu) / sd, k, minit="++", seed=seed)
+    # order regions by brightness so that labels are stable to read
+    order = np.argsort(np.argsort([x[lab == j, :3].mean() if (lab == j).any() else np.inf
+                                   for j in range(k)]))
+    labels[ok] = order[lab]
+    regions = []
+    for j in range(k):
+        sel = labels[ok] == j
+        regions.append({"region": j, "texels": int(sel.sum()),
+                        "mean_radiance": np.exp(x[sel, :3].mean(0)).tolist()
+                        if sel.any() else None,
+                        "gloss_ratio": float(np.exp(x[sel, 3].mean())) if sel.any() else None})
+    return labels, regions
+
+
+def pixel_regions(labels: np.ndarray, points: np.ndarray, inside: np.ndarray,
+                  width_mm: float, height_mm: float) -> np.ndarray:
+    """(H, W) region label of each pixel's texel (-1 outside the region)."""
+    from .geometry import plane_to_texel
+
+    T, S = labels.shape
+    out = np.full(points.shape[:2], -1, int)
+    P = points[inside]
+    row, col = plane_to_texel(P[:, 0], P[:, 1], S, T, width_mm, height_mm)
+    out[inside] = labels[np.clip(row.astype(int), 0, T - 1), np.clip(col.astype(int), 0, S - 1)]
+    return out
+
+
+def region_errors(photo: np.ndarray, image: np.ndarray, mask: np.ndarray, gamma: float,
+                  regions: np.ndarray) -> dict[str, dict[str, float]]:
+    """Mean absolute 8-bit difference per region label (``regions``: (H, W) ints, -1
+    ignored), with the pixel count of each: ``{label: {mean_diff_8bit, pixels}}``."""
+    ok = mask & np.isfinite(image).all(-1) & (regions >= 0)
+    d = np.abs(tone_map(photo, gamma).astype(int) - tone_map(image, gamma).astype(int))
+    d = d.mean(-1)[ok]
+    lab = regions[ok]
+    out = {}
+    for j in np.unique(lab):
+        sel = lab == j
+        out[str(int(j))] = {"mean_diff_8bit": float(d[sel].mean()), "pixels": int(sel.sum())}
+    return out
 
 
 def choose_gamma(photo: np.ndarray, mask: np.ndarray) -> float:
@@ -85,10 +171,13 @@ def compare(photo: np.ndarray, image: np.ndarray, mask: np.ndarray, gamma: float
 
 def holdout_comparison(
     cap: Capture, intr: Intrinsics, processed: str | Path, maps: dict[str, ParamMap],
-    out_dir: str | Path, log=print,
+    out_dir: str | Path, log=print, regions: tuple[np.ndarray, list[dict]] | None = None,
 ) -> dict[str, Any]:
     """Compare every model in ``maps`` (name -> map; include the ``diffuse`` baseline
     from :func:`diffuse_map`) and the nearest-view baseline with every held-out view.
+
+    ``regions``: (T, S) labels and their descriptions (default :func:`texel_regions` of
+    the observation map); every comparison is also broken down by region.
 
     Writes 8-bit images (photo, render and difference per model) under ``out_dir``;
     returns the metrics for ``metrics/holdout.json``."""
@@ -104,8 +193,9 @@ def holdout_comparison(
     kept, _ = kept_poses(processed / "camera" / "poses.yaml", processed / "hdr")
     centre = np.array([cap.width_mm / 2, cap.height_mm / 2, 0.0])
     kdir = np.array([(v.centre - centre) / np.linalg.norm(v.centre - centre) for v in kept])
+    labels, described = regions or texel_regions(processed / "observation.zarr")
     result: dict[str, Any] = {"views": {}, "models": list(maps) + ["nearest-view"],
-                              "skipped": {}}
+                              "skipped": {}, "regions": described}
     for r in held:
         vid = str(r["id"])
         if not r.get("kept"):
@@ -124,7 +214,8 @@ def holdout_comparison(
                    for name, pm in maps.items()}
         renders["nearest-view"] = reproject_frame(read_hdr(near.hdr)[0], intr, near.R, near.t,
                                                   P, inside)
-        row = {"gamma": gamma, "nearest_view": near.id, "models": {}}
+        row = {"gamma": gamma, "nearest_view": near.id, "models": {}, "regions": {}}
+        px_regions = pixel_regions(labels, P, inside, cap.width_mm, cap.height_mm)
         if r.get("warning"):  # the pose policy would have dropped a fitted view like it
             row["pose_warning"] = r["warning"]
             log(f"holdout: {vid}: poor pose, compared all the same: {r['warning']}")
@@ -132,6 +223,7 @@ def holdout_comparison(
         write_image_atomic(out_dir / f"{vid}_photo.png", photo8)
         for name, img in renders.items():
             row["models"][name] = compare(photo, img, mask, gamma)
+            row["regions"][name] = region_errors(photo, img, mask, gamma, px_regions)
             img8 = tone_map(np.where(inside[..., None], img, 0), gamma)
             write_image_atomic(out_dir / f"{vid}_{name}.png", img8)
             d = np.abs(img8.astype(int) - photo8.astype(int)).mean(-1)

@@ -11,6 +11,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from .capture import Capture  # noqa: E402
+from .conventions import LUMINANCE
 from .imageio import read_image  # noqa: E402
 
 __all__ = ["contact_sheet", "plot_hemisphere", "save_figure"]
@@ -138,7 +139,7 @@ def plot_reexposure(hdr_metrics: dict, path: str | Path) -> Path:
     return save_figure(fig, path)
 
 
-LUMA = np.array([0.2126, 0.7152, 0.0722])
+LUMA = LUMINANCE
 
 
 def plot_map(img: np.ndarray, path: str | Path, title: str, label: str = "",

@@ -198,6 +198,12 @@ rule fig_holdout:
             category="4 Held-out photos",
             subcategory="{sid}",
         ),
+        regions=report(
+            f"{REPORTS}/{{sid}}/holdout_regions.csv",
+            caption="../report/holdout_regions.rst",
+            category="4 Held-out photos",
+            subcategory="{sid}",
+        ),
         panels=report(
             directory(f"{REPORTS}/{{sid}}/holdout"),
             patterns=["{view}.png"],

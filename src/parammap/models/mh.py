@@ -21,6 +21,7 @@ from pathlib import Path
 import nlopt
 import numpy as np
 
+from ..conventions import LUMINANCE
 from ._mh_kernel import LOSSES, cost_grad, gram
 
 __all__ = [
@@ -1042,11 +1043,10 @@ def mh_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path, 
     out_dir = Path(out_dir)
     p = g["params"][:].astype(float)
     K = (p.shape[-1] - 4) // 6
-    maps = {"Kd (luminance)": p[..., 0:3] @ [0.2126, 0.7152, 0.0722],
+    maps = {"Kd (luminance)": p[..., 0:3] @ LUMINANCE,
             "log10 m": np.log10(np.clip(p[..., 3], 1, None))}
     for k in range(K):
-        maps[f"lobe {k + 1} Ks (luminance)"] = p[..., 4 + 6 * k: 7 + 6 * k] @ [0.2126, 0.7152,
-                                                                             0.0722]
+        maps[f"lobe {k + 1} Ks (luminance)"] = p[..., 4 + 6 * k: 7 + 6 * k] @ LUMINANCE
         maps[f"lobe {k + 1} zenith (deg)"] = np.degrees(np.arccos(np.clip(p[..., 9 + 6 * k],
                                                                           -1, 1)))
     if g.attrs.get("lobes") == "auto":

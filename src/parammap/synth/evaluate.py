@@ -8,6 +8,7 @@ so every radiance comparison first fits that one scale (median ratio).
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -111,7 +112,8 @@ def true_directions(truth: str | Path, view_ids: list[str], S: int, T: int, widt
 
 
 def holdout_against_truth(capture: str | Path, truth: str | Path, processed: str | Path,
-                          models: list[str]) -> dict[str, dict[str, float]]:
+                          models: list[str], per_patch: bool = False,
+                          ) -> dict[str, dict[str, float]] | tuple[dict, dict]:
     """Mean 8-bit difference of each model's render against the clean (high-sample)
     render of every held-out view of a physically based capture.
 
@@ -122,10 +124,12 @@ def holdout_against_truth(capture: str | Path, truth: str | Path, processed: str
 
     Returns
     -------
-    ``{view id: {model: mean 8-bit difference}}``.
+    ``{view id: {model: mean 8-bit difference}}``; with ``per_patch`` also ``{patch:
+    {model: mean 8-bit difference}}`` over all held-out views (pixel-weighted), each
+    patch named ``<index> <kind> <parameters>`` from ``scene.json``.
     """
     from ..calibration import load_intrinsics
-    from ..holdout import choose_gamma, compare, marker_pixels
+    from ..holdout import choose_gamma, compare, marker_pixels, pixel_regions, region_errors
     from ..params import read_param_map
     from ..render import render, surface_points
     from .pbr import read_truth_radiance
@@ -135,7 +139,16 @@ def holdout_against_truth(capture: str | Path, truth: str | Path, processed: str
     intr = load_intrinsics(processed / "camera" / "intrinsics.yaml")
     recs = yaml.safe_load((processed / "camera" / "poses.yaml").read_text())["views"]
     maps = {m: read_param_map(processed / "params" / f"{m}.exr") for m in models}
-    out = {}
+    out, acc = {}, {}
+    if per_patch:
+        from .pbr import patch_labels
+
+        T, S = next(iter(maps.values())).shape
+        labels = patch_labels(truth, S, T, cap.width_mm, cap.height_mm)
+        scene = json.loads((Path(truth) / "scene.json").read_text())["patches"]
+        names = [f"{k} {p['kind']} " + " ".join(
+            f"{a}={b:.3g}" for a, b in p.items() if isinstance(b, float) and a != "rect_mm")
+            for k, p in enumerate(scene)]
     for r in recs:
         if not (r.get("holdout") and r.get("kept")):
             continue
@@ -148,8 +161,17 @@ def holdout_against_truth(capture: str | Path, truth: str | Path, processed: str
         ok = mask[..., None] & (clean > 0) & (photo > 0)
         clean = clean * float(np.median(photo[ok] / clean[ok]))
         gamma = choose_gamma(photo, mask)
-        out[r["id"]] = {name: compare(clean, render(pm, intr, R, t, (photo.shape[1],
-                                                                      photo.shape[0]))[0],
-                                      mask, gamma)["mean_diff_8bit"]
-                        for name, pm in maps.items()}
-    return out
+        size = (photo.shape[1], photo.shape[0])
+        images = {name: render(pm, intr, R, t, size)[0] for name, pm in maps.items()}
+        out[r["id"]] = {name: compare(clean, img, mask, gamma)["mean_diff_8bit"]
+                        for name, img in images.items()}
+        if per_patch:
+            px = pixel_regions(labels, P, inside, cap.width_mm, cap.height_mm)
+            for name, img in images.items():
+                for j, e in region_errors(clean, img, mask, gamma, px).items():
+                    a = acc.setdefault(names[int(j)], {}).setdefault(name, [0.0, 0])
+                    a[0] += e["mean_diff_8bit"] * e["pixels"]
+                    a[1] += e["pixels"]
+    if not per_patch:
+        return out
+    return out, {k: {m: v[0] / v[1] for m, v in d.items()} for k, d in sorted(acc.items())}

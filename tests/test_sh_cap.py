@@ -1,0 +1,118 @@
+"""SH on the sampled part of the hemisphere (issue 15): the cap, its prior, the
+leave-one-out regularisation and the range guard."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from parammap.models.sh import (
+    SampledCap,
+    cap_radius,
+    guarded_project,
+    project,
+    sh_eval,
+    solid_angles,
+)
+from parammap.synth.cases import phong_case
+from parammap.synth.sampling import icosahedron
+
+
+def _dir(zenith_deg, azimuth_deg):
+    t, p = np.radians(zenith_deg), np.radians(azimuth_deg)
+    return np.array([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)])
+
+
+def test_cap_finds_holes_and_the_region_beyond_the_views():
+    views = icosahedron(3, 60.0)
+    hole = _dir(35, 0)
+    views = views[views @ hole < np.cos(np.radians(16))]
+    cap = SampledCap(views, 4)
+    rho = np.degrees(cap_radius(views))
+    assert 5 < rho < 15, rho
+    probe = np.array([hole, _dir(35, 180), _dir(10, 90), _dir(60 + 1.5 * rho, 45)])
+    near = (probe @ views.T).max(1) >= np.cos(cap.rho)
+    assert near.tolist() == [False, True, True, False]
+    # the hole and the ring beyond the views are in U, bounded cells next to them
+    assert cap.unsampled_sr > 2 * np.pi * np.cos(np.radians(60 + rho)) * 0.9
+    assert cap.fraction.min() < 0.9 and cap.fraction.max() == 1.0
+
+
+def _texel(case, tex=(8, 8)):
+    return case.radiance[tex].astype(float), case.direction[tex].astype(float)
+
+
+def test_cap_fit_does_not_bias_good_data():
+    # a function inside the span of 3 bands, seen up to 65 degrees
+    rng = np.random.default_rng(1)
+    d = icosahedron(3, 65.0)
+    c_true = rng.normal(0, 0.1, (1, 3, 9))
+    c_true[..., 0] = 2.0
+    y = sh_eval(c_true, d[None])
+    c, lam, esc = guarded_project(y, d[None], solid_angles(d[None]), 3, "wls")
+    dense = icosahedron(4, 62.0)
+    err = np.abs(sh_eval(c, dense[None]) - sh_eval(c_true, dense[None])).max()
+    assert err < 5e-3 * np.abs(y).max(), err  # 0.5 %: well below any capture noise
+    assert esc.max() == 0
+
+
+def test_cap_beats_the_published_projections_on_a_partial_hemisphere():
+    # 004's red Phong surface, views only up to 65 degrees (what labs capture), 2 % noise
+    kw = dict(ks=0.6, m=10.0, max_zenith_deg=65.0)
+    noisy = phong_case(noise=0.02, **kw)
+    L, V = _texel(noisy)
+    Lt, Vt = _texel(phong_case(**kw))
+    dense = icosahedron(4, 64.0)
+    Ld, Vd = _texel(phong_case(directions=dense, **kw))
+    w = solid_angles(V[None])
+    errs = {}
+    for hemi in ("lsop", "rlsop", "wls"):
+        pub = project(L[None], V[None], w, 6, hemi)
+        cap, _, _ = guarded_project(L[None], V[None], w, 6, hemi)
+        errs[hemi] = [float(np.sqrt(np.mean((sh_eval(c, Vd[None])[0] - Ld) ** 2)))
+                      for c in (pub, cap)]
+    # published LSOP / RLSOP treat the ring beyond 65 degrees as data: 6-30x worse
+    assert errs["lsop"][1] < 0.2 * errs["lsop"][0], errs
+    assert errs["rlsop"][1] < 0.1 * errs["rlsop"][0], errs
+    assert errs["wls"][1] <= errs["wls"][0], errs
+    # leave-one-out regularisation: never worse than no regularisation on the truth
+    assert errs["rlsop"][1] <= 1.05 * errs["wls"][1], errs
+
+
+def test_guard_keeps_unobserved_directions_in_the_observed_range():
+    kw = dict(ks=0.6, m=10.0, max_zenith_deg=55.0, noise=0.02)
+    L, V = _texel(phong_case(**kw))
+    w = solid_angles(V[None])
+    lo, hi = L.min(0), L.max(0)
+    tol = 0.1 * (hi - lo)
+    # renders look from up to one hole radius beyond the last views (60 degrees here)
+    beyond = icosahedron(5, 60.0)
+    beyond = beyond[np.degrees(np.arccos(beyond[:, 2])) > 57]
+    for n in (6, 8):
+        c, _, esc = guarded_project(L[None], V[None], w, n, "rlsop")
+        f = sh_eval(c, beyond[None])[0]
+        assert (f >= lo - tol).all() and (f <= hi + tol).all(), (n, f.min(0), f.max(0))
+        assert esc.max() <= 4
+        plain = project(L[None], V[None], w, n, "lsop")
+        fp = sh_eval(plain, beyond[None])[0]
+        assert ((fp < lo - tol) | (fp > hi + tol)).any(), n  # the published one leaves it
+
+
+def test_map_fit_records_lambda_and_guard(tmp_path):
+    from parammap.fitting import open_fit
+    from parammap.models.sh import fit_sh_map
+    from parammap.observation import write_observation_arrays
+
+    case = phong_case(texels=8, level=2, m=10, max_zenith_deg=60.0, noise=0.02)
+    obs = write_observation_arrays(tmp_path / "obs.zarr", case.radiance, case.direction,
+                                   case.valid, 1000.0, 1000.0, tile=4)
+    m = fit_sh_map(obs, tmp_path / "sh.zarr", "rlsop", 6, {}, "synchronous", 1,
+                   log=lambda *_: None)
+    g = open_fit(tmp_path / "sh.zarr")
+    assert m["fitted"] == 64 and m["sampled_cap"] and g.attrs["sampled_cap"]
+    lam = g["reg"][:]
+    assert np.isfinite(lam).all() and (lam >= 0).all()
+    assert m["guard_unresolved_texels"] == 0
+    pub = fit_sh_map(obs, tmp_path / "pub.zarr", "rlsop", 6, {"sampled_cap": False,
+                                                             "regularisation": 1e-4},
+                     "synchronous", 1, log=lambda *_: None)
+    assert "sampled_cap" not in pub and not open_fit(tmp_path / "pub.zarr").attrs["sampled_cap"]
