@@ -176,8 +176,9 @@ def test_compiled_objective_matches_numpy_and_finite_differences(loss):
     V, L = case.direction[8, 8][w].astype(float), case.radiance[8, 8][w].astype(float)
     L = L / L.mean()
     x = np.array([0.3, 0.2, 0.1, np.log(40), 1.0, 0.9, 0.8, 0.3, 0.7, 0.5, 0.6, 0.7, 0.4, -2.0])
-    fc = _objective(V, L, 2, loss, 0.05, compiled=True)
-    fn = _objective(V, L, 2, loss, 0.05, compiled=False)
+    wt = np.random.default_rng(3).uniform(0.2, 3.0, len(V))  # noise weights
+    fc = _objective(V, L, 2, loss, 0.05, compiled=True, w=wt)
+    fn = _objective(V, L, 2, loss, 0.05, compiled=False, w=wt)
     gc, gn = np.empty(14), np.empty(14)
     vc, vn = fc(x, gc), fn(x, gn)
     assert abs(vc - vn) <= 1e-12 * abs(vn)

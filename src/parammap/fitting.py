@@ -33,7 +33,8 @@ from .stores import COMPLETE_ATTR, open_complete
 
 __all__ = ["COMPLETE_ATTR", "FitError", "RepairFn", "fit_map", "fit_summary", "open_fit"]
 
-TileFn = Callable[[np.ndarray, np.ndarray, np.ndarray], dict[str, np.ndarray]]
+# (radiance, direction, valid of a tile; keyword noise: its relative sd per observation)
+TileFn = Callable[..., dict[str, np.ndarray]]
 # (fit arrays of the tile and its halo, radiance, direction, valid of the tile, offset of
 # the tile in the halo arrays) -> the tile's new arrays plus "changed", or None
 RepairFn = Callable[..., dict[str, np.ndarray] | None]
@@ -49,7 +50,9 @@ def _fit_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path: s
     g = zarr.open_group(obs_path, mode="r")
     rad = g["radiance"][r0:r1, c0:c1]
     dirs = g["direction"][r0:r1, c0:c1]
-    res = tile_fn(rad, dirs, np.asarray(valid))
+    # observation maps built before the merge recorded noise have no "noise" array
+    kw = {"noise": g["noise"][r0:r1, c0:c1]} if "noise" in g else {}
+    res = tile_fn(rad, dirs, np.asarray(valid), **kw)
     out = zarr.open_group(out_path, mode="r+")
     for name, arr in res.items():
         out[name][r0:r1, c0:c1] = arr
@@ -187,8 +190,10 @@ def open_fit(path: str | Path) -> zarr.Group:
 def fit_summary(out_path: str | Path, res: dict[str, Any], name: str,
                 **extra: Any) -> dict[str, Any]:
     """Figures of a finished fit for its metrics file: texels fitted, too few
-    observations (status 2) and failed (3), speed, and the mean / median of the
-    per-texel mean percentage residual and RMSE per channel."""
+    observations (status 2) and failed (3), speed, the mean / median of the per-texel
+    mean percentage residual and RMSE per channel, and the median reduced chi-square
+    (residuals against the expected noise; about 1 where the model explains all but
+    the noise)."""
     g = open_fit(out_path)
     status = g["status"][:]
     ok = status == 1
@@ -199,5 +204,12 @@ def fit_summary(out_path: str | Path, res: dict[str, Any], name: str,
         "seconds": res["seconds"], "texels_per_second": res["texels_per_second"],
         "mean_percentage_residual": np.nanmean(mpr, 0).tolist() if ok.any() else None,
         "median_percentage_residual": np.nanmedian(mpr, 0).tolist() if ok.any() else None,
-        "rmse": np.nanmean(rmse, 0).tolist() if ok.any() else None, **extra,
+        "rmse": np.nanmean(rmse, 0).tolist() if ok.any() else None,
+        "chi2_median": _nanmedian(g["chi2"][:][ok]) if "chi2" in g else None, **extra,
     }
+
+
+def _nanmedian(x: np.ndarray) -> float | None:
+    """Median of the finite values (None when there are none: e.g. no noise recorded)."""
+    x = x[np.isfinite(x)]
+    return float(np.median(x)) if x.size else None

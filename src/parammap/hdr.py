@@ -9,6 +9,7 @@ level z and channel c, anchored at ``g[128] = 0``; radiance is then
 from __future__ import annotations
 
 import json
+import math
 import time
 from pathlib import Path
 
@@ -16,6 +17,7 @@ import cv2
 import numpy as np
 
 from .capture import Capture, View
+from .conventions import NOISE_CHANNEL
 from .exr import read_exr, write_exr
 from .imageio import ImageReadError, read_image
 
@@ -26,6 +28,7 @@ __all__ = [
     "merge_bracket",
     "merge_view",
     "read_hdr",
+    "read_hdr_noise",
     "recover_response",
     "reexposure_error",
     "sample_pixels",
@@ -253,6 +256,54 @@ def merge_bracket(
     return np.exp(lnE).astype(np.float32), saturated, dark
 
 
+QUANTISATION_SD = 1 / math.sqrt(12)  # sd of rounding to integer levels
+
+
+def merge_noise(
+    stack: np.ndarray, times: np.ndarray, g: np.ndarray, level_sd: float,
+    low: int = 5, high: int = 250,
+) -> np.ndarray:
+    """Relative standard deviation of :func:`merge_bracket`'s radiance per pixel.
+
+    Each exposure's log radiance ``g(z) - ln t`` moves by ``g'(z)`` per level, so a
+    level noise of ``level_sd`` gives it an sd of ``g'(z) level_sd``; the hat-weighted
+    mean of the exposures has sd ``sqrt(sum w^2 g'^2) level_sd / sum w``, which is the
+    relative sd of the radiance. Pixels seen by several well-exposed photos come out
+    low, pixels only the toe or shoulder of the response saw come out high.
+
+    Returns
+    -------
+    (H, W) float32, mean over the three channels.
+    """
+    stack = np.asarray(stack)
+    t = np.asarray(times, float)
+    w = hat_weights(low, high)
+    dg = np.abs(np.gradient(np.asarray(g, float), axis=0))  # (256, 3) d ln E / d level
+    var = np.zeros(stack.shape[1:], float)
+    den = np.zeros(stack.shape[1:], float)
+    ch = np.arange(3)
+    for p in range(len(stack)):
+        z = stack[p].astype(np.intp)
+        wp = w[z]
+        var += (wp * dg[z, ch]) ** 2
+        den += wp
+    single = dg[stack[int(np.argmin(t))].astype(np.intp), ch]  # fallback exposure
+    rel = np.where(den > 0, np.sqrt(var) / np.maximum(den, 1e-12), single) * level_sd
+    return rel.mean(-1).astype(np.float32)
+
+
+def level_noise(err: np.ndarray, exposures: int) -> float:
+    """Level noise (sd, 8-bit levels) of one exposure from the re-exposure errors: the
+    mean absolute error of a Gaussian is 0.80 sd, and the merged prediction contains
+    the photo it predicts (about 1/P of it), which hides a share 1/P of the variance;
+    never below the quantisation sd."""
+    if not err.size:
+        return QUANTISATION_SD
+    P = max(exposures, 2)
+    sd = math.sqrt(math.pi / 2) * float(np.mean(err)) / math.sqrt(1 - 1 / P)
+    return max(sd, QUANTISATION_SD)
+
+
 def load_bracket(view: View) -> tuple[np.ndarray, np.ndarray]:
     """Read a view's photos as (P, H, W, 3) uint8 and its times (P,)."""
     imgs = []
@@ -286,15 +337,21 @@ def merge_view(
         saturated = (~ok).all(axis=0).any(axis=2)
         rad = np.where(saturated[..., None], stack[np.argmin(t)] / t.min(), rad)
         dark = (stack <= full * low / 255.0).all(axis=0).any(axis=2)
+        # quantisation only (the sensor's shot and read noise are unknown here)
+        zsum = np.where(ok, stack, 0).sum(0)
+        noise = (QUANTISATION_SD * np.sqrt(np.maximum(ok.sum(0), 1))
+                 / np.maximum(zsum, 1e-30)).mean(-1).astype(np.float32)
         rad = rad.astype(np.float32)
     else:
         stack, t = load_bracket(view)
         rad, saturated, dark = merge_bracket(stack, t, g, low, high)
         err = reexposure_error(stack, t, rad, g, low, high)
+        noise = merge_noise(stack, t, g, level_noise(err, len(t)), low, high)
     write_exr(out, {"R": rad[..., 0], "G": rad[..., 1], "B": rad[..., 2],
                     "saturated": saturated.astype(np.float32),
-                    "dark": dark.astype(np.float32)},
-              {"view_id": view.id, "units": "relative radiance (response exp(g)/t)"})
+                    "dark": dark.astype(np.float32), NOISE_CHANNEL: noise},
+              {"view_id": view.id, "units": "relative radiance (response exp(g)/t)",
+               "noise": "relative sd of the radiance per pixel (merge_noise)"})
     stats = {"view": view.id, "saturated_fraction": float(saturated.mean()),
              "dark_fraction": float(dark.mean())}
     if g is not None:
@@ -336,9 +393,16 @@ def pool_reexposure(summaries: list[dict]) -> dict:
 
 def read_hdr(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Read an HDR frame: (H, W, 3) float32 radiance, saturated and dark masks."""
+    return read_hdr_noise(path)[:3]
+
+
+def read_hdr_noise(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                np.ndarray | None]:
+    """:func:`read_hdr` plus the (H, W) relative noise sd of the frame (None for
+    frames written before the merge recorded it)."""
     ch, _ = read_exr(path)
     rad = np.stack([ch["R"], ch["G"], ch["B"]], -1).astype(np.float32)
-    return rad, ch["saturated"] > 0.5, ch["dark"] > 0.5
+    return rad, ch["saturated"] > 0.5, ch["dark"] > 0.5, ch.get(NOISE_CHANNEL)
 
 
 def reexposure_error(

@@ -46,7 +46,7 @@ from . import __version__
 from .calibration import Intrinsics, load_intrinsics
 from .capture import Capture
 from .geometry import sample_image, texel_centres, unit
-from .hdr import read_hdr
+from .hdr import read_hdr_noise
 from .stores import COMPLETE_ATTR, executor, open_complete, store_bytes
 
 __all__ = [
@@ -140,6 +140,12 @@ def _project(P: np.ndarray, intr: Intrinsics, R: np.ndarray, t: np.ndarray) -> n
     return uv.reshape(P.shape[:-1] + (2,))
 
 
+# dimension names of the observation arrays (xarray.open_zarr labels them)
+OBS_DIMS = {"radiance": ("row", "col", "view", "channel"),
+            "direction": ("row", "col", "view", "xyz"),
+            "valid": ("row", "col", "view"), "noise": ("row", "col", "view")}
+
+
 def sample_view(
     radiance: np.ndarray,
     saturated: np.ndarray,
@@ -153,7 +159,8 @@ def sample_view(
     height_mm: float,
     max_zenith_deg: float = 85.0,
     max_supersample: int = 6,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    noise: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
     """Sample one HDR frame at the texels of rows ``rows`` of the map.
 
     Parameters
@@ -161,12 +168,16 @@ def sample_view(
     radiance : (H, W, 3) float32 linear radiance; saturated : (H, W) bool.
     intr, R, t : camera and pose (``p_cam = R p_world + t``, mm).
     rows : texel rows to sample; S, T, width_mm, height_mm : the map.
+    noise : (H, W) relative noise sd of the frame's pixels (:func:`merge_noise`).
 
     Returns
     -------
     radiance : (r, S, 3) float32, NaN where a point fell outside the frame.
     direction : (r, S, 3) float32 unit vectors from the texel centre to the camera.
     valid : (r, S) bool (before the marker mask).
+    noise : (r, S) float32 relative sd of each observation (None without ``noise``):
+        the pixels' sd over the square root of the texel's footprint in pixels (the
+        average of that many pixels with independent noise; never below one pixel).
     """
     ctr = texel_centres(S, T, width_mm, height_mm)[rows]  # (r, S, 3)
     C = -R.T @ t
@@ -198,7 +209,14 @@ def sample_view(
     zen_ok = d[..., 2] >= math.cos(math.radians(max_zenith_deg))
     valid = inside & (depth > 0) & zen_ok & ~sat & np.isfinite(rad).all(-1)
     rad = np.where(inside[..., None], rad, np.nan)
-    return rad.astype(np.float32), d.astype(np.float32), valid
+    sd = None
+    if noise is not None:
+        area = np.abs(du[..., 0] * dv[..., 1] - du[..., 1] * dv[..., 0])
+        nz = sample_image(np.asarray(noise, np.float32)[..., None], uv[..., 0],
+                          uv[..., 1])[..., 0].mean(axis=2)
+        sd = np.where(inside, nz / np.sqrt(np.maximum(np.nan_to_num(area), 1.0)),
+                      np.nan).astype(np.float32)
+    return rad.astype(np.float32), d.astype(np.float32), valid, sd
 
 
 # ---------------------------------------------------------------------------------
@@ -213,7 +231,7 @@ def _pass1_view(job: tuple) -> tuple[str, float, int]:
     """Sample one view into the scratch store; returns (id, valid fraction, bytes read)."""
     (scratch, n, view, intr, S, T, w_mm, h_mm, band, max_zen, max_ss) = job
     t0 = time.perf_counter()
-    rad, sat, _ = read_hdr(view.hdr)
+    rad, sat, _, noise = read_hdr_noise(view.hdr)
     if (rad.shape[1], rad.shape[0]) != tuple(intr.image_size):
         raise ObservationError(f"{view.hdr}: frame {rad.shape[1]}x{rad.shape[0]} does not "
                                f"match the intrinsics image size {intr.image_size}")
@@ -221,10 +239,12 @@ def _pass1_view(job: tuple) -> tuple[str, float, int]:
     nvalid = 0
     for r0 in range(0, T, band):
         rows = slice(r0, min(r0 + band, T))
-        r, _, v = sample_view(rad, sat, intr, view.R, view.t, rows, S, T, w_mm, h_mm,
-                              max_zen, max_ss)
+        r, _, v, sd = sample_view(rad, sat, intr, view.R, view.t, rows, S, T, w_mm, h_mm,
+                                  max_zen, max_ss, noise)
         g["radiance"][n, rows] = r
         g["valid"][n, rows] = v
+        if sd is not None:
+            g["noise"][n, rows] = sd
         nvalid += int(v.sum())
     return view.id, nvalid / (S * T), rad.nbytes + sat.nbytes, time.perf_counter() - t0
 
@@ -244,6 +264,7 @@ def _pass2_band(job: tuple) -> int:
     dst["radiance"][r0:r1] = rad
     dst["direction"][r0:r1] = d
     dst["valid"][r0:r1] = valid
+    dst["noise"][r0:r1] = np.moveaxis(src["noise"][:, r0:r1], 0, 2)
     return int(valid.sum())
 
 
@@ -304,6 +325,8 @@ def build_observation_map(
                         dtype="float32", compressors=fast, fill_value=np.nan)
         sg.create_array("valid", shape=(N, T, S), chunks=(1, band, S), dtype="bool",
                         compressors=fast, fill_value=False)
+        sg.create_array("noise", shape=(N, T, S), chunks=(1, band, S), dtype="float32",
+                        compressors=fast, fill_value=np.nan)
         jobs = [(str(scratch), n, v, intr, S, T, cap.width_mm, cap.height_mm, band,
                  max_zenith_deg, max_supersample) for n, v in enumerate(views)]
         bytes_read = 0
@@ -318,12 +341,18 @@ def build_observation_map(
 
         g = zarr.open_group(final, mode="w")
         comp = _compressor()
-        g.create_array("radiance", shape=(T, S, N, 3), chunks=(tile, tile, N, 3),
+        g.create_array("radiance", shape=(T, S, N, 3), dimension_names=OBS_DIMS["radiance"],
+                       chunks=(tile, tile, N, 3),
                        dtype="float32", compressors=comp, fill_value=np.nan)
-        g.create_array("direction", shape=(T, S, N, 3), chunks=(tile, tile, N, 3),
+        g.create_array("direction", shape=(T, S, N, 3), dimension_names=OBS_DIMS["direction"],
+                       chunks=(tile, tile, N, 3),
                        dtype="float32", compressors=comp, fill_value=np.nan)
-        g.create_array("valid", shape=(T, S, N), chunks=(tile, tile, N), dtype="bool",
+        g.create_array("valid", shape=(T, S, N), dimension_names=OBS_DIMS["valid"],
+                       chunks=(tile, tile, N), dtype="bool",
                        compressors=comp, fill_value=False)
+        g.create_array("noise", shape=(T, S, N), dimension_names=OBS_DIMS["noise"],
+                       chunks=(tile, tile, N), dtype="float32",
+                       compressors=comp, fill_value=np.nan)
         marker = marker_texel_mask(cap, S, T)
         g.attrs.update({
             "width_mm": cap.width_mm, "height_mm": cap.height_mm, "S": S, "T": T,
@@ -332,6 +361,7 @@ def build_observation_map(
             "calibration": {"K": intr.K.tolist(), "dist": intr.dist.tolist(),
                             "image_size": list(intr.image_size), "rms_px": intr.rms_px},
             "units": {"radiance": "relative linear radiance (one global scale)",
+                      "noise": "relative sd of each observation (NaN: not recorded)",
                       "direction": "unit vector toward the camera, surface frame",
                       "lengths": "mm"},
             "sampling": {"method": "texel footprint supersampling, bilinear",
@@ -410,10 +440,11 @@ def observation_figures(store: str | Path, out_dir: str | Path,
 def write_observation_arrays(
     path: str | Path, radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray,
     width_mm: float, height_mm: float, tile: int = 32, view_ids: list[str] | None = None,
-    attrs: dict[str, Any] | None = None,
+    attrs: dict[str, Any] | None = None, noise: np.ndarray | None = None,
 ) -> Path:
     """Write in-memory observations (T, S, N, ...) as a complete observation map, e.g.
-    for the 004 test set-ups of :mod:`parammap.synth.cases` (small maps only)."""
+    for the 004 test set-ups of :mod:`parammap.synth.cases` (small maps only); ``noise``
+    (T, S, N) relative sd per observation (NaN when not given)."""
     path = Path(path)
     T, S, N = valid.shape
     tile = int(min(tile, S, T))
@@ -421,11 +452,13 @@ def write_observation_arrays(
     shutil.rmtree(tmp, ignore_errors=True)
     g = zarr.open_group(tmp, mode="w")
     comp = _compressor()
+    if noise is None:
+        noise = np.full(valid.shape, np.nan, np.float32)
     for name, arr, fill in (("radiance", radiance, np.nan), ("direction", direction, np.nan),
-                            ("valid", valid, False)):
+                            ("valid", valid, False), ("noise", noise, np.nan)):
         a = g.create_array(name, shape=arr.shape, chunks=(tile, tile) + arr.shape[2:],
                            dtype="bool" if name == "valid" else "float32", compressors=comp,
-                           fill_value=fill)
+                           fill_value=fill, dimension_names=OBS_DIMS[name])
         a[...] = arr
     g.attrs.update({"width_mm": width_mm, "height_mm": height_mm, "S": S, "T": T,
                     "tile": tile, "view_ids": view_ids or [f"v{n:03d}" for n in range(N)],

@@ -20,11 +20,12 @@ except ImportError:  # pragma: no cover - exercised only without numba
 LOSSES = {"linear": 0, "soft_l1": 1, "huber": 2}
 
 
-def _cost_grad(x: np.ndarray, V: np.ndarray, L: np.ndarray, K: int, loss: int, f: float,
-               grad: np.ndarray, want_grad: bool) -> float:
+def _cost_grad(x: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K: int,
+               loss: int, f: float, grad: np.ndarray, want_grad: bool) -> float:
     """Cost of x-space parameters ``x`` (4 + 5K) on directions V (n, 3) and scaled
-    radiance L (n, 3); fills ``grad`` when ``want_grad``. Same layout and maths as the
-    numpy objective in :mod:`parammap.models.mh`."""
+    radiance L (n, 3), each observation weighted by Wt (n,); fills ``grad`` when
+    ``want_grad``. Same layout and maths as the numpy objective in
+    :mod:`parammap.models.mh`."""
     n = V.shape[0]
     m = math.exp(x[3])
     d = np.empty((K, 3))
@@ -59,23 +60,25 @@ def _cost_grad(x: np.ndarray, V: np.ndarray, L: np.ndarray, K: int, loss: int, f
             r0 += x[b] * p
             r1 += x[b + 1] * p
             r2 += x[b + 2] * p
+        wt = Wt[i]
         if loss == 0:
-            val += r0 * r0 + r1 * r1 + r2 * r2
+            val += wt * (r0 * r0 + r1 * r1 + r2 * r2)
             e0, e1, e2 = 2.0 * r0, 2.0 * r1, 2.0 * r2
         elif loss == 1:
             q0 = math.sqrt(1.0 + (r0 / f) ** 2)
             q1 = math.sqrt(1.0 + (r1 / f) ** 2)
             q2 = math.sqrt(1.0 + (r2 / f) ** 2)
-            val += 2.0 * f * f * (q0 - 1.0 + q1 - 1.0 + q2 - 1.0)
+            val += wt * 2.0 * f * f * (q0 - 1.0 + q1 - 1.0 + q2 - 1.0)
             e0, e1, e2 = 2.0 * r0 / q0, 2.0 * r1 / q1, 2.0 * r2 / q2
         else:
             a0, a1, a2 = abs(r0), abs(r1), abs(r2)
-            val += (r0 * r0 if a0 <= f else 2.0 * f * a0 - f * f)
-            val += (r1 * r1 if a1 <= f else 2.0 * f * a1 - f * f)
-            val += (r2 * r2 if a2 <= f else 2.0 * f * a2 - f * f)
+            val += wt * (r0 * r0 if a0 <= f else 2.0 * f * a0 - f * f)
+            val += wt * (r1 * r1 if a1 <= f else 2.0 * f * a1 - f * f)
+            val += wt * (r2 * r2 if a2 <= f else 2.0 * f * a2 - f * f)
             e0 = 2.0 * r0 if a0 <= f else 2.0 * f * math.copysign(1.0, r0)
             e1 = 2.0 * r1 if a1 <= f else 2.0 * f * math.copysign(1.0, r1)
             e2 = 2.0 * r2 if a2 <= f else 2.0 * f * math.copysign(1.0, r2)
+        e0, e1, e2 = wt * e0, wt * e1, wt * e2
         if want_grad:
             grad[0] += e0
             grad[1] += e1

@@ -23,6 +23,7 @@ import numpy as np
 
 from ..conventions import LUMINANCE
 from ._mh_kernel import LOSSES, cost_grad, gram
+from .weights import noise_weights, reduced_chi2
 
 __all__ = [
     "ALGORITHMS",
@@ -541,14 +542,16 @@ def _from_x(x: np.ndarray, s: float) -> np.ndarray:
 
 
 def _objective(V: np.ndarray, L: np.ndarray, K: int, loss: str, f: float,
-               compiled: bool | None = None):
-    """nlopt objective with analytic gradient, on scaled radiance L (n, 3).
+               compiled: bool | None = None, w: np.ndarray | None = None):
+    """nlopt objective with analytic gradient, on scaled radiance L (n, 3), each
+    observation's loss weighted by ``w`` (n,; default 1).
 
     The compiled kernel (:mod:`._mh_kernel`) by default; the numpy version (all lobes
     at once, few numpy calls) where numba is missing or ``compiled=False``. Both keep
     the best point evaluated in ``fn.best``.
     """
     best = [math.inf, None]
+    wv = np.ones(len(V)) if w is None else np.ascontiguousarray(w, dtype=float)
     if compiled is None:
         compiled = cost_grad is not None
     if compiled:
@@ -560,7 +563,7 @@ def _objective(V: np.ndarray, L: np.ndarray, K: int, loss: str, f: float,
 
         def fn_c(x: np.ndarray, grad: np.ndarray) -> float:
             want = grad.size > 0
-            val = cost_grad(x, Vc, Lc, K, code, fl, grad if want else nograd, want)
+            val = cost_grad(x, Vc, Lc, wv, K, code, fl, grad if want else nograd, want)
             if val < best[0]:
                 best[0], best[1] = val, x.copy()
             return val
@@ -584,16 +587,17 @@ def _objective(V: np.ndarray, L: np.ndarray, K: int, loss: str, f: float,
         KS = x[idx_ks].reshape(K, 3)
         r = P @ KS + x[0:3] - L
         if loss == "linear":
-            val = float(np.vdot(r, r))
+            val = float(np.vdot(wv[:, None] * r, r))
             dr = 2 * r
         elif loss == "soft_l1":
             sq = np.sqrt(1 + (r / f) ** 2)
-            val = float(np.sum(2 * f * f * (sq - 1)))
+            val = float(np.sum(wv[:, None] * 2 * f * f * (sq - 1)))
             dr = 2 * r / sq
         else:  # huber
             a = np.abs(r)
-            val = float(np.sum(np.where(a <= f, r * r, 2 * f * a - f * f)))
+            val = float(np.sum(wv[:, None] * np.where(a <= f, r * r, 2 * f * a - f * f)))
             dr = np.where(a <= f, 2 * r, 2 * f * np.sign(r))
+        dr = wv[:, None] * dr
         if grad.size > 0:
             G = dr @ KS.T  # (n, K): sum over channels of dr * Ks
             grad[0:3] = dr.sum(0)
@@ -613,13 +617,14 @@ def _objective(V: np.ndarray, L: np.ndarray, K: int, loss: str, f: float,
 
 
 def fit_texel(V: np.ndarray, L: np.ndarray, p0: np.ndarray,
-              cfg: MhFitConfig = MhFitConfig()) -> FitResult:
+              cfg: MhFitConfig = MhFitConfig(), w: np.ndarray | None = None) -> FitResult:
     """Bounded nlopt fit of one texel from initial parameters ``p0`` (4 + 6K).
 
     Parameters
     ----------
     V : (n, 3) unit view directions of the valid observations.
     L : (n, 3) their radiance.
+    w : (n,) observation weights (:mod:`.weights`; default 1); the RSS is weighted.
 
     Returns
     -------
@@ -636,7 +641,7 @@ def fit_texel(V: np.ndarray, L: np.ndarray, p0: np.ndarray,
     opt = nlopt.opt(ALGORITHMS[cfg.algorithm], nx)
     opt.set_lower_bounds(lb)
     opt.set_upper_bounds(ub)
-    fn = _objective(V, Ls, K, cfg.loss, cfg.f_scale)
+    fn = _objective(V, Ls, K, cfg.loss, cfg.f_scale, w=w)
     opt.set_min_objective(fn)
     opt.set_ftol_rel(cfg.ftol_rel)
     opt.set_xtol_rel(cfg.xtol_rel)
@@ -656,7 +661,7 @@ def fit_texel(V: np.ndarray, L: np.ndarray, p0: np.ndarray,
     if cfg.loss == "linear" and fn.best[1] is not None:
         rss = fn.best[0] * s * s  # the objective is the RSS of the scaled radiance
     else:
-        rss = float(np.sum((mh_eval(p, V) - L) ** 2))
+        rss = float(np.sum((1.0 if w is None else w[:, None]) * (mh_eval(p, V) - L) ** 2))
     if not np.all(np.isfinite(p)) or not math.isfinite(rss):
         status = STATUS_FAILED
     return FitResult(p, rss, int(opt.get_numevals()), status, code)
@@ -683,6 +688,7 @@ def mh_outputs(K_max: int) -> dict[str, tuple[tuple[int, ...], str, float]]:
         "params": ((n_params(K_max),), "float32", float("nan")),
         "rmse": ((3,), "float32", float("nan")),
         "mpr": ((3,), "float32", float("nan")),
+        "chi2": ((), "float32", float("nan")),
         "k_used": ((), "int8", 0),
         "evals": ((), "int32", 0),
         "status": ((), "int8", STATUS_NOT_FITTED),
@@ -691,13 +697,16 @@ def mh_outputs(K_max: int) -> dict[str, tuple[tuple[int, ...], str, float]]:
 
 def fit_mh_tile(
     radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, K: int | str,
-    cfg: MhFitConfig = MhFitConfig(), K_max: int = 3,
+    cfg: MhFitConfig = MhFitConfig(), K_max: int = 3, noise: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """Fit every texel of a tile.
 
     Parameters
     ----------
     radiance, direction : (t, u, N, 3); valid : (t, u, N) bool.
+    noise : (t, u, N) relative sd per observation: observations are weighted by
+        :func:`parammap.models.weights.noise_weights` (LM, nlopt and the K = 0 start),
+        and ``chi2`` is reported.
     K : lobes, or ``"auto"`` (add lobes up to ``K_max`` while BIC improves by more than
         ``cfg.bic_margin``).
 
@@ -716,6 +725,8 @@ def fit_mh_tile(
     W = (valid.reshape(t * u, N) & np.isfinite(L).all(-1) & np.isfinite(V).all(-1))
     L = np.where(W[..., None], L, 0.0)
     V = np.where(W[..., None], V, [0.0, 0.0, 1.0])
+    NZ = None if noise is None else noise.reshape(t * u, N)
+    NW = noise_weights(NZ, W)
     nobs = W.sum(1)
     Ks = range(1, Kmax + 1) if K == "auto" else [Kmax]
     todo = np.flatnonzero(nobs >= 4)  # 004: at least four observations
@@ -725,7 +736,7 @@ def fit_mh_tile(
     if len(todo) == 0:
         return out
     init = initial_guess_batch if cfg.init == "better" else initial_guess_published
-    Wf = W[todo].astype(float)
+    Wf = NW[todo]
     # the initial guesses in float32 (twice as fast; LM and nlopt then work in float64)
     V32, L32, W32 = V[todo].astype(np.float32), L[todo].astype(np.float32), Wf.astype(np.float32)
     inits = {k: init(V32, L32, W32, k).astype(float) for k in Ks}
@@ -738,14 +749,14 @@ def fit_mh_tile(
             polished[k] = (P, rss, ev, conv & np.isfinite(P).all(1) & np.isfinite(rss), code)
     for j, b in enumerate(todo):
         w = W[b]
-        v, y = V[b][w], L[b][w]
+        v, y, wt = V[b][w], L[b][w], NW[b][w]
         best, best_bic, evals = None, math.inf, 0
         if K == "auto":
             # K = 0 first: a lobe must pay for itself against a diffuse texel
-            kd = y.mean(0)
+            kd = (wt[:, None] * y).sum(0) / wt.sum()
             p0 = np.r_[kd, M_MIN]
             floor = (cfg.bic_floor * float(np.mean(np.abs(y)))) ** 2
-            rss0 = float(np.sum((y - kd) ** 2))
+            rss0 = float(np.sum(wt[:, None] * (y - kd) ** 2))
             best, best_bic = (FitResult(p0, rss0, 0, STATUS_OK, 0), 0), bic(rss0, y.size, 0,
                                                                             floor)
         for k in Ks:
@@ -755,7 +766,7 @@ def fit_mh_tile(
             else:
                 start = polished[k][0][j] if k in polished else inits[k][j]
                 try:
-                    r = fit_texel(v, y, start, cfg)
+                    r = fit_texel(v, y, start, cfg, w=wt)
                 except Exception:  # noqa: BLE001 - a failed texel is flagged, never fatal
                     r = FitResult(np.full(n_params(k), np.nan), math.inf, 0, STATUS_FAILED,
                                   -1)
@@ -786,6 +797,10 @@ def fit_mh_tile(
         n = np.maximum(w.sum(1), 1)
         flat["rmse"][ok] = np.sqrt((np.where(w, fitted - L[ok], 0) ** 2).sum(1) / n)
         flat["mpr"][ok] = mean_percentage_residual(L[ok], fitted, W[ok])
+        if NZ is not None:
+            # free parameters: Kd, m, and per lobe Ks and a direction (two angles)
+            flat["chi2"][ok] = reduced_chi2(L[ok], fitted, NZ[ok], W[ok],
+                                            4 + 5 * flat["k_used"][ok].astype(int))
     return out
 
 

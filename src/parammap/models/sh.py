@@ -41,6 +41,7 @@ import numpy as np
 from scipy.spatial import ConvexHull
 
 from ..conventions import LUMINANCE
+from .weights import noise_weights, reduced_chi2
 
 __all__ = [
     "HEMISPHERES",
@@ -503,6 +504,7 @@ def sh_outputs(n: int) -> dict[str, tuple[tuple[int, ...], str, float]]:
         "coeffs": ((3 * n * n,), "float32", float("nan")),
         "rmse": ((3,), "float32", float("nan")),
         "mpr": ((3,), "float32", float("nan")),
+        "chi2": ((), "float32", float("nan")),
         "reg": ((), "float32", float("nan")),
         "guard": ((), "int8", 0),
         "status": ((), "int8", STATUS_NOT_FITTED),
@@ -512,12 +514,14 @@ def sh_outputs(n: int) -> dict[str, tuple[tuple[int, ...], str, float]]:
 def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, n: int,
                 hemisphere: str, reg: float | str = "auto", batch: int = 256,
                 min_obs: int | None = None, sampled_cap: bool = True,
-                ) -> dict[str, np.ndarray]:
+                noise: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Project every texel of a tile, batched (texels sharing one validity pattern
     share one triangulation and one :class:`SampledCap`). (t, u, N, 3) inputs; outputs
     as :func:`sh_outputs`. ``sampled_cap`` (default) fits lsop, rlsop and wls with
     :func:`project_cap` and its guard; ``False`` gives the published projections of
-    :func:`project` (Voronoi cells out to the equator, fixed ``reg``)."""
+    :func:`project` (Voronoi cells out to the equator, fixed ``reg``). ``noise`` (t, u,
+    N) relative sd per observation: cell weights are multiplied by the noise weights
+    of :func:`parammap.models.weights.noise_weights`, and ``chi2`` is reported."""
     from .mh import mean_percentage_residual
 
     t, u, N, _ = radiance.shape
@@ -528,6 +532,8 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
     V = direction.reshape(t * u, N, 3).astype(float)
     W = valid.reshape(t * u, N) & np.isfinite(L).all(-1) & np.isfinite(V).all(-1) \
         & (V[..., 2] > 0)
+    NW = noise_weights(None if noise is None else noise.reshape(t * u, N), W)
+    NZ = None if noise is None else noise.reshape(t * u, N)
     min_obs = min_obs or 4
     nobs = W.sum(1)
     flat["status"][nobs < min_obs] = STATUS_TOO_FEW
@@ -543,7 +549,7 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
             sel = idx[s0:s0 + batch]
             v, y = V[sel][:, w], L[sel][:, w]
             try:
-                omega = solid_angles(v)
+                omega = solid_angles(v) * NW[sel][:, w]
                 Y = sh_basis(v, n)
                 if sampled_cap and hemisphere in CAP_AWARE:
                     c, lam, esc = guarded_project(y, v, omega, n, hemisphere, reg, Y)
@@ -558,6 +564,9 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
             flat["coeffs"][sel] = c.reshape(len(sel), -1)
             flat["rmse"][sel] = np.sqrt(np.mean((fitted - y) ** 2, axis=1))
             flat["mpr"][sel] = mean_percentage_residual(y, fitted)
+            if NZ is not None:
+                flat["chi2"][sel] = reduced_chi2(y, fitted, NZ[sel][:, w],
+                                                 np.ones(y.shape[:2], bool), 3 * n * n)
             flat["status"][sel] = np.where(np.isfinite(c).all((1, 2)), STATUS_OK,
                                            STATUS_FAILED)
     return out
