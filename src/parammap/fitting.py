@@ -28,6 +28,7 @@ import numpy as np
 import zarr
 
 from . import __version__
+from .conventions import FitStatus
 from .observation import open_observation_map
 from .stores import COMPLETE_ATTR, open_complete
 
@@ -196,11 +197,12 @@ def fit_summary(out_path: str | Path, res: dict[str, Any], name: str,
     the noise)."""
     g = open_fit(out_path)
     status = g["status"][:]
-    ok = status == 1
+    ok = status == FitStatus.OK
     mpr, rmse = g["mpr"][:][ok], g["rmse"][:][ok]
     return {
         "model": name, "texels": res["texels"], "fitted": int(ok.sum()),
-        "too_few_observations": int((status == 2).sum()), "failed": int((status == 3).sum()),
+        "too_few_observations": int((status == FitStatus.TOO_FEW).sum()),
+        "failed": int((status == FitStatus.FAILED).sum()),
         "seconds": res["seconds"], "texels_per_second": res["texels_per_second"],
         "mean_percentage_residual": np.nanmean(mpr, 0).tolist() if ok.any() else None,
         "median_percentage_residual": np.nanmedian(mpr, 0).tolist() if ok.any() else None,

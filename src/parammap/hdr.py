@@ -150,7 +150,7 @@ def _monotonic(g: np.ndarray) -> np.ndarray:
 
 def recover_response(
     brackets: list[np.ndarray], times: list[np.ndarray], method: str = "debevec",
-    samples: int = 400, smoothness: float = 10.0, seed: int = 0, low: int = 5,
+    samples: int = 400, smoothness: float = 30.0, seed: int = 0, low: int = 5,
     high: int = 250,
 ) -> np.ndarray:
     """Recover the response from the brackets of one or more views.

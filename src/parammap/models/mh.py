@@ -21,7 +21,7 @@ from pathlib import Path
 import nlopt
 import numpy as np
 
-from ..conventions import LUMINANCE
+from ..conventions import LUMINANCE, FitStatus
 from ._mh_kernel import LOSSES, cost_grad, gram
 from .weights import noise_weights, reduced_chi2
 
@@ -61,7 +61,8 @@ M_MIN, M_MAX = 1.0, 10000.0
 LN_M_MAX = math.log(M_MAX)
 
 # status codes stored per texel
-STATUS_NOT_FITTED, STATUS_OK, STATUS_TOO_FEW, STATUS_FAILED = 0, 1, 2, 3
+STATUS_NOT_FITTED, STATUS_OK, STATUS_TOO_FEW, STATUS_FAILED = (
+    int(FitStatus.NOT_FITTED), int(FitStatus.OK), int(FitStatus.TOO_FEW), int(FitStatus.FAILED))
 
 
 def n_params(K: int) -> int:
