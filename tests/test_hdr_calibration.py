@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 import yaml
+import zarr
 
 from parammap.calibration import (
     CalibrationError,
@@ -258,8 +259,30 @@ def test_uncertain_poses_are_dropped_with_reason(tiny_processed, tmp_path):
     again = yaml.safe_load((work / "camera" / "poses.yaml").read_text())["views"]
     fitted = [r for r in again if not r["holdout"]]
     held = [r for r in again if r["holdout"]]
-    assert all(not r["kept"] and "sampling width" in r["reason"] for r in fitted)
+    # each fitted view is dropped, or kept only for the part of the region where its
+    # surface points are certain enough (a view seen obliquely: its near side)
+    dropped = [r for r in fitted if not r["kept"]]
+    assert dropped and all("sampling width" in r["reason"] for r in dropped)
+    assert all(0 < r["partial"] < 1 for r in fitted if r["kept"])
     assert held and all(r["kept"] and "sampling width" in r["warning"] for r in held)
     m = json.loads((work / "metrics" / "poses.json").read_text())
-    assert set(m["dropped"]) == {r["id"] for r in fitted}
+    assert set(m["dropped"]) == {r["id"] for r in dropped}
     assert set(m["held_out_warnings"]) == {r["id"] for r in held}
+    # a limit between the views' worst shifts: oblique views are kept for their near side
+    mid = float(np.percentile([r["texel_shift"] for r in recs if "texel_shift" in r], 30))
+    assert main(["poses", str(cap_dir), "--out", str(work),
+                 "--set", f"poses.max_texel_shift={mid}"]) == 0
+    again = yaml.safe_load((work / "camera" / "poses.yaml").read_text())["views"]
+    partial = [r for r in again if "partial" in r]
+    assert partial and all(r["kept"] and 0 < r["partial"] < 1 and len(r["cov"]) == 6
+                           for r in partial)
+    m = json.loads((work / "metrics" / "poses.json").read_text())
+    assert set(m["partial"]) == {r["id"] for r in partial}
+    assert main(["observe", str(cap_dir), "--out", str(work)]) == 0
+    obs = zarr.open_group(work / "observation.zarr", mode="r")
+    ids = obs.attrs["view_ids"]
+    whole = [r for r in again if r["kept"] and "partial" not in r and not r["holdout"]]
+    full = np.mean([obs["valid"][:, :, ids.index(r["id"])].mean() for r in whole])
+    for r in partial:  # the observation map leaves out what a partial view sees poorly
+        share = obs["valid"][:, :, ids.index(r["id"])].mean()
+        assert 0 < share < full and abs(share / full - r["partial"]) < 0.2, (share, full, r)

@@ -70,6 +70,7 @@ def _poses(proc: Path, out: Path, width_mm: float, height_mm: float, sid: str) -
         "shift_mm": f"{r['shift_mm']:.3f}" if "shift_mm" in r else "",
         "texel_shift": f"{r['texel_shift']:.3f}" if "texel_shift" in r else "",
         "direction_sd_deg": f"{r['direction_sd_deg']:.4f}" if "direction_sd_deg" in r else "",
+        "region_used": f"{r['partial']:.2f}" if "partial" in r else ("1" if r["kept"] else ""),
         "reason": r.get("reason", r.get("warning", ""))} for r in records]))
     kept = [r for r in records if r["kept"]]
     if kept:

@@ -15,6 +15,11 @@ is propagated to two figures, each 1 sd:
   camera turns, against the angular spacing of the captured views (median
   nearest-neighbour angle; ``poses.max_direction_fraction``).
 
+A view whose worst point exceeds ``max_texel_shift`` but whose nearer part of the region
+is within it (a grazing view: its far side is foreshortened and uncertain) is kept as
+*partial*: ``camera/poses.yaml`` records its covariance and the share of the region it
+measures well, and the observation stage leaves its other texels out.
+
 The noise is each view's residual corrected for the six fitted pose parameters, at
 least the capture's median for that kind of solve (a view with few points can fit its
 own noise). Held-out views are never dropped by this policy: a poor one is kept with a
@@ -46,6 +51,9 @@ __all__ = ["map_resolution", "px_per_mm", "run_poses", "view_spacing_deg", "view
 # bytes per texel and view in the observation map: radiance and direction float32 x 3,
 # valid bool
 OBS_BYTES_PER_SAMPLE = 25
+
+
+PARTIAL_GRID = 17  # points per side where a view's usable part of the region is judged
 
 
 def _region_grid(cap: Capture, n: int = 5) -> np.ndarray:
@@ -96,16 +104,8 @@ def view_uncertainty(cov: np.ndarray, R: np.ndarray, t: np.ndarray, intr: Intrin
     view whose pixels span several texels is judged at its own resolution; worst over
     the grid) and ``direction_sd_deg`` (at the region's centre).
     """
-    P = _region_grid(cap)
-    _, B = _proj_jac(P, R, t, intr)
-    A = _plane_jac(P, R, t, intr)
-    # the plane point seen at a fixed pixel moves by -A^-1 B dp
-    M = np.linalg.solve(A, B)  # (m, 2, 6)
-    cxy = np.einsum("mij,jk,mlk->mil", M, cov, M)
-    shift = float(np.sqrt(np.max(np.trace(cxy, axis1=1, axis2=2))))
-    Ai = np.linalg.inv(A)  # a pixel's footprint on the surface (mm per px)
-    width2 = texel_mm**2 * np.eye(2) + Ai @ np.swapaxes(Ai, 1, 2)
-    rel = float(np.sqrt(np.max(np.trace(np.linalg.solve(width2, cxy), axis1=1, axis2=2))))
+    shift_mm, rel_all = point_uncertainty(cov, R, t, intr, _region_grid(cap), texel_mm)
+    shift, rel = float(shift_mm.max()), float(rel_all.max())
     # camera centre C = -R^T t as a function of (rvec, tvec), by central differences
     rvec, _ = cv2.Rodrigues(np.asarray(R, float))
     p0 = np.r_[rvec.ravel(), np.asarray(t, float).ravel()]
@@ -122,6 +122,30 @@ def view_uncertainty(cov: np.ndarray, R: np.ndarray, t: np.ndarray, intr: Intrin
     Pp = np.eye(3) - np.outer(u, u)
     ang = math.sqrt(max(float(np.trace(Pp @ cC @ Pp)), 0.0)) / dist
     return {"shift_mm": shift, "texel_shift": rel, "direction_sd_deg": math.degrees(ang)}
+
+
+def point_uncertainty(cov: np.ndarray, R: np.ndarray, t: np.ndarray, intr: Intrinsics,
+                      P: np.ndarray, texel_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Shift (1 sd) of the surface points P (m, 3) a view's pixels see, from its pose
+    covariance ``cov`` (rvec, tvec): in mm, and relative to the sampling width there
+    (the texel widened by the pixel's footprint on the surface).
+
+    Returns
+    -------
+    (m,) shift in mm, (m,) shift over the sampling width (NaN where P is behind the
+    camera).
+    """
+    _, B = _proj_jac(P, R, t, intr)
+    A = _plane_jac(P, R, t, intr)
+    # the plane point seen at a fixed pixel moves by -A^-1 B dp
+    with np.errstate(all="ignore"):
+        M = np.linalg.solve(A, B)  # (m, 2, 6)
+        cxy = np.einsum("mij,jk,mlk->mil", M, cov, M)
+        shift = np.sqrt(np.trace(cxy, axis1=1, axis2=2))
+        Ai = np.linalg.inv(A)  # a pixel's footprint on the surface (mm per px)
+        width2 = texel_mm**2 * np.eye(2) + Ai @ np.swapaxes(Ai, 1, 2)
+        rel = np.sqrt(np.trace(np.linalg.solve(width2, cxy), axis1=1, axis2=2))
+    return shift, rel
 
 
 def view_spacing_deg(centres: np.ndarray, cap: Capture) -> float:
@@ -215,9 +239,18 @@ def run_poses(cap: Capture, processed: str | Path, cfg: dict, obs_cfg: dict,
                        corner_noise_px=noise)
             why = []
             if rec["texel_shift"] > cfg["max_texel_shift"]:
-                why.append(f"surface points uncertain by {rec['shift_mm']:.2f} mm = "
-                           f"{rec['texel_shift']:.2f} of the sampling width (1 sd) above "
-                           f"{cfg['max_texel_shift']}")
+                # a grazing view measures its near side well and its far side poorly:
+                # keep it where its surface points are certain enough (the observation
+                # map leaves out the rest, texel by texel)
+                _, rel = point_uncertainty(cov, rec["R"], rec["t"], intr,
+                                           _region_grid(cap, PARTIAL_GRID), grid["texel_mm"])
+                covered = float(np.mean(rel <= cfg["max_texel_shift"]))
+                if covered > 0 and not v.holdout:
+                    rec.update(partial=covered, cov=cov)
+                else:
+                    why.append(f"surface points uncertain by {rec['shift_mm']:.2f} mm = "
+                               f"{rec['texel_shift']:.2f} of the sampling width (1 sd) above "
+                               f"{cfg['max_texel_shift']}")
             if rec["direction_sd_deg"] > max_dir:
                 why.append(f"view direction uncertain by {rec['direction_sd_deg']:.3f} deg "
                            f"(1 sd) above {cfg['max_direction_fraction']} x {spacing:.2f} deg "
@@ -239,6 +272,13 @@ def run_poses(cap: Capture, processed: str | Path, cfg: dict, obs_cfg: dict,
         row.update({k: float(rec[k]) for k in ("rms_px", "corner_noise_px", "texel_shift",
                                                "shift_mm", "direction_sd_deg",
                                                "rotation_sd_deg") if k in rec})
+        if rec["ok"] and "partial" in rec:
+            # the observation stage masks the texels this view sees too uncertainly
+            row.update(partial=rec["partial"], cov=np.asarray(rec["cov"]).tolist(),
+                       max_texel_shift=float(cfg["max_texel_shift"]))
+            log(f"poses: view {v.id} kept for {100 * rec['partial']:.0f} % of the region "
+                f"(elsewhere surface points uncertain by up to {rec['shift_mm']:.2f} mm = "
+                f"{rec['texel_shift']:.2f} of the sampling width)")
         if "edge_points" in rec:
             row["edge_points"] = int(rec["edge_points"])
         row["markers"] = rec.get("markers", [])
@@ -257,6 +297,7 @@ def run_poses(cap: Capture, processed: str | Path, cfg: dict, obs_cfg: dict,
         "views": len(records), "kept": len(kept),
         "kept_fraction": len(kept) / max(len(records), 1),
         "dropped": {r["id"]: r["reason"] for r in records if not r["kept"]},
+        "partial": {r["id"]: r["partial"] for r in records if "partial" in r},
         "held_out_warnings": {r["id"]: r["warning"] for r in records if "warning" in r},
         "map": grid, "view_spacing_deg": spacing,
         "limits": {"max_texel_shift": cfg["max_texel_shift"],

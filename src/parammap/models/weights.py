@@ -2,7 +2,7 @@
 
 The HDR merge records each pixel's relative noise sd (:func:`parammap.hdr.merge_noise`:
 how many exposures saw it and at which levels of the response); the observation map
-divides it by the square root of the texel's footprint in pixels. Fits weigh an
+averages it over the texel's footprint. Fits weigh an
 observation by ``1 / sd^2`` of that relative sd, normalised to a mean of 1 over the
 texel's valid observations (so residual sums keep their scale, and BIC its meaning),
 and bounded to ``[1 / MAX_RATIO, MAX_RATIO]`` of the texel's median so that no single
