@@ -26,3 +26,22 @@ def test_sh_hemisphere_modes_agree():
 def test_debevec_smoothness_default_agrees():
     default = schema()["properties"]["hdr"]["properties"]["smoothness"]["default"]
     assert inspect.signature(recover_response).parameters["smoothness"].default == default
+
+
+def test_stores_carry_dimension_names(tmp_path):
+    import zarr
+
+    from parammap.models.sh import fit_sh_map
+    from parammap.observation import write_observation_arrays
+    from parammap.synth.cases import phong_case
+
+    case = phong_case(texels=4, level=1, m=10)
+    obs = write_observation_arrays(tmp_path / "obs.zarr", case.radiance, case.direction,
+                                   case.valid, 100.0, 100.0, tile=4)
+    fit_sh_map(obs, tmp_path / "sh.zarr", "rlsop", 3, {}, "synchronous", 1,
+               log=lambda *_: None)
+    o = zarr.open_group(obs, mode="r")
+    assert o["radiance"].metadata.dimension_names == ("row", "col", "view", "channel")
+    assert o["noise"].metadata.dimension_names == ("row", "col", "view")
+    f = zarr.open_group(tmp_path / "sh.zarr", mode="r")
+    assert f["coeffs"].metadata.dimension_names[:2] == ("row", "col")

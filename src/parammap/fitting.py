@@ -142,8 +142,10 @@ def fit_map(
     g = zarr.open_group(tmp, mode="w")
     comp = zarr.codecs.BloscCodec(cname="zstd", clevel=3, shuffle="shuffle")
     for name, (shape, dtype, fill) in outputs.items():
+        # dimension names let xarray.open_zarr label the maps
+        dims = ("row", "col") + tuple(f"{name}_{k}" for k in range(len(shape)))
         g.create_array(name, shape=(T, S) + tuple(shape), chunks=(tile, tile) + tuple(shape),
-                       dtype=dtype, compressors=comp, fill_value=fill)
+                       dtype=dtype, compressors=comp, fill_value=fill, dimension_names=dims)
     g.attrs.update({**attrs, "S": S, "T": T, "tile": tile,
                     "width_mm": obs.attrs["width_mm"], "height_mm": obs.attrs["height_mm"],
                     "observation_views": len(obs.attrs["view_ids"]),
