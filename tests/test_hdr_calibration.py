@@ -280,6 +280,14 @@ def test_uncertain_poses_are_dropped_with_reason(tiny_processed, tmp_path):
     assert set(m["partial"]) == {r["id"] for r in partial}
     assert main(["observe", str(cap_dir), "--out", str(work)]) == 0
     obs = zarr.open_group(work / "observation.zarr", mode="r")
+    off = tmp_path / "off"
+    shutil.copytree(work, off)
+    assert main(["poses", str(cap_dir), "--out", str(off), "--set",
+                 f"poses.max_texel_shift={mid}", "--set", "poses.partial_views=false"]) == 0
+    strict = {r["id"]: r for r in yaml.safe_load((off / "camera" / "poses.yaml")
+                                                  .read_text())["views"]}
+    assert all(not strict[r["id"]]["kept"] and "partial" not in strict[r["id"]]
+               for r in partial)
     ids = obs.attrs["view_ids"]
     whole = [r for r in again if r["kept"] and "partial" not in r and not r["holdout"]]
     full = np.mean([obs["valid"][:, :, ids.index(r["id"])].mean() for r in whole])

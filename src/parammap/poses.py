@@ -245,7 +245,7 @@ def run_poses(cap: Capture, processed: str | Path, cfg: dict, obs_cfg: dict,
                 _, rel = point_uncertainty(cov, rec["R"], rec["t"], intr,
                                            _region_grid(cap, PARTIAL_GRID), grid["texel_mm"])
                 covered = float(np.mean(rel <= cfg["max_texel_shift"]))
-                if covered > 0 and not v.holdout:
+                if covered > 0 and not v.holdout and cfg.get("partial_views", True):
                     rec.update(partial=covered, cov=cov)
                 else:
                     why.append(f"surface points uncertain by {rec['shift_mm']:.2f} mm = "
