@@ -270,8 +270,8 @@ def test_uncertain_poses_are_dropped_with_reason(tiny_processed, tmp_path):
     assert set(m["held_out_warnings"]) == {r["id"] for r in held}
     # a limit between the views' worst shifts: oblique views are kept for their near side
     mid = float(np.percentile([r["texel_shift"] for r in recs if "texel_shift" in r], 30))
-    assert main(["poses", str(cap_dir), "--out", str(work),
-                 "--set", f"poses.max_texel_shift={mid}"]) == 0
+    assert main(["poses", str(cap_dir), "--out", str(work), "--set",
+                 f"poses.max_texel_shift={mid}", "--set", "poses.partial_views=true"]) == 0
     again = yaml.safe_load((work / "camera" / "poses.yaml").read_text())["views"]
     partial = [r for r in again if "partial" in r]
     assert partial and all(r["kept"] and 0 < r["partial"] < 1 and len(r["cov"]) == 6
