@@ -107,3 +107,20 @@ def test_comparison_figures():
     better = compare(photo, photo * 1.05, mask, g)
     assert worse["mean_diff_8bit"] > better["mean_diff_8bit"] > 0
     assert better["psnr_db"] > worse["psnr_db"]
+
+
+def test_mh_interpolates_radiance_not_lobes():
+    """Two texels with the same two lobes in opposite order (fitters sort by strength,
+    and neighbours differ) must render between them as the model they share."""
+    from parammap.models.mh import mh_eval
+    from parammap.render import evaluate_bilinear
+
+    d1, d2 = np.array([0.6, 0.0, 0.8]), np.array([-0.6, 0.0, 0.8])
+    a = np.r_[0.1, 0.1, 0.1, 40.0, 1.0, 1.0, 1.0, d1, 0.8, 0.8, 0.8, d2]
+    b = np.r_[0.1, 0.1, 0.1, 40.0, 0.8, 0.8, 0.8, d2, 1.0, 1.0, 1.0, d1]
+    params = np.stack([a, b])[None]  # (T=1, S=2, 16)
+    v = np.array([d1, d2, [0.0, 0.0, 1.0]])
+    got = evaluate_bilinear("mh", params, np.full(3, 0.5), np.full(3, 1.0), v)
+    want = mh_eval(a[None], v[None])[0]
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+    assert got[0, 0] > 1.0  # the lobes survive (interpolated parameters lose them)

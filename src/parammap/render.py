@@ -1,9 +1,10 @@
 """Render a parameter map as a calibrated camera saw it.
 
 Each pixel's ray (lens distortion undone, OpenCV model) is intersected with the surface
-plane z = 0; the texel parameters are looked up with bilinear interpolation between
-texel centres, and the model is evaluated in the pixel's own view direction (from the
-plane point to the camera centre). Output is linear HDR radiance in the units of the
+plane z = 0; the model is evaluated in the pixel's own view direction (from the plane
+point to the camera centre) and interpolated bilinearly between texel centres (the
+radiance for MH, the parameters for the linear SH and diffuse models; see
+:func:`evaluate_bilinear`). Output is linear HDR radiance in the units of the
 observation map, aligned with the photo of that camera by construction (no manual
 alignment, unlike 004 ch. 16).
 """
@@ -23,23 +24,50 @@ from .geometry import (
 )
 from .params import ParamMap
 
-__all__ = ["evaluate", "lookup_bilinear", "render", "reproject_frame", "surface_points",
-           "tone_map"]
+__all__ = ["bilinear_corners", "evaluate", "evaluate_bilinear", "lookup_bilinear", "render",
+           "reproject_frame", "surface_points", "tone_map"]
 
 
-def lookup_bilinear(params: np.ndarray, row: np.ndarray, col: np.ndarray) -> np.ndarray:
-    """Bilinear lookup of a (T, S, P) map at continuous texel coordinates (texel
-    centres at integer + 0.5, as :func:`parammap.geometry.plane_to_texel` returns),
-    clamped at the edges. (M,) coordinates -> (M, P)."""
-    T, S = params.shape[:2]
+def bilinear_corners(shape: tuple[int, int], row: np.ndarray, col: np.ndarray,
+                     ) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[np.ndarray]]:
+    """The four texels around continuous texel coordinates (texel centres at integer +
+    0.5, as :func:`parammap.geometry.plane_to_texel` returns), clamped at the edges, and
+    their bilinear weights: ``[(rows, cols) x 4]``, ``[(M,) weights x 4]``."""
+    T, S = shape
     r = np.clip(np.asarray(row) - 0.5, 0, T - 1)
     c = np.clip(np.asarray(col) - 0.5, 0, S - 1)
     r0 = np.minimum(np.floor(r).astype(int), max(T - 2, 0))
     c0 = np.minimum(np.floor(c).astype(int), max(S - 2, 0))
     r1, c1 = np.minimum(r0 + 1, T - 1), np.minimum(c0 + 1, S - 1)
-    fr, fc = (r - r0)[:, None], (c - c0)[:, None]
-    return ((1 - fr) * (1 - fc) * params[r0, c0] + (1 - fr) * fc * params[r0, c1]
-            + fr * (1 - fc) * params[r1, c0] + fr * fc * params[r1, c1])
+    fr, fc = r - r0, c - c0
+    return ([(r0, c0), (r0, c1), (r1, c0), (r1, c1)],
+            [(1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc])
+
+
+def lookup_bilinear(params: np.ndarray, row: np.ndarray, col: np.ndarray) -> np.ndarray:
+    """Bilinear lookup of a (T, S, P) map at continuous texel coordinates (see
+    :func:`bilinear_corners`). (M,) coordinates -> (M, P)."""
+    idx, wts = bilinear_corners(params.shape[:2], row, col)
+    return sum(w[:, None] * params[r, c] for (r, c), w in zip(idx, wts, strict=True))
+
+
+def evaluate_bilinear(model: str, params: np.ndarray, row: np.ndarray, col: np.ndarray,
+                      directions: np.ndarray) -> np.ndarray:
+    """Radiance (M, 3) between texel centres, seen from directions (M, 3).
+
+    SH and diffuse maps are linear in their parameters, so their parameters are
+    interpolated. An MH model is not: neighbouring texels may order their lobes
+    differently, or have one lobe fewer (Ks = 0, d = +z), and interpolating a lobe
+    direction with another texel's unrelated lobe, or shininess across a highlight,
+    makes a lobe neither texel has (held-out errors of two-lobe maps doubled on a
+    physically based capture). MH is evaluated at the four texels and the radiance
+    interpolated; the viewer does the same.
+    """
+    if model != "mh":
+        return evaluate(model, lookup_bilinear(params, row, col), directions)
+    idx, wts = bilinear_corners(params.shape[:2], row, col)
+    return sum(w[:, None] * evaluate(model, params[r, c], directions)
+               for (r, c), w in zip(idx, wts, strict=True))
 
 
 def evaluate(model: str, params: np.ndarray, directions: np.ndarray) -> np.ndarray:
@@ -100,12 +128,12 @@ def render(pm: ParamMap, intr: Intrinsics, R: np.ndarray, t: np.ndarray,
     out = np.full(P.shape[:2] + (3,), np.nan, np.float32)
     Pi = P[inside]
     row, col = plane_to_texel(Pi[:, 0], Pi[:, 1], S, T, pm.width_mm, pm.height_mm)
+    d = unit(camera_centre(R, t)[None] - Pi)
     if interpolation == "nearest":
         prm = pm.params[np.clip(row.astype(int), 0, T - 1), np.clip(col.astype(int), 0, S - 1)]
+        out[inside] = evaluate(pm.model, prm, d)
     else:
-        prm = lookup_bilinear(pm.params, row, col)
-    d = unit(camera_centre(R, t)[None] - Pi)
-    out[inside] = evaluate(pm.model, prm, d)
+        out[inside] = evaluate_bilinear(pm.model, pm.params, row, col, d)
     return out, inside
 
 

@@ -791,8 +791,28 @@ def fit_mh_tile(
     # residual diagnostics for the whole tile at once
     ok = todo[flat["status"][todo] == STATUS_OK]
     if len(ok):
-        flat["params"][ok] = drop_negligible_lobes(flat["params"][ok].astype(float), V[ok],
-                                                   L[ok], W[ok])
+        P = flat["params"][ok].astype(float)
+        before = _lobes_present(P)
+        P = drop_negligible_lobes(P, V[ok], L[ok], W[ok])
+        after = _lobes_present(P)
+        for j in np.flatnonzero(after < before):
+            # the lobes left were fitted beside the one now gone: refit them alone
+            b, k = ok[j], int(after[j])
+            flat["k_used"][b] = k
+            w = W[b]
+            v, y, wt = V[b][w], L[b][w], NW[b][w]
+            if k == 0:
+                P[j, :3] = (wt[:, None] * y).sum(0) / wt.sum()
+                continue
+            p0 = P[j, : n_params(k)]
+            rss0 = float(np.sum(wt[:, None] * (mh_eval(p0, v) - y) ** 2))
+            try:
+                r = fit_texel(v, y, p0.copy(), cfg, w=wt)
+            except Exception:  # noqa: BLE001 - keep the unrefitted lobes
+                continue
+            if r.status == STATUS_OK and r.rss < rss0:
+                P[j, : n_params(k)] = r.params
+        flat["params"][ok] = P
         fitted = mh_eval(flat["params"][ok].astype(float), V[ok])
         w = W[ok][..., None]
         n = np.maximum(w.sum(1), 1)
@@ -992,6 +1012,12 @@ def drop_negligible_lobes(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.nda
     none = P[:, 4::6].sum(1) + P[:, 5::6].sum(1) + P[:, 6::6].sum(1) == 0
     P[none, 3] = M_MIN
     return _sort_lobes_batch(P)
+
+
+def _lobes_present(P: np.ndarray) -> np.ndarray:
+    """(n,) number of lobes with a non-zero Ks in parameter rows P (n, 4 + 6K)."""
+    K = (P.shape[1] - 4) // 6
+    return sum((P[:, 4 + 6 * k: 7 + 6 * k].sum(1) > 0).astype(int) for k in range(K))
 
 
 def _sort_lobes_batch(P: np.ndarray) -> np.ndarray:
