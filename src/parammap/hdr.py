@@ -215,6 +215,14 @@ def recover_response(
     return _monotonic(g)
 
 
+def _weighted_exposures(stack: np.ndarray, low: int, high: int):
+    """(index, levels as indices, hat weights) of each exposure of a (P, H, W, 3) stack."""
+    w = hat_weights(low, high)
+    for p in range(len(stack)):
+        z = stack[p].astype(np.intp)
+        yield p, z, w[z]
+
+
 def merge_bracket(
     stack: np.ndarray, times: np.ndarray, g: np.ndarray, low: int = 5, high: int = 250
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -235,13 +243,10 @@ def merge_bracket(
     """
     stack = np.asarray(stack)
     t = np.asarray(times, float)
-    w = hat_weights(low, high)
     num = np.zeros(stack.shape[1:], float)
     den = np.zeros(stack.shape[1:], float)
     ch = np.arange(3)
-    for p in range(len(stack)):
-        z = stack[p].astype(np.intp)
-        wp = w[z]
+    for p, z, wp in _weighted_exposures(stack, low, high):
         num += wp * (g[z, ch] - np.log(t[p]))
         den += wp
     short = int(np.argmin(t))
@@ -277,14 +282,11 @@ def merge_noise(
     """
     stack = np.asarray(stack)
     t = np.asarray(times, float)
-    w = hat_weights(low, high)
     dg = np.abs(np.gradient(np.asarray(g, float), axis=0))  # (256, 3) d ln E / d level
     var = np.zeros(stack.shape[1:], float)
     den = np.zeros(stack.shape[1:], float)
     ch = np.arange(3)
-    for p in range(len(stack)):
-        z = stack[p].astype(np.intp)
-        wp = w[z]
+    for _, z, wp in _weighted_exposures(stack, low, high):
         var += (wp * dg[z, ch]) ** 2
         den += wp
     single = dg[stack[int(np.argmin(t))].astype(np.intp), ch]  # fallback exposure
