@@ -45,3 +45,24 @@ def test_stores_carry_dimension_names(tmp_path):
     assert o["noise"].metadata.dimension_names == ("row", "col", "view")
     f = zarr.open_group(tmp_path / "sh.zarr", mode="r")
     assert f["coeffs"].metadata.dimension_names[:2] == ("row", "col")
+
+
+def test_cli_one_line_for_bad_input_traceback_for_bugs(tmp_path, monkeypatch, capsys):
+    import pytest
+
+    import parammap.cli as cli
+    from parammap.capture import CaptureError
+    from parammap.errors import InputError
+
+    assert issubclass(CaptureError, InputError)
+    # bad input: exit 2 and one line naming it
+    assert cli.main(["summary", str(tmp_path / "missing"), "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "missing" in err[0]
+
+    def bug(_):
+        raise ValueError("a bug, not an input")
+
+    monkeypatch.setitem(cli._COMMANDS, "summary", bug)
+    with pytest.raises(ValueError, match="a bug"):
+        cli.main(["summary", str(tmp_path / "missing"), "--out", str(tmp_path)])

@@ -17,6 +17,7 @@ import yaml
 
 from .capture import Capture, aruco_dictionary
 from .conventions import LUMINANCE
+from .errors import InputError
 from .geometry import camera_centre, distort_normalized, undistort_normalized
 from .imageio import ImageReadError, read_image
 
@@ -37,7 +38,7 @@ __all__ = [
 ]
 
 
-class CalibrationError(ValueError):
+class CalibrationError(InputError):
     """Calibration cannot go on (too few usable board photos...)."""
 
 

@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 import yaml
 
+from .errors import InputError
 from .imageio import ImageReadError, exif_exposure_time, read_image
 
 __all__ = [
@@ -28,7 +29,7 @@ __all__ = [
 ]
 
 
-class CaptureError(ValueError):
+class CaptureError(InputError):
     """An invalid capture directory; the message names the file and key."""
 
 
@@ -78,7 +79,7 @@ def aruco_dictionary(name: str) -> cv2.aruco.Dictionary:
     """OpenCV ArUco dictionary by name (``DICT_4X4_50``...); ValueError if unknown."""
     code = getattr(cv2.aruco, str(name), None)
     if not str(name).startswith("DICT_") or not isinstance(code, int):
-        raise ValueError(f"unknown ArUco dictionary {name!r}")
+        raise InputError(f"unknown ArUco dictionary {name!r}")
     return cv2.aruco.getPredefinedDictionary(code)
 
 

@@ -14,9 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from .capture import CaptureError
 from .config import ConfigError
-from .imageio import ImageReadError
+from .errors import InputError
 
 __all__ = ["main"]
 
@@ -428,6 +427,6 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
         return _COMMANDS[args.command](args)
-    except (CaptureError, ConfigError, ImageReadError, ValueError, OSError) as exc:
+    except (InputError, OSError) as exc:  # bad input: one line; anything else is a bug
         print(f"parammap {args.command}: error: {exc}", file=sys.stderr)
         return 2

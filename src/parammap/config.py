@@ -14,10 +14,12 @@ from typing import Any
 import jsonschema
 import yaml
 
+from .errors import InputError
+
 __all__ = ["ConfigError", "load_config", "schema", "surface_config", "validate_config"]
 
 
-class ConfigError(ValueError):
+class ConfigError(InputError):
     """A configuration value that breaks the schema; the message names the key."""
 
 

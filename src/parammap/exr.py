@@ -8,10 +8,12 @@ from typing import Any
 import numpy as np
 import OpenEXR
 
+from .errors import InputError
+
 __all__ = ["ExrError", "read_exr", "write_exr"]
 
 
-class ExrError(ValueError):
+class ExrError(InputError):
     """An EXR file that is missing, unreadable or not what the reader expects."""
 
 

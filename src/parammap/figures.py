@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import InputError
 from .metrics import read_metrics
 from .report import plot_hemisphere, plot_reexposure, plot_reprojection, plot_response, save_figure
 from .stores import store_bytes
@@ -196,7 +197,7 @@ def make_figures(kind: str, capture_dir: str | Path, processed: str | Path,
 
     proc, out = Path(processed), Path(out_dir)
     if kind not in KINDS:
-        raise ValueError(f"unknown figure kind {kind!r} (one of {', '.join(KINDS)})")
+        raise InputError(f"unknown figure kind {kind!r} (one of {', '.join(KINDS)})")
     cap = load_capture(capture_dir)
     if kind == "response":
         from .hdr import load_reference_response, load_response
@@ -226,7 +227,7 @@ def make_figures(kind: str, capture_dir: str | Path, processed: str | Path,
         return observation_figures(proc / "observation.zarr", out, lobe_texels)
     if kind == "model":
         if not model:
-            raise ValueError("figures model: --model is required")
+            raise InputError("figures model: --model is required")
         fit = proc / "fit" / f"{model}.zarr"
         if model.startswith("mh-"):
             from .models.mh import mh_figures

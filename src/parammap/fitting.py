@@ -29,6 +29,7 @@ import zarr
 
 from . import __version__
 from .conventions import FitStatus
+from .errors import InputError
 from .observation import open_observation_map
 from .stores import COMPLETE_ATTR, open_complete
 
@@ -41,7 +42,7 @@ TileFn = Callable[..., dict[str, np.ndarray]]
 RepairFn = Callable[..., dict[str, np.ndarray] | None]
 
 
-class FitError(ValueError):
+class FitError(InputError):
     """A missing, incomplete or mismatched fit store, or a bad fit setting."""
 
 

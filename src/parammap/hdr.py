@@ -18,6 +18,7 @@ import numpy as np
 
 from .capture import Capture, View
 from .conventions import NOISE_CHANNEL
+from .errors import InputError
 from .exr import read_exr, write_exr
 from .imageio import ImageReadError, read_image
 
@@ -37,7 +38,7 @@ __all__ = [
 ]
 
 
-class HdrError(ValueError):
+class HdrError(InputError):
     """A bracket or response that cannot give an HDR frame."""
 
 

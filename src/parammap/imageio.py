@@ -9,10 +9,12 @@ import cv2
 import numpy as np
 from PIL import Image
 
+from .errors import InputError
+
 __all__ = ["ImageReadError", "exif_exposure_time", "read_image", "write_image_atomic"]
 
 
-class ImageReadError(ValueError):
+class ImageReadError(InputError):
     """A photo that cannot be decoded (corrupt, truncated or not an image)."""
 
 

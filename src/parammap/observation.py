@@ -45,6 +45,7 @@ import zarr
 from . import __version__
 from .calibration import Intrinsics, load_intrinsics
 from .capture import Capture
+from .errors import InputError
 from .geometry import sample_image, texel_centres, unit
 from .hdr import read_hdr_noise
 from .stores import COMPLETE_ATTR, executor, open_complete, store_bytes
@@ -61,7 +62,7 @@ __all__ = [
     "texel_grid",
 ]
 
-class ObservationError(ValueError):
+class ObservationError(InputError):
     """Missing or inconsistent inputs to the observation map, or an incomplete store."""
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from .calibration import Intrinsics
+from .errors import InputError
 from .geometry import (
     camera_centre,
     pixel_to_plane,
@@ -89,7 +90,7 @@ def evaluate(model: str, params: np.ndarray, directions: np.ndarray) -> np.ndarr
 
         nc = params.shape[1] // 3
         return sh_eval(params.astype(float).reshape(-1, 3, nc), directions[:, None, :])[:, 0]
-    raise ValueError(f"unknown model {model!r}")
+    raise InputError(f"unknown model {model!r}")
 
 
 def surface_points(

@@ -22,6 +22,7 @@ import nlopt
 import numpy as np
 
 from ..conventions import LUMINANCE, FitStatus
+from ..errors import InputError
 from ._mh_kernel import LOSSES, cost_grad, gram
 from .weights import noise_weights, reduced_chi2
 
@@ -1033,7 +1034,7 @@ def parse_lobes(K: str | int) -> int | str:
     except ValueError:
         k = 0
     if k < 1:
-        raise ValueError(f"MH lobes must be a positive integer or auto (got {K!r})")
+        raise InputError(f"MH lobes must be a positive integer or auto (got {K!r})")
     return k
 
 
@@ -1048,7 +1049,7 @@ def fit_mh_map(obs_path: str | Path, out_path: str | Path, K: int | str, cfg: di
     K = parse_lobes(K)
     fcfg = MhFitConfig(**{k: cfg[k] for k in MhFitConfig.__dataclass_fields__ if k in cfg})
     if fcfg.algorithm not in ALGORITHMS:
-        raise ValueError(f"fit.mh.algorithm: unknown {fcfg.algorithm!r} "
+        raise InputError(f"fit.mh.algorithm: unknown {fcfg.algorithm!r} "
                          f"(one of {', '.join(ALGORITHMS)})")
     K_max = cfg.get("K_max", 3) if K == "auto" else K
     repair = partial(repair_mh_tile, K=K, cfg=fcfg) if cfg.get("repair", True) else None

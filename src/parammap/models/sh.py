@@ -41,6 +41,7 @@ import numpy as np
 from scipy.spatial import ConvexHull
 
 from ..conventions import LUMINANCE, FitStatus
+from ..errors import InputError
 from .weights import noise_weights, reduced_chi2
 
 __all__ = [
@@ -243,7 +244,7 @@ def project(
     (B, 3, n^2) coefficients, channel blocks in R, G, B order.
     """
     if hemisphere not in HEMISPHERES:
-        raise ValueError(f"unknown hemisphere handling {hemisphere!r} "
+        raise InputError(f"unknown hemisphere handling {hemisphere!r} "
                          f"(one of {', '.join(HEMISPHERES)})")
     Y = sh_basis(directions, n) if basis is None else basis  # (B, N, n2)
     Yw = Y * weights[..., None]
@@ -414,7 +415,7 @@ def project_cap(
         c = np.linalg.solve(A + (lam[:, None, None] * scale) * D, rhs)
         return np.swapaxes(c, 1, 2), lam
     if reg != "auto":
-        raise ValueError(f"regularisation must be a number or 'auto' (got {reg!r})")
+        raise InputError(f"regularisation must be a number or 'auto' (got {reg!r})")
     best_score = np.full(B, np.inf)
     best_c = np.empty((B, n * n, 3))
     lam = np.zeros(B)
@@ -609,7 +610,7 @@ def parse_sh_model(name: str) -> tuple[str, int]:
     """``sh-<hemisphere>-<coefficients>`` -> (hemisphere, bands)."""
     parts = name.split("-")
     if len(parts) != 3 or parts[0] != "sh" or parts[1] not in HEMISPHERES:
-        raise ValueError(f"SH model name must be sh-<{'|'.join(HEMISPHERES)}>-<n^2> "
+        raise InputError(f"SH model name must be sh-<{'|'.join(HEMISPHERES)}>-<n^2> "
                          f"(got {name!r})")
     try:
         nc = int(parts[2])
@@ -617,7 +618,7 @@ def parse_sh_model(name: str) -> tuple[str, int]:
         nc = -1
     n = int(round(math.sqrt(max(nc, 0))))
     if nc < 1 or n * n != nc:
-        raise ValueError(f"{name}: the coefficient count must be a square (1, 4, 9, 16...)")
+        raise InputError(f"{name}: the coefficient count must be a square (1, 4, 9, 16...)")
     return parts[1], n
 
 

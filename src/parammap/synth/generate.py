@@ -19,6 +19,7 @@ import numpy as np
 import yaml
 
 from ..capture import aruco_dictionary
+from ..errors import InputError
 from ..geometry import (
     look_at,
     pixel_to_plane,
@@ -390,7 +391,7 @@ def resolve_preset(preset, table: dict) -> tuple[str, object]:
     try:
         return preset, table[preset]
     except KeyError:
-        raise ValueError(f"unknown preset {preset!r}; one of {sorted(table)}") from None
+        raise InputError(f"unknown preset {preset!r}; one of {sorted(table)}") from None
 
 
 def partial_dirs(out: str | Path, truth: str | Path | None

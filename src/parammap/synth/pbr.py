@@ -36,6 +36,7 @@ import cv2
 import numpy as np
 
 from ..capture import aruco_dictionary
+from ..errors import InputError
 from ..exr import write_exr
 from ..geometry import undistort_normalized
 from ..imageio import write_image_atomic
@@ -166,7 +167,7 @@ def _mitsuba():
     try:
         import mitsuba as mi
     except ImportError:
-        raise ValueError("the pbr presets need Mitsuba 3: pip install 'parammap[pbr]'") from None
+        raise InputError("the pbr presets need Mitsuba 3: pip install 'parammap[pbr]'") from None
     # the scalar CPU variant: no JIT compiler needed, multi-threaded over image blocks
     mi.set_variant("scalar_rgb")
     return mi
@@ -305,7 +306,7 @@ def _light(L: Light, target: np.ndarray) -> dict:
         shape = {"type": "rectangle", "to_world": to @ mi.ScalarTransform4f().scale(
             [L.size_mm[0] / 2, L.size_mm[1] / 2, 1.0])}
     else:
-        raise ValueError(f"unknown light shape {L.shape!r}; rect or disc")
+        raise InputError(f"unknown light shape {L.shape!r}; rect or disc")
     shape["emitter"] = {"type": "area", "radiance": {"type": "rgb", "value": list(L.radiance)}}
     return shape
 

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..errors import InputError
+
 __all__ = ["SCHEMES", "icosahedron", "latlong", "sample_directions", "spiral", "stratified"]
 
 
@@ -98,5 +100,5 @@ def sample_directions(scheme: str, max_zenith_deg: float = 90.0, **kwargs) -> np
     try:
         fn = SCHEMES[scheme]
     except KeyError:
-        raise ValueError(f"unknown sampling scheme {scheme!r}; one of {sorted(SCHEMES)}") from None
+        raise InputError(f"unknown sampling scheme {scheme!r}; one of {sorted(SCHEMES)}") from None
     return fn(max_zenith_deg=max_zenith_deg, **kwargs)

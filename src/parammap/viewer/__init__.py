@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ..calibration import Intrinsics
+from ..errors import InputError
 from ..params import ParamMap
 
 __all__ = ["viewer_layers", "write_viewer"]
@@ -52,7 +53,7 @@ def viewer_layers(pm: ParamMap) -> tuple[np.ndarray, dict]:
         nc = P // 3
         n = int(round(math.sqrt(nc)))
         if n > 10:
-            raise ValueError("the viewer evaluates SH up to 10 bands (100 coefficients)")
+            raise InputError("the viewer evaluates SH up to 10 bands (100 coefficients)")
         c = p.reshape(T, S, 3, nc).transpose(3, 0, 1, 2)
         layers = list(np.concatenate([c, np.zeros((nc, T, S, 1), np.float32)], -1))
         info = {"model": "sh", "bands": n}
@@ -60,7 +61,7 @@ def viewer_layers(pm: ParamMap) -> tuple[np.ndarray, dict]:
         layers = [np.concatenate([p[..., 0:3], np.zeros((T, S, 1), np.float32)], -1)]
         info = {"model": "diffuse"}
     else:
-        raise ValueError(f"unknown model {pm.model!r}")
+        raise InputError(f"unknown model {pm.model!r}")
     return np.stack(layers).astype("<f4"), info
 
 
