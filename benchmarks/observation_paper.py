@@ -34,7 +34,7 @@ def main() -> int:
     out = Path(a.out or Path(a.processed) / "observation-bench.zarr")
     t0 = time.perf_counter()
     m = build_observation_map(load_capture(a.capture), a.processed, out, a.texels, None,
-                              a.tile, workers=a.workers, log=lambda s: print(s, file=sys.stderr))
+                              a.tile, workers=a.workers)
     wall = time.perf_counter() - t0
     self_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     child_kb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss

@@ -15,7 +15,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from parammap.models.sh import fit_sh_map, parse_sh_model
+from parammap.fitting import fit_sh_map
+from parammap.models.sh import parse_sh_model
 
 
 def main() -> int:
@@ -29,7 +30,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory(dir=Path(a.observation).parent) as tmp:
         t0 = time.perf_counter()
         m = fit_sh_map(a.observation, Path(tmp) / f"{a.model}.zarr", hemi, n, {},
-                       a.scheduler, a.workers, log=lambda s: print(s, file=sys.stderr))
+                       a.scheduler, a.workers)
         wall = time.perf_counter() - t0
     print(f"{a.model}: {m['texels']} texels, {m['fitted']} fitted, {m['failed']} failed")
     print(f"time {wall:.1f} s wall ({m['seconds']:.1f} s fitting), "

@@ -21,8 +21,7 @@ REAL = SHARED / "data" / "real"
 def tiny_capture(tmp_path_factory) -> tuple[Path, Path]:
     """(capture dir, truth dir) of the ``tiny`` preset, seed 0. Read-only for tests."""
     root = tmp_path_factory.mktemp("tiny")
-    cap = generate(root / "cap", root / "truth", preset="tiny", seed=0, workers=2,
-                   log=lambda *_: None)
+    cap = generate(root / "cap", root / "truth", preset="tiny", seed=0, workers=2)
     return cap, root / "truth"
 
 

@@ -115,3 +115,43 @@ def test_good_capture_cli_exit_zero(tiny_capture):
                         str(tiny_capture[0])], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert "ok" in r.stdout
+
+
+def _str_width(d):
+    d["surface"]["width_mm"] = "wide"
+
+
+def _yes_holdout(d):
+    d["views"][3]["holdout"] = "yes"
+
+
+def _no_exposures(d):
+    d["views"][1]["exposures"] = []
+
+
+def _bool_exposure(d):
+    d["views"][0]["exposures"][0]["exposure_s"] = True
+
+
+def _missing_file_key(d):
+    del d["views"][4]["exposures"][1]["file"]
+
+
+@pytest.mark.parametrize(
+    "edit, key, words",
+    [
+        (_str_width, "surface.width_mm", "must be a number (got 'wide')"),
+        (_yes_holdout, "views[3].holdout", "must be true or false"),
+        (_no_exposures, "views[1].exposures", "no exposures"),
+        (_bool_exposure, "views[0].exposures[0].exposure_s", "must be a number"),
+        (_missing_file_key, "views[4].exposures[1].file", "missing key"),
+    ],
+)
+def test_capture_schema_names_the_key(tiny_copy, capsys, edit, key, words):
+    """capture.yaml is checked against schemas/capture.schema.yaml before anything
+    else; each broken value is named by its key path."""
+    _edit(tiny_copy, edit)
+    rc, out, err = _run(tiny_copy, capsys)
+    assert rc == 2 and out == ""
+    line = err.strip()
+    assert "\n" not in line and f"capture.yaml: {key}: {words}" in line, line

@@ -18,8 +18,7 @@ from parammap.synth.generate import generate, true_observations, true_view_radia
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
     root = tmp_path_factory.mktemp("demo")
-    cap = generate(root / "cap", root / "truth", preset="demo", seed=0, workers=2,
-                   log=lambda *_: None)
+    cap = generate(root / "cap", root / "truth", preset="demo", seed=0, workers=2)
     out = root / "proc"
     # the workflow's demo override: the generator's truth is a 64x64 texel scene
     small = ["--set", "observation.texels_x=64"]

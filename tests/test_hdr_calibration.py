@@ -36,7 +36,7 @@ HDR_CFG = validate_config({"captures": {"x": "."}})["hdr"]
 @pytest.fixture(scope="module")
 def tiny_response(tiny_capture):
     cap = load_capture(tiny_capture[0])
-    g, _ = response_for_capture(cap, HDR_CFG, log=lambda *_: None)
+    g, _ = response_for_capture(cap, HDR_CFG)
     return cap, g
 
 
@@ -81,7 +81,7 @@ def test_too_few_board_photos_is_a_clear_error(tiny_copy):
     for p in sorted((tiny_copy / "calibration").glob("*.png"))[2:]:
         p.unlink()
     with pytest.raises(CalibrationError, match=r"calibration.images: only \d of 2 photos"):
-        calibrate(load_capture(tiny_copy), min_images=4, log=lambda *_: None)
+        calibrate(load_capture(tiny_copy), min_images=4)
 
 
 def test_view_without_markers_is_dropped_with_reason(tiny_capture):
@@ -120,7 +120,7 @@ def test_saved_response_is_reused(tiny_copy, tiny_response, tmp_path):
     y = yaml.safe_load((tiny_copy / "capture.yaml").read_text())
     y["camera"] = {"response": "camera_response.csv"}
     (tiny_copy / "capture.yaml").write_text(yaml.safe_dump(y))
-    g2, meta = response_for_capture(load_capture(tiny_copy), HDR_CFG, log=lambda *_: None)
+    g2, meta = response_for_capture(load_capture(tiny_copy), HDR_CFG)
     assert meta["response"] == "file"
     np.testing.assert_allclose(g2, g, atol=1e-7)
 
@@ -180,7 +180,7 @@ def test_chessboard_squares_across_and_down(tmp_path):
                          "square_mm": sq, "images": "cal/*.png"},
          "views": [{"id": "v0", "exposures": [{"file": "cal/c0.png", "exposure_s": 1}]}]}
     (tmp_path / "capture.yaml").write_text(yaml.safe_dump(y))
-    intr = calibrate(load_capture(tmp_path), min_images=6, log=lambda *_: None)
+    intr = calibrate(load_capture(tmp_path), min_images=6)
     assert intr.images_used >= 6
     assert abs(intr.K[0, 0] / 800 - 1) < 0.01 and abs(intr.K[1, 1] / 800 - 1) < 0.01
     assert np.hypot(intr.K[0, 2] - 319.5, intr.K[1, 2] - 239.5) < 3

@@ -5,16 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from parammap.fitting import FitError, open_fit
-from parammap.models.mh import (
-    STATUS_OK,
-    STATUS_TOO_FEW,
-    MhFitConfig,
-    fit_mh_map,
-    fit_mh_tile,
-    mh_eval,
-    parse_lobes,
-)
+from parammap.conventions import FitStatus, mh_size
+from parammap.fitting import FitError, fit_mh_map, open_fit
+from parammap.models.mh import MhFitConfig, fit_mh_tile, mh_eval, parse_lobes
 from parammap.observation import write_observation_arrays
 from parammap.synth.cases import phong_case
 
@@ -55,7 +48,7 @@ def test_exact_mh_two_lobes_at_demo_noise():
                       lights=((1500, 1500, 2000), (-900, -600, 1800)), intensities=(1, 0.7),
                       noise=0.01, seed=3)
     o = _fit(case, 2)
-    assert (o["status"] == STATUS_OK).all()
+    assert (o["status"] == FitStatus.OK).all()
     p, q = o["params"].reshape(16, -1).astype(float), case.truth[TILE].reshape(16, -1)
     lp, lq = _matched(p, q)
     assert np.median(_lobe_angle(lp[..., 3:], lq[..., 3:])) < 0.2
@@ -104,16 +97,15 @@ def test_texels_with_too_few_observations_are_flagged_not_fatal():
     valid = case.valid.copy()
     valid[0, 0, 3:] = False  # 3 observations left
     o = fit_mh_tile(case.radiance, case.direction, valid, 1)
-    assert o["status"][0, 0] == STATUS_TOO_FEW and np.isnan(o["params"][0, 0]).all()
-    assert (o["status"].ravel()[1:] == STATUS_OK).all()
+    assert o["status"][0, 0] == FitStatus.TOO_FEW and np.isnan(o["params"][0, 0]).all()
+    assert (o["status"].ravel()[1:] == FitStatus.OK).all()
 
 
 def test_map_fit_with_dask_processes_matches_tile_fit(tmp_path):
     case = phong_case(texels=8, level=2, noise=0.002)
     obs = write_observation_arrays(tmp_path / "obs.zarr", case.radiance, case.direction,
                                    case.valid, 1000.0, 1000.0, tile=4)
-    m = fit_mh_map(obs, tmp_path / "fit" / "mh-1.zarr", 1, {}, "processes", 2,
-                   log=lambda *_: None)
+    m = fit_mh_map(obs, tmp_path / "fit" / "mh-1.zarr", 1, {}, "processes", 2)
     assert m["fitted"] == 64 and m["failed"] == 0
     g = open_fit(tmp_path / "fit" / "mh-1.zarr")
     ref = fit_mh_tile(case.radiance[:4, 4:], case.direction[:4, 4:], case.valid[:4, 4:], 1)
@@ -159,14 +151,14 @@ def test_unknown_scheduler_is_a_clear_error(tmp_path):
     obs = write_observation_arrays(tmp_path / "obs.zarr", case.radiance, case.direction,
                                    case.valid, 1000.0, 1000.0, tile=4)
     with pytest.raises(FitError, match="unknown scheduler 'gpu'"):
-        fit_mh_map(obs, tmp_path / "mh-1.zarr", 1, {}, "gpu", 1, log=lambda *_: None)
+        fit_mh_map(obs, tmp_path / "mh-1.zarr", 1, {}, "gpu", 1)
     assert not (tmp_path / "mh-1.zarr").exists()
 
 
 @pytest.mark.parametrize("loss", ["linear", "soft_l1", "huber"])
 def test_compiled_objective_matches_numpy_and_finite_differences(loss):
-    from parammap.models._mh_kernel import cost_grad
-    from parammap.models.mh import _objective
+    from parammap.models.mh.fit import _objective
+    from parammap.models.mh.kernel import cost_grad
 
     if cost_grad is None:
         pytest.skip("numba not installed: only the numpy objective exists")
@@ -191,7 +183,7 @@ def test_compiled_objective_matches_numpy_and_finite_differences(loss):
 
 
 def test_gram_matches_numpy():
-    from parammap.models._mh_kernel import _gram_numpy, gram
+    from parammap.models.mh.kernel import _gram_numpy, gram
 
     rng = np.random.default_rng(1)
     A, Y = rng.normal(size=(5, 40, 4)), rng.normal(size=(5, 40, 3))
@@ -202,15 +194,15 @@ def test_gram_matches_numpy():
 
 def test_fit_without_numba_gives_the_same_parameters(monkeypatch):
     """The numpy fallback (no numba installed) fits to the same optimum."""
-    import parammap.models._mh_kernel as kern
-    import parammap.models.mh as mh
+    import parammap.models.mh.fit as mh
+    import parammap.models.mh.kernel as kern
 
     case = phong_case(noise=0.002)
     with_numba = _fit(case, 1)
     monkeypatch.setattr(mh, "cost_grad", None)
     monkeypatch.setattr(kern, "_gram_compiled", None)
     without = _fit(case, 1)
-    assert (without["status"] == STATUS_OK).all()
+    assert (without["status"] == FitStatus.OK).all()
     np.testing.assert_allclose(without["params"], with_numba["params"], rtol=1e-4, atol=1e-6)
 
 
@@ -231,11 +223,11 @@ def _one_material_tile(n=9, noise=0.002, seed=0, additive=False):
 
 
 def test_repair_refits_a_stuck_texel_from_its_neighbours_and_leaves_good_ones():
-    from parammap.models.mh import n_params, repair_mh_tile, stains
+    from parammap.models.mh import repair_mh_tile, stains
 
     p, rad, dirs, valid = _one_material_tile()
     fields = fit_mh_tile(rad, dirs, valid, 1)
-    assert (fields["status"] == STATUS_OK).all()
+    assert (fields["status"] == FitStatus.OK).all()
     assert len(stains(fields["rmse"], fields["status"])) == 0
     # a poor minimum in the middle: the lobe pointing elsewhere, its RMSE high
     bad = p.copy()
@@ -247,7 +239,7 @@ def test_repair_refits_a_stuck_texel_from_its_neighbours_and_leaves_good_ones():
     before = {k: v.copy() for k, v in fields.items()}
     out = repair_mh_tile(fields, rad, dirs, valid, (0, 0), K=1)
     assert out["changed"].sum() == 1 and out["changed"][4, 4] == 1
-    np.testing.assert_allclose(out["params"][4, 4, :n_params(1)], p, rtol=0.05, atol=0.02)
+    np.testing.assert_allclose(out["params"][4, 4, :mh_size(1)], p, rtol=0.05, atol=0.02)
     assert out["rmse"][4, 4].max() < 3 * np.median(before["rmse"])
     keep = np.ones((9, 9), bool)
     keep[4, 4] = False

@@ -5,8 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from parammap.conventions import FitStatus
 from parammap.hdr import level_noise, merge_bracket, merge_noise, reexposure_error
-from parammap.models.mh import STATUS_OK, fit_mh_tile
+from parammap.models.mh import fit_mh_tile
 from parammap.models.sh import fit_sh_tile
 from parammap.models.weights import MAX_RATIO, noise_weights, reduced_chi2
 from parammap.synth.cases import phong_case
@@ -69,7 +70,7 @@ def test_weighted_fit_ignores_the_noisy_views_and_chi2_is_about_one():
     Ln = L * (1 + sd[..., None] * rng.standard_normal(L.shape))
     plain = fit_mh_tile(Ln.astype(np.float32), V, valid, 1)
     weighted = fit_mh_tile(Ln.astype(np.float32), V, valid, 1, noise=sd.astype(np.float32))
-    assert (weighted["status"] == STATUS_OK).all()
+    assert (weighted["status"] == FitStatus.OK).all()
     truth = case.truth[..., :3]
     err_p = np.abs(plain["params"][..., :3] - truth).mean()
     err_w = np.abs(weighted["params"][..., :3] - truth).mean()

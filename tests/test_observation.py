@@ -74,7 +74,7 @@ def test_failed_build_leaves_previous_store_and_no_temporary(tiny_processed, tmp
         (tmp_path / "camera" / f).write_text((out / "camera" / f).read_text())
     # No HDR frames here: the build must stop naming the missing frame.
     with pytest.raises(ObservationError, match=r"hdr/.*\.exr.*missing"):
-        build_observation_map(load_capture(cap), tmp_path, target, 8, log=lambda *_: None)
+        build_observation_map(load_capture(cap), tmp_path, target, 8)
     assert not target.exists()
     assert not list(tmp_path.glob(".observation.zarr.tmp*"))
 

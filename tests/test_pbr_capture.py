@@ -30,8 +30,7 @@ def pbr(tmp_path_factory):
     from parammap.synth.pbr import generate_pbr
 
     root = tmp_path_factory.mktemp("pbr")
-    cap = generate_pbr(root / "cap", root / "truth", preset="pbr-tiny", seed=0,
-                       log=lambda *_: None)
+    cap = generate_pbr(root / "cap", root / "truth", preset="pbr-tiny", seed=0)
     out = root / "proc"
     for stage in (["response"], ["hdr"], ["calibrate"], ["poses"], ["observe"],
                   ["fit-mh", "--lobes", "1"], ["fit-sh", "--model", "sh-rlsop-36"],

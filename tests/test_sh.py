@@ -7,9 +7,8 @@ import pytest
 from scipy.spatial import SphericalVoronoi
 from scipy.special import sph_harm_y
 
-from parammap.fitting import open_fit
+from parammap.fitting import fit_sh_map, open_fit
 from parammap.models.sh import (
-    fit_sh_map,
     hemisphere_gram,
     parse_sh_model,
     project,
@@ -132,8 +131,7 @@ def test_map_fit_and_model_names(tmp_path):
     case = phong_case(texels=8, level=2, m=10)
     obs = write_observation_arrays(tmp_path / "obs.zarr", case.radiance, case.direction,
                                    case.valid, 1000.0, 1000.0, tile=4)
-    m = fit_sh_map(obs, tmp_path / "sh-lsop-16.zarr", "lsop", 4, {}, "synchronous", 1,
-                   log=lambda *_: None)
+    m = fit_sh_map(obs, tmp_path / "sh-lsop-16.zarr", "lsop", 4, {}, "synchronous", 1)
     assert m["fitted"] == 64
     g = open_fit(tmp_path / "sh-lsop-16.zarr")
     assert g["coeffs"].shape == (8, 8, 48) and g.attrs["hemisphere"] == "lsop"

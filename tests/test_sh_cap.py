@@ -98,15 +98,13 @@ def test_guard_keeps_unobserved_directions_in_the_observed_range():
 
 
 def test_map_fit_records_lambda_and_guard(tmp_path):
-    from parammap.fitting import open_fit
-    from parammap.models.sh import fit_sh_map
+    from parammap.fitting import fit_sh_map, open_fit
     from parammap.observation import write_observation_arrays
 
     case = phong_case(texels=8, level=2, m=10, max_zenith_deg=60.0, noise=0.02)
     obs = write_observation_arrays(tmp_path / "obs.zarr", case.radiance, case.direction,
                                    case.valid, 1000.0, 1000.0, tile=4)
-    m = fit_sh_map(obs, tmp_path / "sh.zarr", "rlsop", 6, {}, "synchronous", 1,
-                   log=lambda *_: None)
+    m = fit_sh_map(obs, tmp_path / "sh.zarr", "rlsop", 6, {}, "synchronous", 1)
     g = open_fit(tmp_path / "sh.zarr")
     assert m["fitted"] == 64 and m["sampled_cap"] and g.attrs["sampled_cap"]
     lam = g["reg"][:]
@@ -114,7 +112,7 @@ def test_map_fit_records_lambda_and_guard(tmp_path):
     assert m["guard_unresolved_texels"] == 0
     pub = fit_sh_map(obs, tmp_path / "pub.zarr", "rlsop", 6, {"sampled_cap": False,
                                                              "regularisation": 1e-4},
-                     "synchronous", 1, log=lambda *_: None)
+                     "synchronous", 1)
     assert "sampled_cap" not in pub and not open_fit(tmp_path / "pub.zarr").attrs["sampled_cap"]
 
 

@@ -26,15 +26,13 @@ def _digest(root):
 
 def test_same_seed_same_bytes(tiny_capture, tmp_path):
     cap, truth = tiny_capture
-    again = generate(tmp_path / "cap", tmp_path / "truth", preset="tiny", seed=0, workers=1,
-                     log=lambda *_: None)
+    again = generate(tmp_path / "cap", tmp_path / "truth", preset="tiny", seed=0, workers=1)
     assert _digest(again) == _digest(cap)
     assert _digest(tmp_path / "truth") == _digest(truth)
 
 
 def test_other_seed_other_photos(tmp_path, tiny_capture):
-    other = generate(tmp_path / "c", tmp_path / "t", preset="tiny", seed=1, workers=2,
-                     log=lambda *_: None)
+    other = generate(tmp_path / "c", tmp_path / "t", preset="tiny", seed=1, workers=2)
     a, b = _digest(tiny_capture[0]), _digest(other)
     assert a["views/v000_0.png"] != b["views/v000_0.png"]
 

@@ -7,8 +7,8 @@ conventions.md: ``p_cam = R @ p_world + t`` with the surface in z = 0 (mm).
 
 from __future__ import annotations
 
+import logging
 import math
-from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -18,8 +18,11 @@ import yaml
 from .capture import Capture, aruco_dictionary
 from .conventions import LUMINANCE
 from .errors import InputError
-from .geometry import camera_centre, distort_normalized, undistort_normalized
+from .geometry import Intrinsics, camera_centre, distort_normalized, undistort_normalized
 from .imageio import ImageReadError, read_image
+from .paths import Processed
+
+logger = logging.getLogger(__name__)
 
 __all__ = [
     "CalibrationError",
@@ -33,6 +36,7 @@ __all__ = [
     "refine_marker_corners",
     "refine_pose_edges",
     "rotation_sd_per_px",
+    "run_calibration",
     "save_intrinsics",
     "to_gray8",
 ]
@@ -40,18 +44,6 @@ __all__ = [
 
 class CalibrationError(InputError):
     """Calibration cannot go on (too few usable board photos...)."""
-
-
-@dataclass
-class Intrinsics:
-    """Pinhole camera with OpenCV distortion ``(k1, k2, p1, p2, k3)``; K in pixels."""
-
-    K: np.ndarray
-    dist: np.ndarray
-    image_size: tuple[int, int]  # width, height
-    rms_px: float = float("nan")
-    images_used: int = 0
-    per_image_rms_px: dict | None = None
 
 
 def to_gray8(img: np.ndarray) -> np.ndarray:
@@ -96,7 +88,7 @@ def board_points(cap: Capture, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return obj.astype(np.float32), corners.reshape(-1, 2)
 
 
-def calibrate(cap: Capture, min_images: int = 4, min_corners: int = 8, log=print,
+def calibrate(cap: Capture, min_images: int = 4, min_corners: int = 8,
               extra_views: list[tuple[str, np.ndarray, np.ndarray]] | None = None,
               guess: Intrinsics | None = None) -> Intrinsics:
     """Intrinsics from the capture's calibration photos.
@@ -120,17 +112,18 @@ def calibrate(cap: Capture, min_images: int = 4, min_corners: int = 8, log=print
         try:
             img = read_image(p)
         except ImageReadError as exc:
-            log(f"calibration: skipping {exc}")
+            logger.info(f"calibration: skipping {exc}")
             continue
         if size is None:
             size = (img.shape[1], img.shape[0])
         elif size != (img.shape[1], img.shape[0]):
-            log(f"calibration: skipping {p.name}: size differs from the first photo")
+            logger.info(f"calibration: skipping {p.name}: size differs from the first photo")
             continue
         found = board_points(cap, to_gray8(img))
         n = 0 if found is None else len(found[0])
         if n < min_corners:
-            log(f"calibration: {p.name}: {n} board corners found, below {min_corners}; skipped")
+            logger.info(f"calibration: {p.name}: {n} board corners found, below "
+                        f"{min_corners}; skipped")
             continue
         objs.append(found[0].astype(np.float32))
         imgs.append(found[1].astype(np.float32))
@@ -157,7 +150,8 @@ def calibrate(cap: Capture, min_images: int = 4, min_corners: int = 8, log=print
         lim = 3 * float(np.median(per_view))
         keep = [k for k, e in enumerate(per_view) if e <= lim or k < len(objs) - len(extra_views)]
         if len(keep) < len(objs):
-            log(f"calibration: {len(objs) - len(keep)} marker views above {lim:.2f} px left out")
+            logger.info(f"calibration: {len(objs) - len(keep)} marker views above "
+                        f"{lim:.2f} px left out")
             objs, imgs, names = ([x[k] for k in keep] for x in (objs, imgs, names))
             rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(objs, imgs, size, K, dist,
                                                              flags=cv2.CALIB_USE_INTRINSIC_GUESS)
@@ -169,7 +163,7 @@ def calibrate(cap: Capture, min_images: int = 4, min_corners: int = 8, log=print
 
 
 def marker_views(cap: Capture, intr: Intrinsics, frames, min_markers: int = 4,
-                 log=print) -> list[tuple[str, np.ndarray, np.ndarray]]:
+                 ) -> list[tuple[str, np.ndarray, np.ndarray]]:
     """Surface-marker correspondences of captured views, for :func:`calibrate`.
 
     ``frames`` yields (view id, linear radiance (H, W, 3)). Corners are edge-refined
@@ -196,8 +190,45 @@ def marker_views(cap: Capture, intr: Intrinsics, frames, min_markers: int = 4,
         obj = np.concatenate([np.c_[cap.marker_corners[known[int(ids[k])]], np.zeros(4)]
                               for k in use])
         out.append((vid, obj, c.reshape(-1, 2)))
-    log(f"calibration: {len(out)} captured views add their surface markers")
+    logger.info(f"calibration: {len(out)} captured views add their surface markers")
     return out
+
+
+def run_calibration(cap: Capture, processed: str | Path, cfg: dict) -> Intrinsics:
+    """The calibrate stage: intrinsics from the board photos, then (config
+    ``calibration.use_marker_views``) a second pass that adds the surface markers seen
+    in the captured views' HDR frames, started from the board's solution. A capture's
+    saved intrinsics are used as they are. Writes ``camera/intrinsics.yaml`` and
+    ``metrics/calibration.json``; ``cfg``: config section ``calibration``."""
+    from .metrics import write_metrics
+
+    out = Processed(processed)
+    if cap.intrinsics_path is not None:
+        intr = load_intrinsics(cap.intrinsics_path)
+        logger.info(f"calibrate: using saved intrinsics {cap.intrinsics_path}")
+    else:
+        intr = calibrate(cap, cfg["min_images"], cfg["min_corners"])
+        hdr = [(v.id, out.hdr(v.id)) for v in cap.fitted_views]
+        if cfg["use_marker_views"] and len(cap.marker_ids):
+            missing = [str(p) for _, p in hdr if not p.is_file()]
+            if missing:
+                raise CalibrationError(f"calibration.use_marker_views: HDR frames missing "
+                                       f"(run the hdr stage first): {missing[0]}...")
+            from .hdr import read_hdr
+
+            extra = marker_views(cap, intr, ((vid, read_hdr(p)[0]) for vid, p in hdr),
+                                 cfg["min_markers_per_view"])
+            if extra:
+                intr = calibrate(cap, cfg["min_images"], cfg["min_corners"],
+                                 extra_views=extra, guess=intr)
+    save_intrinsics(out.intrinsics, intr)
+    write_metrics(out.metrics("calibration"), {
+        "rms_px": intr.rms_px, "images_used": intr.images_used,
+        "images_total": len(cap.calibration_images), "fx_px": intr.K[0, 0],
+        "fy_px": intr.K[1, 1], "cx_px": intr.K[0, 2], "cy_px": intr.K[1, 2],
+        "dist": intr.dist, "per_image_rms_px": intr.per_image_rms_px})
+    logger.info(f"calibrate: rms {intr.rms_px:.3f} px from {intr.images_used} photos")
+    return intr
 
 
 def save_intrinsics(path: str | Path, intr: Intrinsics) -> Path:

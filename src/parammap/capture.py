@@ -24,6 +24,7 @@ __all__ = [
     "Exposure",
     "View",
     "aruco_dictionary",
+    "capture_schema",
     "load_capture",
     "validate_capture",
 ]
@@ -132,6 +133,54 @@ def _kind_name(kind) -> str:
     return names.get(kind, str(kind))
 
 
+def capture_schema() -> dict[str, Any]:
+    """The JSON schema of ``capture.yaml`` (``schemas/capture.schema.yaml``) as a dict."""
+    from importlib import resources
+
+    text = resources.files("parammap").joinpath("schemas/capture.schema.yaml").read_text()
+    return yaml.safe_load(text)
+
+
+_TYPE_NAMES = {"string": "a string", "number": "a number", "integer": "an integer",
+               "array": "a list", "object": "a mapping", "boolean": "true or false",
+               "null": "empty"}
+
+
+def _key(path) -> str:
+    """``views[2].exposures[0].file`` from a jsonschema path."""
+    out = ""
+    for p in path:
+        out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else str(p))
+    return out or "<top>"
+
+
+def _check_schema(c: _Ctx, raw: Any) -> None:
+    """Stop at the first value (in document order) that breaks the capture schema,
+    naming its key: a missing key, a wrong type, or the node's ``x-message``."""
+    import jsonschema
+
+    validator = jsonschema.Draft202012Validator(capture_schema())
+    errors = sorted(validator.iter_errors(raw), key=lambda e: [str(p) for p in e.path])
+    if not errors:
+        return
+    e = errors[0]
+    if e.validator == "required":
+        missing = e.message.split("'")[1]
+        c.fail(_key([*e.path, missing]), "missing key")
+    got = e.instance if not isinstance(e.instance, dict | list) or e.validator in (
+        "minItems", "maxItems") else None
+    got = "" if got is None else f" (got {got!r})" if not isinstance(got, list) else \
+        f" (got {len(got)})"
+    if e.validator == "type" and e.schema.get("type") == e.validator_value:
+        kinds = e.validator_value if isinstance(e.validator_value, list) else [
+            e.validator_value]
+        c.fail(_key(e.path), "must be " + " or ".join(_TYPE_NAMES.get(k, k) for k in kinds)
+               + f" (got {e.instance!r})")
+    if "x-message" in e.schema:
+        c.fail(_key(e.path), e.schema["x-message"] + got)
+    c.fail(_key(e.path), e.message)
+
+
 def load_capture(directory: str | Path, check_images: bool = False) -> Capture:
     """Parse and check ``<directory>/capture.yaml``.
 
@@ -157,6 +206,7 @@ def load_capture(directory: str | Path, check_images: bool = False) -> Capture:
     c = _Ctx(yaml_path)
     if not isinstance(raw, dict):
         c.fail("<top>", "must be a mapping")
+    _check_schema(c, raw)
 
     surface = c.get(raw, "surface", "", dict)
     sid = c.get(surface, "id", "surface", (str, int))

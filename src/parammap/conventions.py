@@ -6,11 +6,18 @@ the numbers.
 
 from __future__ import annotations
 
+import math
 from enum import IntEnum
+from functools import lru_cache
 
 import numpy as np
 
-__all__ = ["HDR_CHANNELS", "LUMINANCE", "NOISE_CHANNEL", "FitStatus"]
+__all__ = ["DIFFUSE_CHANNELS", "HDR_CHANNELS", "LUMINANCE", "MH_KD", "MH_M", "MH_HEAD",
+           "MH_LOBE", "MHX_KD", "MHX_LNM", "MHX_LOBE", "NOISE_CHANNEL", "SH_HEMISPHERES",
+           "SH_CAP_AWARE",
+           "FitStatus", "mh_channels", "mh_dir", "mh_dir_z", "mh_ks", "mh_lobe",
+           "mh_lobes", "mh_size", "mhx_ks", "mhx_phi", "mhx_size", "mhx_theta",
+           "sh_bands", "sh_channels", "sh_degree_order", "sh_norms"]
 
 #: Rec. 709 / sRGB luminance weights of linear R, G, B.
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
@@ -29,3 +36,137 @@ class FitStatus(IntEnum):
     OK = 1
     TOO_FEW = 2  # fewer observations than the model needs
     FAILED = 3  # the optimisation or projection failed; parameters are NaN
+
+
+# --- Multiple Highlight (MH) parameter vector (conventions.md, 000 eq. 1) ------------
+#: ``Kd.R Kd.G Kd.B m`` then for each lobe k ``Ks.R Ks.G Ks.B d.X d.Y d.Z``.
+MH_KD = slice(0, 3)
+MH_M = 3
+MH_HEAD = 4  # values before the first lobe
+MH_LOBE = 6  # values per lobe
+
+
+def mh_size(K: int) -> int:
+    """Length of a K-lobe MH parameter vector (4 + 6K)."""
+    return MH_HEAD + MH_LOBE * K
+
+
+def mh_lobes(n_params: int) -> int:
+    """Number of lobes K of an MH parameter vector of length ``n_params``.
+
+    Raises
+    ------
+    ValueError
+        When ``n_params`` is not 4 + 6K for some K >= 0.
+    """
+    K, rest = divmod(n_params - MH_HEAD, MH_LOBE)
+    if K < 0 or rest:
+        raise ValueError(f"MH parameter vectors have 4 + 6K values (got {n_params})")
+    return K
+
+
+def mh_lobe(k: int) -> slice:
+    """Slice of lobe k's six values (Ks.RGB, d.XYZ); k counts from 0."""
+    return slice(MH_HEAD + MH_LOBE * k, MH_HEAD + MH_LOBE * (k + 1))
+
+
+def mh_ks(k: int) -> slice:
+    """Slice of lobe k's specular colour Ks.R, Ks.G, Ks.B."""
+    return slice(MH_HEAD + MH_LOBE * k, MH_HEAD + MH_LOBE * k + 3)
+
+
+def mh_dir(k: int) -> slice:
+    """Slice of lobe k's unit direction d.X, d.Y, d.Z (surface frame)."""
+    return slice(MH_HEAD + MH_LOBE * k + 3, MH_HEAD + MH_LOBE * (k + 1))
+
+
+def mh_dir_z(k: int) -> int:
+    """Index of lobe k's d.Z (cosine of its zenith angle)."""
+    return MH_HEAD + MH_LOBE * k + 5
+
+
+def mh_channels(K: int) -> list[str]:
+    """EXR channel names of a K-lobe MH map, lobes numbered from 1."""
+    names = ["Kd.R", "Kd.G", "Kd.B", "m"]
+    for k in range(1, K + 1):
+        names += [f"lobe{k}.{q}" for q in ("Ks.R", "Ks.G", "Ks.B", "d.X", "d.Y", "d.Z")]
+    return names
+
+
+#: The fitters' free variables per texel ("x space"): ``Kd/s (3), ln m``, then per lobe
+#: ``Ks/s (3), theta, phi`` (s: the texel's radiance scale) - 4 + 5K values.
+MHX_KD = slice(0, 3)
+MHX_LNM = 3
+MHX_LOBE = 5
+
+
+def mhx_size(K: int) -> int:
+    """Number of free variables of a K-lobe MH fit (4 + 5K)."""
+    return MH_HEAD + MHX_LOBE * K
+
+
+def mhx_ks(k: int) -> slice:
+    """Slice of lobe k's scaled Ks in x space."""
+    return slice(MH_HEAD + MHX_LOBE * k, MH_HEAD + MHX_LOBE * k + 3)
+
+
+def mhx_theta(k: int) -> int:
+    """Index of lobe k's zenith angle (rad) in x space."""
+    return MH_HEAD + MHX_LOBE * k + 3
+
+
+def mhx_phi(k: int) -> int:
+    """Index of lobe k's azimuth (rad) in x space."""
+    return MH_HEAD + MHX_LOBE * k + 4
+
+
+#: A diffuse-only map (the baseline): Kd alone.
+DIFFUSE_CHANNELS = ("Kd.R", "Kd.G", "Kd.B")
+
+
+# --- Spherical harmonics (conventions.md, 004 eqs. 12.1-12.5) -------------------------
+#: Hemisphere handling of an SH fit: the published zero hemisphere, mirror and
+#: least-squares-optimal projection, and ours (regularised LSOP, noise-weighted LS).
+SH_HEMISPHERES = ("zh", "mirror", "lsop", "rlsop", "wls")
+#: Projections that can be restricted to the sampled cap of the hemisphere.
+SH_CAP_AWARE = ("lsop", "rlsop", "wls")
+
+
+def sh_bands(n_coeffs: int) -> int:
+    """Number of bands n of an SH vector of n^2 coefficients per channel.
+
+    Raises
+    ------
+    ValueError
+        When ``n_coeffs`` is not a square.
+    """
+    n = math.isqrt(n_coeffs)
+    if n < 1 or n * n != n_coeffs:
+        raise ValueError(f"SH vectors have n^2 coefficients per channel (got {n_coeffs})")
+    return n
+
+
+def sh_degree_order(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Degree l and order m of each coefficient i = l (l + 1) + m of n bands."""
+    l_ = np.repeat(np.arange(n), 2 * np.arange(n) + 1)
+    m_ = np.concatenate([np.arange(-l, l + 1) for l in range(n)])
+    return l_, m_
+
+
+@lru_cache(maxsize=64)
+def sh_norms(n: int) -> np.ndarray:
+    """(n, n) normalisation K_l^m = sqrt((2l + 1) (l - m)! / (4 pi (l + m)!)), m >= 0."""
+    K = np.zeros((n, n))
+    for l in range(n):
+        for m in range(l + 1):
+            K[l, m] = math.sqrt((2 * l + 1) * math.factorial(l - m)
+                                / (4 * math.pi * math.factorial(l + m)))
+    K.setflags(write=False)
+    return K
+
+
+def sh_channels(n: int) -> list[str]:
+    """EXR channel names of an n-band SH map: ``sh.R.00 .. sh.R.(n^2-1)``, then G, B."""
+    nc = n * n
+    w = max(2, len(str(nc - 1)))
+    return [f"sh.{c}.{i:0{w}d}" for c in "RGB" for i in range(nc)]

@@ -22,8 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
+from .conventions import LUMINANCE, MH_KD, MH_M, mh_dir_z, mh_ks, mh_lobes, sh_degree_order
 from .errors import InputError
 from .metrics import read_metrics
+from .paths import Processed, read_poses
 from .report import plot_hemisphere, plot_reexposure, plot_reprojection, plot_response, save_figure
 from .stores import store_bytes
 
@@ -43,10 +45,10 @@ def _write_csv(path: Path, rows: list[dict]) -> Path:
     return path
 
 
-def _calibration(proc: Path, out: Path) -> list[Path]:
+def _calibration(proc: Processed, out: Path) -> list[Path]:
     import matplotlib.pyplot as plt
 
-    m = read_metrics(proc / "metrics" / "calibration.json")
+    m = read_metrics(proc.metrics("calibration"))
     per = m.get("per_image_rms_px") or {}
     fig, ax = plt.subplots(figsize=(max(4, len(per) * 0.25), 3))
     ax.bar(range(len(per)), list(per.values()), color="tab:blue")
@@ -59,10 +61,9 @@ def _calibration(proc: Path, out: Path) -> list[Path]:
     return [save_figure(fig, out / "calibration.png")]
 
 
-def _poses(proc: Path, out: Path, width_mm: float, height_mm: float, sid: str) -> list[Path]:
-    import yaml
+def _poses(proc: Processed, out: Path, width_mm: float, height_mm: float, sid: str) -> list[Path]:
 
-    records = yaml.safe_load((proc / "camera" / "poses.yaml").read_text())["views"]
+    records = read_poses(proc.poses)["views"]
     paths = [plot_reprojection(records, out / "pose_reprojection.png")]
     paths.append(_write_csv(out / "poses.csv", [{
         "view": r["id"], "holdout": r["holdout"], "kept": r["kept"],
@@ -83,12 +84,12 @@ def _poses(proc: Path, out: Path, width_mm: float, height_mm: float, sid: str) -
     return paths
 
 
-def _holdout(proc: Path, out: Path) -> list[Path]:
+def _holdout(proc: Processed, out: Path) -> list[Path]:
     import matplotlib.pyplot as plt
 
     from .imageio import read_image
 
-    m = read_metrics(proc / "metrics" / "holdout.json")
+    m = read_metrics(proc.metrics("holdout"))
     rows = []
     paths = []
     for vid, rec in m["views"].items():
@@ -100,7 +101,7 @@ def _holdout(proc: Path, out: Path) -> list[Path]:
                          "pixels": s["pixels"], "pose_warning": rec.get("pose_warning", "")})
         names = list(rec["models"])
         fig, axes = plt.subplots(len(names), 3, figsize=(7.5, 2.1 * len(names)), squeeze=False)
-        photo = read_image(proc / "holdout" / f"{vid}_photo.png")
+        photo = read_image(proc.holdout_dir / f"{vid}_photo.png")
         # crop to the sampled region (everything else is black in the photo image)
         ys, xs = np.nonzero(photo.max(-1) > 0)
         crop = (slice(max(ys.min() - 4, 0), ys.max() + 5),
@@ -108,8 +109,8 @@ def _holdout(proc: Path, out: Path) -> list[Path]:
             (slice(None), slice(None))
         photo = photo[crop]
         for k, name in enumerate(names):
-            img = read_image(proc / "holdout" / f"{vid}_{name}.png")[crop]
-            diff = read_image(proc / "holdout" / f"{vid}_{name}_diff.png")[..., 0][crop]
+            img = read_image(proc.holdout_dir / f"{vid}_{name}.png")[crop]
+            diff = read_image(proc.holdout_dir / f"{vid}_{name}_diff.png")[..., 0][crop]
             axes[k, 0].imshow(photo)
             axes[k, 1].imshow(img)
             im = axes[k, 2].imshow(diff, cmap="magma", vmin=0, vmax=64)
@@ -148,9 +149,9 @@ def region_table(m: dict) -> list[dict]:
     return rows
 
 
-def _tables(proc: Path, out: Path, models: list[str], timings: list[Path]) -> list[Path]:
-    obs_bytes = store_bytes(proc / "observation.zarr")
-    om = read_metrics(proc / "metrics" / "observation.json")
+def _tables(proc: Processed, out: Path, models: list[str], timings: list[Path]) -> list[Path]:
+    obs_bytes = store_bytes(proc.observation)
+    om = read_metrics(proc.metrics("observation"))
     sizes = [{"item": "observation map (zarr, compressed)", "bytes": obs_bytes,
               "MB": f"{obs_bytes / 1e6:.2f}", "ratio_to_observation": "1"},
              {"item": "observation map (uncompressed)", "bytes": om["bytes_uncompressed"],
@@ -158,12 +159,12 @@ def _tables(proc: Path, out: Path, models: list[str], timings: list[Path]) -> li
               "ratio_to_observation": f"{om['bytes_uncompressed'] / obs_bytes:.2f}"}]
     rows = []
     for name in models:
-        exr = proc / "params" / f"{name}.exr"
+        exr = proc.params(name)
         if exr.is_file():
             b = exr.stat().st_size
             sizes.append({"item": f"params/{name}.exr", "bytes": b, "MB": f"{b / 1e6:.3f}",
                           "ratio_to_observation": f"{b / obs_bytes:.4f}"})
-        mf = proc / "metrics" / f"fit-{name}.json"
+        mf = proc.metrics(f"fit-{name}")
         if mf.is_file():
             m = read_metrics(mf)
             mpr = m.get("mean_percentage_residual") or [float("nan")] * 3
@@ -195,27 +196,27 @@ def make_figures(kind: str, capture_dir: str | Path, processed: str | Path,
     """Build one kind of report figure (see the module docstring)."""
     from .capture import load_capture
 
-    proc, out = Path(processed), Path(out_dir)
+    proc, out = Processed(processed), Path(out_dir)
     if kind not in KINDS:
         raise InputError(f"unknown figure kind {kind!r} (one of {', '.join(KINDS)})")
     cap = load_capture(capture_dir)
     if kind == "response":
         from .hdr import load_reference_response, load_response
 
-        if not (proc / "camera" / "response.csv").is_file():
+        if not (proc.response_csv).is_file():
             import matplotlib.pyplot as plt
 
             fig, ax = plt.subplots(figsize=(5, 1))
             ax.axis("off")
             ax.text(0.5, 0.5, "linear input: no response curve", ha="center")
             return [save_figure(fig, out / "response.png")]
-        g = load_response(proc / "camera" / "response.csv")
+        g = load_response(proc.response_csv)
         ref = load_reference_response(reference) if reference else None
         return [plot_response(g, out / "response.png", reference=ref,
                               reference_label=reference_label,
                               title=f"{cap.surface_id}: recovered response")]
     if kind == "hdr":
-        return [plot_reexposure(read_metrics(proc / "metrics" / "hdr.json"),
+        return [plot_reexposure(read_metrics(proc.metrics("hdr")),
                                 out / "reexposure.png")]
     if kind == "calibration":
         return _calibration(proc, out)
@@ -224,18 +225,64 @@ def make_figures(kind: str, capture_dir: str | Path, processed: str | Path,
     if kind == "observation":
         from .observation import observation_figures
 
-        return observation_figures(proc / "observation.zarr", out, lobe_texels)
+        return observation_figures(proc.observation, out, lobe_texels)
     if kind == "model":
         if not model:
             raise InputError("figures model: --model is required")
-        fit = proc / "fit" / f"{model}.zarr"
+        fit = proc.fit(model)
         if model.startswith("mh-"):
-            from .models.mh import mh_figures
-
-            return mh_figures(fit, proc / "observation.zarr", out, model, lobe_texels)
-        from .models.sh import sh_figures
-
-        return sh_figures(fit, proc / "observation.zarr", out, model, lobe_texels)
+            return mh_figures(fit, proc.observation, out, model, lobe_texels)
+        return sh_figures(fit, proc.observation, out, model, lobe_texels)
     if kind == "holdout":
         return _holdout(proc, out)
     return _tables(proc, out, models or [], timings or [])
+
+
+def mh_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path, name: str,
+               texels: list[tuple[int, int]] | None = None) -> list[Path]:
+    """Parameter maps, residual maps and lobe plots (measured vs fitted with percentage
+    residuals, like 004 fig. 11.6) of an MH fit store."""
+    from .fitting import open_fit
+    from .models.mh import mh_eval
+    from .observation import open_observation_map
+    from .report import fit_figures, plot_maps
+
+    g = open_fit(fit_path)
+    obs = open_observation_map(obs_path)
+    out_dir = Path(out_dir)
+    p = g["params"][:].astype(float)
+    K = mh_lobes(p.shape[-1])
+    maps = {"Kd (luminance)": p[..., MH_KD] @ LUMINANCE,
+            "log10 m": np.log10(np.clip(p[..., MH_M], 1, None))}
+    for k in range(K):
+        maps[f"lobe {k + 1} Ks (luminance)"] = p[..., mh_ks(k)] @ LUMINANCE
+        maps[f"lobe {k + 1} zenith (deg)"] = np.degrees(np.arccos(np.clip(p[..., mh_dir_z(k)],
+                                                                          -1, 1)))
+    if g.attrs.get("lobes") == "auto":
+        maps["lobes used"] = g["k_used"][:].astype(float)
+    paths = [plot_maps(maps, out_dir / f"{name}_params.png", f"{name}: parameter maps")]
+    return paths + fit_figures(g, obs, out_dir, name, lambda r, c, d: mh_eval(p[r, c], d),
+                               texels)
+
+
+def sh_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path, name: str,
+               texels: list[tuple[int, int]] | None = None) -> list[Path]:
+    """Coefficient maps of the first bands, residual maps and lobe plots."""
+    from .fitting import open_fit
+    from .models.sh import sh_eval
+    from .observation import open_observation_map
+    from .report import fit_figures, plot_maps
+
+    g = open_fit(fit_path)
+    obs = open_observation_map(obs_path)
+    out_dir = Path(out_dir)
+    n2 = g.attrs["coefficients"]
+    c = g["coeffs"][:].astype(float).reshape(g.attrs["T"], g.attrs["S"], 3, n2)
+    lum = c.transpose(0, 1, 3, 2) @ LUMINANCE
+    l_, m_ = sh_degree_order(g.attrs["bands"])
+    maps = {f"y[{l},{m}] (luminance)": lum[..., i]
+            for i, (l, m) in enumerate(zip(l_, m_, strict=True)) if l < 3}
+    paths = [plot_maps(maps, out_dir / f"{name}_params.png",
+                       f"{name}: coefficients of bands 0-2", cols=5, symmetric=True)]
+    return paths + fit_figures(g, obs, out_dir, name,
+                               lambda r, col, d: sh_eval(c[r, col], d), texels)

@@ -15,10 +15,14 @@ under a temporary name and renamed when every tile is done.
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
 import shutil
+import sys
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -28,12 +32,39 @@ import numpy as np
 import zarr
 
 from . import __version__
-from .conventions import FitStatus
+from .conventions import SH_CAP_AWARE, FitStatus
 from .errors import InputError
+from .models.mh import (
+    ALGORITHMS,
+    REPAIR_FACTOR,
+    REPAIR_RADIUS,
+    REPAIR_STARTS,
+    MhFitConfig,
+    fit_mh_tile,
+    mh_outputs,
+    parse_lobes,
+    repair_mh_tile,
+    stains,
+)
+from .models.sh import GUARD_STEPS, fit_sh_tile, sh_outputs
 from .observation import open_observation_map
 from .stores import COMPLETE_ATTR, open_complete
 
-__all__ = ["COMPLETE_ATTR", "FitError", "RepairFn", "fit_map", "fit_summary", "open_fit"]
+logger = logging.getLogger(__name__)
+
+__all__ = ["COMPLETE_ATTR", "FitError", "RepairFn", "fit_map", "fit_mh_map", "fit_sh_map",
+           "fit_summary", "open_fit", "run_fit"]
+
+# units of the fit stores' arrays (zarr attribute "units", read by xarray)
+FIT_UNITS = {
+    "params": "as the layout attribute: Kd, Ks in the observation map's radiance units, "
+              "m 1, d unit vector (surface frame)",
+    "coeffs": "the observation map's radiance units (orthonormal SH basis)",
+    "rmse": "the observation map's radiance units", "mpr": "percent",
+    "chi2": "1 (reduced chi-square)", "k_used": "lobes", "evals": "objective evaluations",
+    "status": "parammap.conventions.FitStatus code", "reg": "1 (relative prior weight)",
+    "guard": "prior escalations", "bands": "SH bands",
+}
 
 # (radiance, direction, valid of a tile; keyword noise: its relative sd per observation)
 TileFn = Callable[..., dict[str, np.ndarray]]
@@ -85,20 +116,32 @@ def _repair_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path
     return np.asarray(res["changed"], np.int8)
 
 
+def _show_progress() -> bool:
+    """A progress bar only where a person watches: stderr a terminal, not ``-q``."""
+    return sys.stderr.isatty() and logger.isEnabledFor(logging.INFO)
+
+
 def _compute(x, scheduler: str, workers: int):
     if scheduler.startswith(("tcp://", "tls://", "inproc://", "ucx://")):
-        from dask.distributed import Client
+        from dask.distributed import Client, progress
 
-        with Client(scheduler):
-            return x.compute()
-    if scheduler == "processes":
-        return x.compute(scheduler="processes", num_workers=workers)
-    if scheduler == "threads":
-        return x.compute(scheduler="threads", num_workers=workers)
-    if scheduler == "synchronous":
-        return x.compute(scheduler="synchronous")
-    raise FitError(f"fit.scheduler: unknown scheduler {scheduler!r} (processes, threads, "
-                   "synchronous or a tcp:// address)")
+        with Client(scheduler) as client:
+            fut = client.compute(x)
+            if _show_progress():
+                progress(fut)
+            return fut.result()
+    kw = {"processes": {"num_workers": workers}, "threads": {"num_workers": workers},
+          "synchronous": {}}
+    if scheduler not in kw:
+        raise FitError(f"fit.scheduler: unknown scheduler {scheduler!r} (processes, threads, "
+                       "synchronous or a tcp:// address)")
+    bar = contextlib.nullcontext()
+    if _show_progress():
+        from dask.diagnostics import ProgressBar
+
+        bar = ProgressBar(minimum=2.0, out=sys.stderr)
+    with bar:
+        return x.compute(scheduler=scheduler, **kw[scheduler])
 
 
 def fit_map(
@@ -109,7 +152,6 @@ def fit_map(
     attrs: dict[str, Any],
     scheduler: str = "processes",
     workers: int = 2,
-    log=print,
     repair_fn: RepairFn | None = None,
     halo: int = 4,
 ) -> dict[str, Any]:
@@ -146,15 +188,16 @@ def fit_map(
         # dimension names let xarray.open_zarr label the maps
         dims = ("row", "col") + tuple(f"{name}_{k}" for k in range(len(shape)))
         g.create_array(name, shape=(T, S) + tuple(shape), chunks=(tile, tile) + tuple(shape),
-                       dtype=dtype, compressors=comp, fill_value=fill, dimension_names=dims)
+                       dtype=dtype, compressors=comp, fill_value=fill, dimension_names=dims,
+                       attributes={"units": FIT_UNITS.get(name, "")})
     g.attrs.update({**attrs, "S": S, "T": T, "tile": tile,
                     "width_mm": obs.attrs["width_mm"], "height_mm": obs.attrs["height_mm"],
                     "observation_views": len(obs.attrs["view_ids"]),
                     "software": f"parammap {__version__}"})
     valid = da.from_zarr(obs["valid"])
     ntiles = len(valid.chunks[0]) * len(valid.chunks[1])
-    log(f"fit: {T}x{S} texels, {N} views, {ntiles} tiles, scheduler {scheduler}, "
-        f"{workers} workers")
+    logger.info(f"fit: {T}x{S} texels, {N} views, {ntiles} tiles, scheduler {scheduler}, "
+                f"{workers} workers")
     status = valid.map_blocks(
         _fit_block, obs_path=str(obs_path), out_path=str(tmp), tile_fn=tile_fn,
         drop_axis=2, dtype=np.int8, meta=np.array((), np.int8),
@@ -172,7 +215,7 @@ def fit_map(
                         dtype=np.int8, meta=np.array((), np.int8), chunks=valid.chunks[:2])
                     repaired += int(np.asarray(_compute(ch, scheduler, workers)).sum())
                 status = g["status"][:]
-                log(f"fit: repair pass refitted {repaired} texels from their neighbours")
+                logger.info(f"fit: repair pass refitted {repaired} texels from their neighbours")
         seconds = time.perf_counter() - t0
         g.attrs[COMPLETE_ATTR] = True
         if out_path.exists():
@@ -181,7 +224,7 @@ def fit_map(
         tmp.rename(out_path)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    log(f"fit: {T * S} texels in {seconds:.1f} s ({T * S / seconds:.1f} texels/s)")
+    logger.info(f"fit: {T * S} texels in {seconds:.1f} s ({T * S / seconds:.1f} texels/s)")
     return {"texels": T * S, "seconds": seconds, "texels_per_second": T * S / seconds,
             "status": status, "repaired": repaired}
 
@@ -218,3 +261,100 @@ def _nanmedian(x: np.ndarray) -> float | None:
     """Median of the finite values (None when there are none: e.g. no noise recorded)."""
     x = x[np.isfinite(x)]
     return float(np.median(x)) if x.size else None
+
+
+# ---------------------------------------------------------------------------------
+# Map drivers of the models (numerics in parammap.models)
+
+
+def fit_mh_map(obs_path: str | Path, out_path: str | Path, K: int | str, cfg: dict,
+               scheduler: str = "processes", workers: int = 2) -> dict:
+    """Fit the MH model with K lobes (or ``auto``) to every texel of an observation map
+    into ``fit/mh-<K>.zarr``; returns the figures for ``metrics/fit-mh-<K>.json``."""
+    K = parse_lobes(K)
+    fcfg = MhFitConfig(**{k: cfg[k] for k in MhFitConfig.__dataclass_fields__ if k in cfg})
+    if fcfg.algorithm not in ALGORITHMS:
+        raise InputError(f"fit.mh.algorithm: unknown {fcfg.algorithm!r} "
+                         f"(one of {', '.join(ALGORITHMS)})")
+    K_max = cfg.get("K_max", 3) if K == "auto" else K
+    repair = partial(repair_mh_tile, K=K, cfg=fcfg) if cfg.get("repair", True) else None
+    res = fit_map(obs_path, out_path, partial(fit_mh_tile, K=K, cfg=fcfg, K_max=K_max),
+                  mh_outputs(K_max),
+                  {"model": "mh", "model_version": 1, "lobes": str(K), "K_max": K_max,
+                   "layout": "Kd.R Kd.G Kd.B m (lobeK.Ks.R lobeK.Ks.G lobeK.Ks.B lobeK.d.X "
+                             "lobeK.d.Y lobeK.d.Z)*K",
+                   "fit": {k: getattr(fcfg, k) for k in MhFitConfig.__dataclass_fields__},
+                   "repair": {"factor": REPAIR_FACTOR, "radius": REPAIR_RADIUS,
+                              "starts": REPAIR_STARTS} if repair else None},
+                  scheduler, workers, repair_fn=repair, halo=REPAIR_RADIUS)
+    g = open_fit(out_path)
+    ok = g["status"][:] == FitStatus.OK
+    kused = g["k_used"][:][ok]
+    return fit_summary(
+        out_path, res, f"mh-{K}", scheduler=scheduler, workers=workers,
+        lobes_used={str(k): int((kused == k).sum()) for k in np.unique(kused)},
+        repaired_texels=int(res.get("repaired", 0)),
+        largest_stain_texels=int(next(iter(stains(g["rmse"][:], g["status"][:])), 0)),
+        mean_evals=float(g["evals"][:][ok].mean()) if ok.any() else None)
+
+
+def fit_sh_map(obs_path: str | Path, out_path: str | Path, hemisphere: str, n: int,
+               cfg: dict, scheduler: str = "processes", workers: int = 2) -> dict:
+    """Project every texel of an observation map onto n SH bands into
+    ``fit/sh-<hemisphere>-<n^2>.zarr``; returns the figures for its metrics file."""
+    reg = cfg.get("regularisation", "auto")
+    reg = reg if reg == "auto" else float(reg)
+    cap = bool(cfg.get("sampled_cap", True)) and hemisphere in SH_CAP_AWARE
+    res = fit_map(obs_path, out_path,
+                  partial(fit_sh_tile, n=n, hemisphere=hemisphere, reg=reg,
+                          sampled_cap=cap),
+                  sh_outputs(n),
+                  {"model": "sh", "model_version": 2, "hemisphere": hemisphere, "bands": n,
+                   "coefficients": n * n, "sampled_cap": cap,
+                   "regularisation": reg if hemisphere in ("rlsop", "wls") else None,
+                   "layout": "sh.R.00 .. sh.R.(n^2-1), then G, then B; index l(l+1)+m"},
+                  scheduler, workers)
+    extra = {}
+    if cap:
+        g = open_fit(out_path)
+        ok = g["status"][:] == FitStatus.OK
+        lam, esc = g["reg"][:][ok], g["guard"][:][ok]
+        extra = {"sampled_cap": True,
+                 "regularisation_median": float(np.median(lam)) if ok.any() else None,
+                 "guarded_texels": int((esc > 0).sum()),
+                 "guard_unresolved_texels": int((esc > GUARD_STEPS).sum()),
+                 "bands_median": float(np.median(g["bands"][:][ok])) if ok.any() else None}
+    return fit_summary(out_path, res, f"sh-{hemisphere}-{n * n}", scheduler=scheduler,
+                       workers=workers, **extra)
+
+
+def run_fit(processed: str | Path, model: str, config: dict[str, Any],
+            workers: int | None = None, figures: str | Path | None = None) -> dict[str, Any]:
+    """The fit stage of one model (``mh-<K>``, ``mh-auto`` or ``sh-<hemisphere>-<n^2>``):
+    ``fit/<model>.zarr`` from the observation map with the whole (validated) ``config``
+    (section ``fit``), ``metrics/fit-<model>.json`` and, given a report folder, its
+    figures. Returns the metrics."""
+    from .metrics import write_metrics
+    from .models.sh import parse_sh_model
+    from .paths import Processed
+
+    proc = Processed(processed)
+    cfg = config["fit"]
+    workers = workers or cfg["workers"] or config["workers"]
+    if model.startswith("mh-"):
+        K = parse_lobes(model[3:])
+        name, fit, args, family = f"mh-{K}", fit_mh_map, (K,), "mh"
+    else:
+        hemi, n = parse_sh_model(model)
+        name, fit, args, family = f"sh-{hemi}-{n * n}", fit_sh_map, (hemi, n), "sh"
+    m = fit(proc.observation, proc.fit(name), *args, cfg[family], cfg["scheduler"], workers)
+    write_metrics(proc.metrics(f"fit-{name}"), m)
+    if figures:
+        from .figures import mh_figures, sh_figures
+
+        (mh_figures if family == "mh" else sh_figures)(
+            proc.fit(name), proc.observation, figures, name,
+            [tuple(x) for x in config["observation"]["lobe_texels"]] or None)
+    logger.info(f"fit: {name} mean % residual {m['mean_percentage_residual']}, "
+                f"{m['failed']} failed, {m['texels_per_second']:.1f} texels/s")
+    return m

@@ -8,10 +8,13 @@ Intrinsics are a 3x3 camera matrix ``K`` and OpenCV's distortion vector
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
 __all__ = [
+    "Intrinsics",
     "camera_centre",
     "distort_normalized",
     "look_at",
@@ -22,6 +25,18 @@ __all__ = [
     "undistort_normalized",
     "unit",
 ]
+
+
+@dataclass
+class Intrinsics:
+    """Pinhole camera with OpenCV distortion ``(k1, k2, p1, p2, k3)``; K in pixels."""
+
+    K: np.ndarray
+    dist: np.ndarray
+    image_size: tuple[int, int]  # width, height
+    rms_px: float = float("nan")
+    images_used: int = 0
+    per_image_rms_px: dict | None = None
 
 
 def unit(v: np.ndarray, axis: int = -1) -> np.ndarray:

@@ -9,6 +9,7 @@ level z and channel c, anchored at ``g[128] = 0``; radiance is then
 from __future__ import annotations
 
 import json
+import logging
 import math
 import time
 from pathlib import Path
@@ -16,11 +17,16 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from . import __version__
 from .capture import Capture, View
 from .conventions import NOISE_CHANNEL
 from .errors import InputError
 from .exr import read_exr, write_exr
 from .imageio import ImageReadError, read_image
+from .metrics import digest
+from .paths import Processed
+
+logger = logging.getLogger(__name__)
 
 __all__ = [
     "HdrError",
@@ -32,6 +38,8 @@ __all__ = [
     "read_hdr_noise",
     "recover_response",
     "reexposure_error",
+    "run_hdr",
+    "run_response",
     "sample_pixels",
     "save_response",
     "solve_debevec",
@@ -322,11 +330,12 @@ def load_bracket(view: View) -> tuple[np.ndarray, np.ndarray]:
 
 
 def merge_view(
-    view: View, g: np.ndarray | None, out: str | Path, low: int = 5, high: int = 250
+    view: View, g: np.ndarray | None, out: str | Path, low: int = 5, high: int = 250,
+    provenance: dict[str, str] | None = None,
 ) -> dict:
-    """Merge one view into ``out`` (EXR: R, G, B, saturated, dark). ``g`` None means
-    linear input (16-bit or RAW): radiance = value / t, averaged over unsaturated
-    exposures."""
+    """Merge one view into ``out`` (EXR: R, G, B, saturated, dark, noise). ``g`` None
+    means linear input (16-bit or RAW): radiance = value / t, averaged over unsaturated
+    exposures. ``provenance``: extra header attributes (software, config digest)."""
     if g is None:
         imgs = [read_image(e.path).astype(np.float32) for e in view.exposures]
         full = 65535.0 if imgs[0].max() > 255 else 255.0
@@ -354,7 +363,8 @@ def merge_view(
                     "saturated": saturated.astype(np.float32),
                     "dark": dark.astype(np.float32), NOISE_CHANNEL: noise},
               {"view_id": view.id, "units": "relative radiance (response exp(g)/t)",
-               "noise": "relative sd of the radiance per pixel (merge_noise)"})
+               "noise": "relative sd of the radiance per pixel (merge_noise)",
+               **(provenance or {})})
     stats = {"view": view.id, "saturated_fraction": float(saturated.mean()),
              "dark_fraction": float(dark.mean())}
     if g is not None:
@@ -474,7 +484,7 @@ def load_reference_response(path: str | Path) -> np.ndarray:
 
 
 def response_for_capture(
-    cap: Capture, cfg: dict, log=print, max_views: int = 24
+    cap: Capture, cfg: dict, max_views: int = 24
 ) -> tuple[np.ndarray | None, dict]:
     """The capture's response: recovered from (up to ``max_views``, spread) brackets,
     read from a saved curve, or None for linear input. Unreadable or single-exposure
@@ -492,7 +502,7 @@ def response_for_capture(
         try:
             stack, t = load_bracket(v)
         except (ImageReadError, HdrError) as exc:
-            log(f"response: skipping view {v.id}: {exc}")
+            logger.info(f"response: skipping view {v.id}: {exc}")
             continue
         if len(t) < 2:
             continue
@@ -503,6 +513,51 @@ def response_for_capture(
                          cfg["seed"], cfg["low"], cfg["high"])
     return g, {"response": cfg["method"], "views_used": used,
                "samples": cfg["samples"], "seconds": time.perf_counter() - t0}
+
+
+def run_response(cap: Capture, processed: str | Path, cfg: dict,
+                 figure: str | Path | None = None, reference: str | Path | None = None,
+                 reference_label: str = "reference") -> dict:
+    """The response stage: recover (or read) the capture's response into
+    ``camera/response.csv`` (``camera/response.txt`` for linear input), with an
+    optional figure of the curve beside a reference. ``cfg``: config section ``hdr``."""
+    out = Processed(processed)
+    g, meta = response_for_capture(cap, cfg)
+    if g is None:
+        out.camera.mkdir(parents=True, exist_ok=True)
+        out.response_note.write_text("linear input: no response curve\n")
+    else:
+        save_response(out.response_csv, g, meta)
+        if figure:
+            from .report import plot_response
+
+            ref = load_reference_response(reference) if reference else None
+            plot_response(g, figure, reference=ref, reference_label=reference_label,
+                          title=f"{cap.surface_id}: recovered response")
+    logger.info(f"response: {meta['response']} -> {out.camera}")
+    return meta
+
+
+def run_hdr(cap: Capture, processed: str | Path, cfg: dict, view_ids: list[str] | None = None,
+            response: str | Path | None = None) -> list[dict]:
+    """The hdr stage: merge the brackets of the given views (default: all) into
+    ``hdr/<view>.exr`` with per-view statistics in ``hdr/<view>.json``."""
+    from .metrics import write_metrics
+
+    out = Processed(processed)
+    g = None if cap.response == "linear" else load_response(response or out.response_csv)
+    views = [cap.view(v) for v in view_ids] if view_ids else cap.views
+    prov = {"software": f"parammap {__version__}", "config_digest": digest(cfg),
+            "response_digest": "linear" if g is None else digest(g)}
+    stats = []
+    for v in views:
+        t0 = time.perf_counter()
+        st = merge_view(v, g, out.hdr(v.id), cfg["low"], cfg["high"], prov)
+        st["seconds"] = time.perf_counter() - t0
+        write_metrics(out.hdr_stats(v.id), st)
+        logger.info(f"hdr: {v.id} saturated {st['saturated_fraction']:.4f}")
+        stats.append(st)
+    return stats
 
 
 def gather_hdr_metrics(stats_paths: list[str | Path], out: str | Path,

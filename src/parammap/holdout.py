@@ -19,6 +19,7 @@ the plane, 004 ch. 3.5).
 
 from __future__ import annotations
 
+import logging
 import math
 import warnings
 from pathlib import Path
@@ -26,15 +27,18 @@ from typing import Any
 
 import numpy as np
 
-from .calibration import Intrinsics
 from .capture import Capture
 from .conventions import LUMINANCE
+from .geometry import Intrinsics
 from .observation import kept_poses, open_observation_map
 from .params import ParamMap
+from .paths import Processed, read_poses
 from .render import render, reproject_frame, surface_points, tone_map
 
+logger = logging.getLogger(__name__)
+
 __all__ = ["choose_gamma", "compare", "diffuse_map", "holdout_comparison", "marker_pixels",
-           "pixel_regions", "region_errors", "texel_regions"]
+           "pixel_regions", "region_errors", "run_holdout", "texel_regions"]
 
 REGIONS = 6  # clusters of similar texels the held-out errors are broken down by
 
@@ -171,7 +175,7 @@ def compare(photo: np.ndarray, image: np.ndarray, mask: np.ndarray, gamma: float
 
 def holdout_comparison(
     cap: Capture, intr: Intrinsics, processed: str | Path, maps: dict[str, ParamMap],
-    out_dir: str | Path, log=print, regions: tuple[np.ndarray, list[dict]] | None = None,
+    out_dir: str | Path, regions: tuple[np.ndarray, list[dict]] | None = None,
 ) -> dict[str, Any]:
     """Compare every model in ``maps`` (name -> map; include the ``diffuse`` baseline
     from :func:`diffuse_map`) and the nearest-view baseline with every held-out view.
@@ -181,29 +185,26 @@ def holdout_comparison(
 
     Writes 8-bit images (photo, render and difference per model) under ``out_dir``;
     returns the metrics for ``metrics/holdout.json``."""
-    import yaml
-
     from .hdr import read_hdr
     from .imageio import write_image_atomic
 
-    processed = Path(processed)
+    proc = Processed(processed)
     out_dir = Path(out_dir)
-    recs = yaml.safe_load((processed / "camera" / "poses.yaml").read_text())["views"]
-    held = [r for r in recs if r.get("holdout")]
-    kept, _ = kept_poses(processed / "camera" / "poses.yaml", processed / "hdr")
+    held = [r for r in read_poses(proc.poses)["views"] if r.get("holdout")]
+    kept, _ = kept_poses(proc)
     centre = np.array([cap.width_mm / 2, cap.height_mm / 2, 0.0])
     kdir = np.array([(v.centre - centre) / np.linalg.norm(v.centre - centre) for v in kept])
-    labels, described = regions or texel_regions(processed / "observation.zarr")
+    labels, described = regions or texel_regions(proc.observation)
     result: dict[str, Any] = {"views": {}, "models": list(maps) + ["nearest-view"],
                               "skipped": {}, "regions": described}
     for r in held:
         vid = str(r["id"])
         if not r.get("kept"):
             result["skipped"][vid] = r.get("reason", "no pose")
-            log(f"holdout: skipping {vid}: {result['skipped'][vid]}")
+            logger.info(f"holdout: skipping {vid}: {result['skipped'][vid]}")
             continue
         R, t = np.asarray(r["R"], float), np.asarray(r["t"], float)
-        photo, sat, _ = read_hdr(processed / "hdr" / f"{vid}.exr")
+        photo, sat, _ = read_hdr(proc.hdr(vid))
         P, inside = surface_points(intr, R, t, cap.width_mm, cap.height_mm,
                                    (photo.shape[1], photo.shape[0]))
         mask = inside & ~sat & ~marker_pixels(cap, P)
@@ -218,7 +219,7 @@ def holdout_comparison(
         px_regions = pixel_regions(labels, P, inside, cap.width_mm, cap.height_mm)
         if r.get("warning"):  # the pose policy would have dropped a fitted view like it
             row["pose_warning"] = r["warning"]
-            log(f"holdout: {vid}: poor pose, compared all the same: {r['warning']}")
+            logger.info(f"holdout: {vid}: poor pose, compared all the same: {r['warning']}")
         photo8 = tone_map(np.where(inside[..., None], photo, 0), gamma)
         write_image_atomic(out_dir / f"{vid}_photo.png", photo8)
         for name, img in renders.items():
@@ -230,7 +231,23 @@ def holdout_comparison(
             d = np.where(mask, d, 0)
             write_image_atomic(out_dir / f"{vid}_{name}_diff.png",
                                np.repeat(np.clip(d, 0, 255).astype(np.uint8)[..., None], 3, -1))
-            log(f"holdout: {vid} {name}: mean 8-bit difference "
-                f"{row['models'][name]['mean_diff_8bit']:.2f}")
+            logger.info(f"holdout: {vid} {name}: mean 8-bit difference "
+                        f"{row['models'][name]['mean_diff_8bit']:.2f}")
         result["views"][vid] = row
     return result
+
+
+def run_holdout(cap: Capture, processed: str | Path, models: list[str]) -> dict[str, Any]:
+    """The holdout stage: render the exported maps ``params/<model>.exr`` of ``models``
+    in every held-out view and compare (images under ``holdout/``, figures in
+    ``metrics/holdout.json``, also returned)."""
+    from .calibration import load_intrinsics
+    from .metrics import write_metrics
+    from .params import read_param_map
+
+    proc = Processed(processed)
+    maps = {name: read_param_map(proc.params(name)) for name in models}
+    res = holdout_comparison(cap, load_intrinsics(proc.intrinsics), proc.root, maps,
+                             proc.holdout_dir)
+    write_metrics(proc.metrics("holdout"), res)
+    return res

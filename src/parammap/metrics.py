@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["read_metrics", "write_metrics"]
+__all__ = ["digest", "read_metrics", "write_metrics"]
 
 
 def _plain(o: Any) -> Any:
@@ -39,3 +40,10 @@ def write_metrics(path: str | Path, data: dict[str, Any]) -> Path:
 
 def read_metrics(path: str | Path) -> dict[str, Any]:
     return json.loads(Path(path).read_text())
+
+
+def digest(data: Any) -> str:
+    """Short SHA-256 of a value's canonical JSON (keys sorted; arrays as lists): the
+    provenance of an output, equal exactly when its inputs are."""
+    text = json.dumps(_plain(data), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()[:16]

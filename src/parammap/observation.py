@@ -29,6 +29,7 @@ interrupted build never leaves a store that later steps would accept.
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import shutil
@@ -39,7 +40,6 @@ from typing import Any
 
 import cv2
 import numpy as np
-import yaml
 import zarr
 
 from . import __version__
@@ -48,7 +48,10 @@ from .capture import Capture
 from .errors import InputError
 from .geometry import sample_image, texel_centres, unit
 from .hdr import read_hdr_noise
+from .paths import PosesError, Processed, read_poses
 from .stores import COMPLETE_ATTR, executor, open_complete, store_bytes
+
+logger = logging.getLogger(__name__)
 
 __all__ = [
     "COMPLETE_ATTR",
@@ -56,6 +59,7 @@ __all__ = [
     "ViewPose",
     "build_observation_map",
     "kept_poses",
+    "run_observation",
     "marker_texel_mask",
     "open_observation_map",
     "sample_view",
@@ -89,9 +93,9 @@ def texel_grid(cap: Capture, texels_x: int | str, texels_y: int | None = None,
     ``camera/poses.yaml``, see :mod:`parammap.poses`)."""
     if texels_x == "auto":
         try:
-            grid = yaml.safe_load(Path(poses_yaml).read_text())["map"]
+            grid = read_poses(poses_yaml)["map"]
             return int(grid["S"]), int(grid["T"])
-        except (OSError, TypeError, KeyError, yaml.YAMLError) as exc:
+        except (PosesError, TypeError, KeyError) as exc:
             raise ObservationError(f"{poses_yaml}: observation.texels_x auto needs the map "
                                    f"the poses stage chose ({exc}); rerun poses") from None
     S = int(texels_x)
@@ -99,14 +103,12 @@ def texel_grid(cap: Capture, texels_x: int | str, texels_y: int | None = None,
     return S, T
 
 
-def kept_poses(poses_yaml: str | Path, hdr_dir: str | Path) -> tuple[list[ViewPose], list[str]]:
-    """Kept, non-held-out views from ``camera/poses.yaml`` (in file order) and the ids of
-    the held-out views."""
-    poses_yaml = Path(poses_yaml)
-    try:
-        recs = yaml.safe_load(poses_yaml.read_text())["views"]
-    except (OSError, KeyError, TypeError, yaml.YAMLError) as exc:
-        raise ObservationError(f"{poses_yaml}: not a poses file ({exc})") from None
+def kept_poses(processed: str | Path) -> tuple[list[ViewPose], list[str]]:
+    """Kept, non-held-out views of a processed folder's ``camera/poses.yaml`` (in file
+    order, with their HDR frames) and the ids of the held-out views."""
+    proc = Processed(processed)
+    poses_yaml = proc.poses
+    recs = read_poses(poses_yaml)["views"]
     views, held = [], []
     for r in recs:
         if r.get("holdout"):
@@ -116,7 +118,7 @@ def kept_poses(poses_yaml: str | Path, hdr_dir: str | Path) -> tuple[list[ViewPo
             continue
         partial = r.get("partial") is not None and r.get("cov") is not None
         views.append(ViewPose(str(r["id"]), np.asarray(r["R"], float).reshape(3, 3),
-                              np.asarray(r["t"], float).ravel(), Path(hdr_dir) / f"{r['id']}.exr",
+                              np.asarray(r["t"], float).ravel(), proc.hdr(str(r["id"])),
                               np.asarray(r["cov"], float) if partial else None,
                               float(r["max_texel_shift"]) if partial else None))
     if not views:
@@ -150,6 +152,10 @@ def _project(P: np.ndarray, intr: Intrinsics, R: np.ndarray, t: np.ndarray) -> n
 OBS_DIMS = {"radiance": ("row", "col", "view", "channel"),
             "direction": ("row", "col", "view", "xyz"),
             "valid": ("row", "col", "view"), "noise": ("row", "col", "view")}
+OBS_UNITS = {"radiance": "relative linear radiance (one global scale)",
+             "direction": "1 (unit vector toward the camera, surface frame)",
+             "valid": "1 (true: observed, unsaturated, unoccluded)",
+             "noise": "1 (relative sd of the radiance; NaN: not recorded)"}
 
 
 def sample_view(
@@ -296,7 +302,6 @@ def build_observation_map(
     max_supersample: int = 6,
     workers: int = 1,
     config: dict[str, Any] | None = None,
-    log=print,
 ) -> dict[str, Any]:
     """Build ``observation.zarr`` from a processed capture's poses and HDR frames.
 
@@ -315,18 +320,18 @@ def build_observation_map(
     dict of figures for ``metrics/observation.json``.
     """
     t_start = time.perf_counter()
-    processed = Path(processed)
+    proc = Processed(processed)
     out = Path(out)
-    intr = load_intrinsics(processed / "camera" / "intrinsics.yaml")
-    views, held = kept_poses(processed / "camera" / "poses.yaml", processed / "hdr")
+    intr = load_intrinsics(proc.intrinsics)
+    views, held = kept_poses(proc)
     for v in views:
         if not v.hdr.is_file():
             raise ObservationError(f"{v.hdr}: HDR frame of kept view {v.id} is missing")
-    S, T = texel_grid(cap, texels_x, texels_y, processed / "camera" / "poses.yaml")
+    S, T = texel_grid(cap, texels_x, texels_y, proc.poses)
     N = len(views)
-    log(f"observation: map {S}x{T} texels ({cap.width_mm / S:.3f} mm) x {N} views"
-        + (" (auto: about one texel per photo pixel at the median view)"
-           if texels_x == "auto" else ""))
+    logger.info(f"observation: map {S}x{T} texels ({cap.width_mm / S:.3f} mm) x {N} views"
+                + (" (auto: about one texel per photo pixel at the median view)"
+                   if texels_x == "auto" else ""))
     tile = int(min(tile, S, T))
     tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
     scratch = tmp / "scratch.zarr"
@@ -353,21 +358,25 @@ def build_observation_map(
                 bytes_read += nbytes
                 per_view[vid] = frac
                 if (k + 1) % max(1, N // 10) == 0 or k + 1 == N:
-                    log(f"observation: sampled {k + 1}/{N} views")
+                    logger.info(f"observation: sampled {k + 1}/{N} views")
         t_sample = time.perf_counter() - t_start
 
         g = zarr.open_group(final, mode="w")
         comp = _compressor()
         g.create_array("radiance", shape=(T, S, N, 3), dimension_names=OBS_DIMS["radiance"],
+                       attributes={"units": OBS_UNITS["radiance"]},
                        chunks=(tile, tile, N, 3),
                        dtype="float32", compressors=comp, fill_value=np.nan)
         g.create_array("direction", shape=(T, S, N, 3), dimension_names=OBS_DIMS["direction"],
+                       attributes={"units": OBS_UNITS["direction"]},
                        chunks=(tile, tile, N, 3),
                        dtype="float32", compressors=comp, fill_value=np.nan)
         g.create_array("valid", shape=(T, S, N), dimension_names=OBS_DIMS["valid"],
+                       attributes={"units": OBS_UNITS["valid"]},
                        chunks=(tile, tile, N), dtype="bool",
                        compressors=comp, fill_value=False)
         g.create_array("noise", shape=(T, S, N), dimension_names=OBS_DIMS["noise"],
+                       attributes={"units": OBS_UNITS["noise"]},
                        chunks=(tile, tile, N), dtype="float32",
                        compressors=comp, fill_value=np.nan)
         marker = marker_texel_mask(cap, S, T)
@@ -396,7 +405,7 @@ def build_observation_map(
             for k, nv in enumerate(ex.map(_pass2_band, bands)):
                 nvalid += nv
                 if (k + 1) % max(1, len(bands) // 5) == 0 or k + 1 == len(bands):
-                    log(f"observation: wrote {k + 1}/{len(bands)} tile rows")
+                    logger.info(f"observation: wrote {k + 1}/{len(bands)} tile rows")
         g.attrs[COMPLETE_ATTR] = True
         shutil.rmtree(scratch)
         if out.exists():
@@ -418,6 +427,30 @@ def build_observation_map(
         "compression_ratio": uncompressed / max(on_disk, 1),
         "valid_fraction_per_view": per_view, "tile": tile,
     }
+
+
+def run_observation(cap: Capture, processed: str | Path, config: dict[str, Any],
+                    workers: int | None = None, figures: str | Path | None = None,
+                    ) -> dict[str, Any]:
+    """The observe stage: build ``observation.zarr`` with the config section
+    ``observation`` of the whole (validated) ``config``, write
+    ``metrics/observation.json`` and, given a report folder, its figures."""
+    from .metrics import write_metrics
+
+    proc = Processed(processed)
+    cfg = config["observation"]
+    m = build_observation_map(
+        cap, proc.root, proc.observation, cfg["texels_x"], cfg["texels_y"], cfg["tile"],
+        cfg["max_zenith_deg"], cfg["max_supersample"], workers or config["workers"],
+        config=config)
+    write_metrics(proc.metrics("observation"), m)
+    if figures:
+        observation_figures(proc.observation, figures,
+                            [tuple(x) for x in cfg["lobe_texels"]] or None)
+    logger.info(f"observation: {m['S']}x{m['T']} texels x {m['views']} views, valid "
+                f"{m['valid_fraction']:.3f}, {m['bytes_on_disk'] / 1e6:.1f} MB in "
+                f"{m['build_seconds']:.1f} s")
+    return m
 
 
 def open_observation_map(path: str | Path) -> zarr.Group:
@@ -475,7 +508,8 @@ def write_observation_arrays(
                             ("valid", valid, False), ("noise", noise, np.nan)):
         a = g.create_array(name, shape=arr.shape, chunks=(tile, tile) + arr.shape[2:],
                            dtype="bool" if name == "valid" else "float32", compressors=comp,
-                           fill_value=fill, dimension_names=OBS_DIMS[name])
+                           fill_value=fill, dimension_names=OBS_DIMS[name],
+                           attributes={"units": OBS_UNITS[name]})
         a[...] = arr
     g.attrs.update({"width_mm": width_mm, "height_mm": height_mm, "S": S, "T": T,
                     "tile": tile, "view_ids": view_ids or [f"v{n:03d}" for n in range(N)],

@@ -16,7 +16,7 @@ undone: 1), ``width_mm``, ``height_mm``, ``S``, ``T`` and ``software``.
 
 from __future__ import annotations
 
-import math
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,10 +24,13 @@ from typing import Any
 import numpy as np
 
 from . import __version__
+from .conventions import DIFFUSE_CHANNELS, mh_channels, mh_lobes, sh_bands, sh_channels
 from .exr import ExrError, read_exr, write_exr
 
-__all__ = ["MODELS", "ParamMap", "channel_names", "param_map_from_fit", "read_param_map",
-           "write_param_map"]
+__all__ = ["MODELS", "ParamMap", "channel_names", "export_maps", "param_map_from_fit",
+           "read_param_map", "write_param_map"]
+
+logger = logging.getLogger(__name__)
 
 MODELS = {"mh": 1, "sh": 1, "diffuse": 1}
 
@@ -39,24 +42,23 @@ class ParamMapError(ExrError):
 def channel_names(model: str, n_params: int) -> list[str]:
     """Channel names of a model's parameter vector of length ``n_params``."""
     if model == "diffuse":
-        if n_params != 3:
+        if n_params != len(DIFFUSE_CHANNELS):
             raise ParamMapError(f"diffuse maps have 3 parameters (got {n_params})")
-        return ["Kd.R", "Kd.G", "Kd.B"]
+        return list(DIFFUSE_CHANNELS)
     if model == "mh":
-        if n_params < 10 or (n_params - 4) % 6:
-            raise ParamMapError(f"MH maps have 4 + 6K parameters (got {n_params})")
-        names = ["Kd.R", "Kd.G", "Kd.B", "m"]
-        for k in range(1, (n_params - 4) // 6 + 1):
-            names += [f"lobe{k}.Ks.R", f"lobe{k}.Ks.G", f"lobe{k}.Ks.B",
-                      f"lobe{k}.d.X", f"lobe{k}.d.Y", f"lobe{k}.d.Z"]
-        return names
+        try:
+            K = mh_lobes(n_params)
+        except ValueError as exc:
+            raise ParamMapError(str(exc)) from None
+        if K < 1:
+            raise ParamMapError(f"MH maps have at least one lobe (got {n_params} values)")
+        return mh_channels(K)
     if model == "sh":
-        nc = n_params // 3
-        n = int(round(math.sqrt(nc)))
-        if n_params % 3 or n * n != nc:
-            raise ParamMapError(f"SH maps have 3 n^2 parameters (got {n_params})")
-        w = max(2, len(str(nc - 1)))
-        return [f"sh.{c}.{i:0{w}d}" for c in "RGB" for i in range(nc)]
+        try:
+            n = sh_bands(n_params // 3 if n_params % 3 == 0 else 0)
+        except ValueError:
+            raise ParamMapError(f"SH maps have 3 n^2 parameters (got {n_params})") from None
+        return sh_channels(n)
     raise ParamMapError(f"unknown model {model!r} (known: {', '.join(MODELS)})")
 
 
@@ -137,3 +139,21 @@ def param_map_from_fit(fit_path: str | Path) -> ParamMap:
                                      "regularisation") if g.attrs.get(k) is not None}
     return ParamMap(model, g[key][:], g.attrs["width_mm"], g.attrs["height_mm"],
                     g.attrs.get("hemisphere"), attrs)
+
+
+def export_maps(processed: str | Path, models: list[str], half: bool = False) -> list[Path]:
+    """The export stage: ``params/<model>.exr`` from each finished fit store
+    ``fit/<model>.zarr``; ``diffuse`` is the mean-radiance baseline of the observation
+    map. ``half``: half floats instead of float32."""
+    from .holdout import diffuse_map
+    from .paths import Processed
+
+    proc = Processed(processed)
+    paths = []
+    for name in models:
+        pm = (diffuse_map(proc.observation) if name == "diffuse"
+              else param_map_from_fit(proc.fit(name)))
+        paths.append(write_param_map(proc.params(name), pm, half=half))
+        logger.info(f"export: {paths[-1]} ({pm.params.shape[-1]} channels, "
+                    f"{'half' if half else 'float32'})")
+    return paths

@@ -36,6 +36,7 @@ so the observation stage uses the same map the policy judged.
 
 from __future__ import annotations
 
+import logging
 import math
 from pathlib import Path
 from typing import Any
@@ -48,6 +49,9 @@ from .calibration import Intrinsics, estimate_pose, load_intrinsics, to_gray8
 from .capture import Capture
 from .exr import ExrError
 from .geometry import unit
+from .paths import Processed
+
+logger = logging.getLogger(__name__)
 
 __all__ = ["map_resolution", "px_per_mm", "run_poses", "view_spacing_deg", "view_uncertainty"]
 
@@ -193,18 +197,19 @@ def map_resolution(cap: Capture, ppmm: list[float], n_views: int, texels_x: int 
     return {"S": S, "T": T, "texel_mm": cap.width_mm / S, **out}
 
 
-def run_poses(cap: Capture, processed: str | Path, cfg: dict, obs_cfg: dict,
-              log=print) -> dict[str, Any]:
-    """Poses of every view, the map resolution and the view policy; writes
-    ``camera/poses.yaml`` and returns the figures for ``metrics/poses.json``."""
+def run_poses(cap: Capture, processed: str | Path, cfg: dict, obs_cfg: dict) -> dict[str, Any]:
+    """The poses stage: the pose of every view, the map resolution and the view policy;
+    writes ``camera/poses.yaml`` and ``metrics/poses.json`` and returns the latter's
+    figures. ``cfg``, ``obs_cfg``: config sections ``poses`` and ``observation``."""
     from .hdr import read_hdr
+    from .metrics import write_metrics
 
-    out = Path(processed)
-    intr = load_intrinsics(out / "camera" / "intrinsics.yaml")
+    out = Processed(processed)
+    intr = load_intrinsics(out.intrinsics)
     recs = []
     for v in cap.views:
         try:
-            rad, _, _ = read_hdr(out / "hdr" / f"{v.id}.exr")
+            rad, _, _ = read_hdr(out.hdr(v.id))
         except ExrError as exc:
             rec = {"ok": False, "reason": str(exc)}
         else:
@@ -225,9 +230,10 @@ def run_poses(cap: Capture, processed: str | Path, cfg: dict, obs_cfg: dict,
     med = {kind: float(np.median([r["noise_px"] for _, r in posed
                                   if (r["edge_points"] > 0) == kind] or [0.0]))
            for kind in (True, False)}
-    log(f"poses: map {grid['S']}x{grid['T']} texels ({grid['texel_mm']:.3f} mm, "
-        f"{grid['source']}); view spacing {spacing:.2f} deg; limits (1 sd) "
-        f"{cfg['max_texel_shift']} texel = {max_shift_mm:.3f} mm, direction {max_dir:.3f} deg")
+    logger.info(f"poses: map {grid['S']}x{grid['T']} texels ({grid['texel_mm']:.3f} mm, "
+                f"{grid['source']}); view spacing {spacing:.2f} deg; limits (1 sd) "
+                f"{cfg['max_texel_shift']} texel = {max_shift_mm:.3f} mm, "
+                f"direction {max_dir:.3f} deg")
     records = []
     for v, rec in recs:
         row: dict[str, Any] = {"id": v.id, "holdout": v.holdout}
@@ -263,11 +269,12 @@ def run_poses(cap: Capture, processed: str | Path, cfg: dict, obs_cfg: dict,
                            f"{cfg['max_rotation_sd_deg']}")
             if why and v.holdout:
                 row["warning"] = "; ".join(why)
-                log(f"poses: held-out view {v.id} kept for the comparison, but {row['warning']}")
+                logger.info(f"poses: held-out view {v.id} kept for the comparison, but "
+                            f"{row['warning']}")
             elif why:
                 rec.update(ok=False, reason="; ".join(why))
         if not rec["ok"]:
-            log(f"poses: dropping view {v.id}: {rec['reason']}")
+            logger.info(f"poses: dropping view {v.id}: {rec['reason']}")
         row["kept"] = bool(rec["ok"])
         if not rec["ok"]:
             row["reason"] = rec["reason"]
@@ -279,24 +286,24 @@ def run_poses(cap: Capture, processed: str | Path, cfg: dict, obs_cfg: dict,
             # the observation stage masks the texels this view sees too uncertainly
             row.update(partial=rec["partial"], cov=np.asarray(rec["cov"]).tolist(),
                        max_texel_shift=float(cfg["max_texel_shift"]))
-            log(f"poses: view {v.id} kept for {100 * rec['partial']:.0f} % of the region "
-                f"(elsewhere surface points uncertain by up to {rec['shift_mm']:.2f} mm = "
-                f"{rec['texel_shift']:.2f} of the sampling width)")
+            logger.info(f"poses: view {v.id} kept for {100 * rec['partial']:.0f} % of the region "
+                        f"(elsewhere surface points uncertain by up to {rec['shift_mm']:.2f} mm = "
+                        f"{rec['texel_shift']:.2f} of the sampling width)")
         if "edge_points" in rec:
             row["edge_points"] = int(rec["edge_points"])
         row["markers"] = rec.get("markers", [])
         if "detected" in rec:
             row["detected"] = rec["detected"]
         records.append(row)
-    path = out / "camera" / "poses.yaml"
-    tmp = path.with_name(".poses.yaml.tmp")
+    path = out.poses
+    tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(yaml.safe_dump({"map": grid, "view_spacing_deg": spacing,
                                    "views": records}, sort_keys=False))
     tmp.replace(path)
     kept = [r for r in records if r["kept"]]
     rms = [r["rms_px"] for r in kept]
-    log(f"poses: kept {len(kept)} of {len(records)} views")
-    return {
+    logger.info(f"poses: kept {len(kept)} of {len(records)} views")
+    m = {
         "views": len(records), "kept": len(kept),
         "kept_fraction": len(kept) / max(len(records), 1),
         "dropped": {r["id"]: r["reason"] for r in records if not r["kept"]},
@@ -310,3 +317,5 @@ def run_poses(cap: Capture, processed: str | Path, cfg: dict, obs_cfg: dict,
         "max_texel_shift": max((r["texel_shift"] for r in kept), default=None),
         "max_direction_sd_deg": max((r["direction_sd_deg"] for r in kept), default=None),
         "rms_px": {r["id"]: r["rms_px"] for r in kept}}
+    write_metrics(out.metrics("poses"), m)
+    return m

@@ -13,9 +13,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .calibration import Intrinsics
+from .conventions import MH_KD, mh_dir, mh_lobes
 from .errors import InputError
 from .geometry import (
+    Intrinsics,
     camera_centre,
     pixel_to_plane,
     plane_to_texel,
@@ -74,15 +75,15 @@ def evaluate_bilinear(model: str, params: np.ndarray, row: np.ndarray, col: np.n
 def evaluate(model: str, params: np.ndarray, directions: np.ndarray) -> np.ndarray:
     """Radiance (M, 3) of per-point parameter vectors (M, P) seen from directions (M, 3)."""
     if model == "diffuse":
-        return params[:, 0:3].astype(float)
+        return params[:, MH_KD].astype(float)
     if model == "mh":
         from .models.mh import mh_eval
 
         p = params.astype(float).copy()
-        K = (p.shape[1] - 4) // 6
+        K = mh_lobes(p.shape[1])
         for k in range(K):  # interpolated lobe directions are renormalised
-            d = p[:, 7 + 6 * k: 10 + 6 * k]
-            p[:, 7 + 6 * k: 10 + 6 * k] = d / np.maximum(np.linalg.norm(d, axis=1,
+            d = p[:, mh_dir(k)]
+            p[:, mh_dir(k)] = d / np.maximum(np.linalg.norm(d, axis=1,
                                                                         keepdims=True), 1e-12)
         return mh_eval(p, directions[:, None, :])[:, 0]
     if model == "sh":

@@ -35,48 +35,27 @@ from __future__ import annotations
 
 import math
 from functools import lru_cache
-from pathlib import Path
 
 import numpy as np
 from scipy.spatial import ConvexHull
 
-from ..conventions import LUMINANCE, FitStatus
+from ..conventions import SH_CAP_AWARE, SH_HEMISPHERES, FitStatus, sh_degree_order, sh_norms
 from ..errors import InputError
+from .residuals import mean_percentage_residual
 from .weights import noise_weights, reduced_chi2
 
 __all__ = [
-    "HEMISPHERES",
-    "fit_sh_map",
     "fit_sh_tile",
+    "guarded_project",
     "hemisphere_gram",
     "project",
     "sh_basis",
+    "parse_sh_model",
+    "project_cap",
     "sh_eval",
-    "sh_figures",
     "sh_outputs",
     "solid_angles",
 ]
-
-HEMISPHERES = ("zh", "mirror", "lsop", "rlsop", "wls")
-CAP_AWARE = ("lsop", "rlsop", "wls")  # projections that can use the sampled cap
-STATUS_NOT_FITTED, STATUS_OK, STATUS_TOO_FEW, STATUS_FAILED = (
-    int(FitStatus.NOT_FITTED), int(FitStatus.OK), int(FitStatus.TOO_FEW), int(FitStatus.FAILED))
-
-
-def _lm(n: int) -> tuple[np.ndarray, np.ndarray]:
-    l_ = np.repeat(np.arange(n), 2 * np.arange(n) + 1)
-    m_ = np.concatenate([np.arange(-l, l + 1) for l in range(n)])
-    return l_, m_
-
-
-@lru_cache(maxsize=64)
-def _norms(n: int) -> np.ndarray:
-    K = np.zeros((n, n))
-    for l in range(n):
-        for m in range(l + 1):
-            K[l, m] = math.sqrt((2 * l + 1) * math.factorial(l - m)
-                                / (4 * math.pi * math.factorial(l + m)))
-    return K
 
 
 def sh_basis(directions: np.ndarray, n: int) -> np.ndarray:
@@ -95,7 +74,7 @@ def sh_basis(directions: np.ndarray, n: int) -> np.ndarray:
     x = np.clip(d[..., 2], -1.0, 1.0)
     phi = np.arctan2(d[..., 1], d[..., 0])
     s = np.sqrt(np.maximum(1 - x * x, 0.0))
-    K = _norms(n)
+    K = sh_norms(n)
     out = np.empty(d.shape[:-1] + (n * n,))
     pmm = np.ones_like(x)
     for m in range(n):
@@ -243,16 +222,16 @@ def project(
     -------
     (B, 3, n^2) coefficients, channel blocks in R, G, B order.
     """
-    if hemisphere not in HEMISPHERES:
+    if hemisphere not in SH_HEMISPHERES:
         raise InputError(f"unknown hemisphere handling {hemisphere!r} "
-                         f"(one of {', '.join(HEMISPHERES)})")
+                         f"(one of {', '.join(SH_HEMISPHERES)})")
     Y = sh_basis(directions, n) if basis is None else basis  # (B, N, n2)
     Yw = Y * weights[..., None]
     b = np.matmul(radiance.transpose(0, 2, 1), Yw)  # (B, 3, n2): int_H f y_i
     if hemisphere == "zh":
         return b
     if hemisphere == "mirror":
-        l_, m_ = _lm(n)
+        l_, m_ = sh_degree_order(n)
         even = ((l_ + m_) % 2 == 0).astype(float)  # y_i(x, y, -z) = (-1)^(l+m) y_i
         return 2 * b * even
     if hemisphere == "wls":
@@ -261,7 +240,7 @@ def project(
         return np.linalg.solve(G[:, None], b[..., None])[..., 0]
     A = hemisphere_gram(n)
     if hemisphere == "rlsop":
-        l_, _ = _lm(n)
+        l_, _ = sh_degree_order(n)
         A = A + reg * np.diag((l_ * (l_ + 1.0)) ** 2)
     return np.linalg.solve(A, b.reshape(-1, n * n).T).T.reshape(b.shape)
 
@@ -338,7 +317,7 @@ class SampledCap:
         kept = np.bincount(near[inside], w[inside], minlength=N)
         self.fraction = np.where(cell > 0, kept / np.maximum(cell, 1e-300), 1.0)
         Yg = sh_basis(g, n)
-        l_, _ = _lm(n)
+        l_, _ = sh_degree_order(n)
         H = Yg[~inside] * (l_ >= LOW_BANDS)
         self.prior = (H * w[~inside, None]).T @ H
         self.basis_u = Yg[~inside]
@@ -349,7 +328,7 @@ class SampledCap:
 def roughness(n: int) -> np.ndarray:
     """(n^2, n^2) diagonal ``(l (l + 1))^2 / (L (L + 1))^2``: the squared surface
     Laplacian of a reconstruction over the sphere, scaled so that the top band is 1."""
-    l_, _ = _lm(n)
+    l_, _ = sh_degree_order(n)
     top = max((n - 1) * n, 1)
     return np.diag((l_ * (l_ + 1.0) / top) ** 2)
 
@@ -540,7 +519,7 @@ def sh_outputs(n: int) -> dict[str, tuple[tuple[int, ...], str, float]]:
         "reg": ((), "float32", float("nan")),
         "guard": ((), "int8", 0),
         "bands": ((), "int8", n),
-        "status": ((), "int8", STATUS_NOT_FITTED),
+        "status": ((), "int8", int(FitStatus.NOT_FITTED)),
     }
 
 
@@ -555,8 +534,6 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
     :func:`project` (Voronoi cells out to the equator, fixed ``reg``). ``noise`` (t, u,
     N) relative sd per observation: cell weights are multiplied by the noise weights
     of :func:`parammap.models.weights.noise_weights`, and ``chi2`` is reported."""
-    from .mh import mean_percentage_residual
-
     t, u, N, _ = radiance.shape
     out = {k: np.full((t, u) + shp, fill, dtype) for k, (shp, dtype, fill) in
            sh_outputs(n).items()}
@@ -569,7 +546,7 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
     NZ = None if noise is None else noise.reshape(t * u, N)
     min_obs = min_obs or 4
     nobs = W.sum(1)
-    flat["status"][nobs < min_obs] = STATUS_TOO_FEW
+    flat["status"][nobs < min_obs] = FitStatus.TOO_FEW
     todo = np.flatnonzero(nobs >= min_obs)
     # group texels by validity pattern: one triangulation per pattern and batch
     keys = {}
@@ -584,7 +561,7 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
             try:
                 omega = solid_angles(v) * NW[sel][:, w]
                 Y = sh_basis(v, n)
-                if sampled_cap and hemisphere in CAP_AWARE:
+                if sampled_cap and hemisphere in SH_CAP_AWARE:
                     c, lam, esc, bands = guarded_project(y, v, omega, n, hemisphere, reg, Y)
                     flat["reg"][sel], flat["guard"][sel] = lam, esc
                     flat["bands"][sel] = bands
@@ -592,7 +569,7 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
                     c = project(y, v, omega, n, hemisphere,
                                 1e-4 if reg == "auto" else float(reg), basis=Y)
             except Exception:  # noqa: BLE001 - a failed batch is flagged, never fatal
-                flat["status"][sel] = STATUS_FAILED
+                flat["status"][sel] = FitStatus.FAILED
                 continue
             fitted = np.matmul(Y, c.transpose(0, 2, 1))
             flat["coeffs"][sel] = c.reshape(len(sel), -1)
@@ -601,16 +578,16 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
             if NZ is not None:
                 flat["chi2"][sel] = reduced_chi2(y, fitted, NZ[sel][:, w],
                                                  np.ones(y.shape[:2], bool), 3 * n * n)
-            flat["status"][sel] = np.where(np.isfinite(c).all((1, 2)), STATUS_OK,
-                                           STATUS_FAILED)
+            flat["status"][sel] = np.where(np.isfinite(c).all((1, 2)), FitStatus.OK,
+                                           FitStatus.FAILED)
     return out
 
 
 def parse_sh_model(name: str) -> tuple[str, int]:
     """``sh-<hemisphere>-<coefficients>`` -> (hemisphere, bands)."""
     parts = name.split("-")
-    if len(parts) != 3 or parts[0] != "sh" or parts[1] not in HEMISPHERES:
-        raise InputError(f"SH model name must be sh-<{'|'.join(HEMISPHERES)}>-<n^2> "
+    if len(parts) != 3 or parts[0] != "sh" or parts[1] not in SH_HEMISPHERES:
+        raise InputError(f"SH model name must be sh-<{'|'.join(SH_HEMISPHERES)}>-<n^2> "
                          f"(got {name!r})")
     try:
         nc = int(parts[2])
@@ -622,59 +599,4 @@ def parse_sh_model(name: str) -> tuple[str, int]:
     return parts[1], n
 
 
-def fit_sh_map(obs_path: str | Path, out_path: str | Path, hemisphere: str, n: int,
-               cfg: dict, scheduler: str = "processes", workers: int = 2, log=print) -> dict:
-    """Project every texel of an observation map onto n SH bands into
-    ``fit/sh-<hemisphere>-<n^2>.zarr``; returns the figures for its metrics file."""
-    from functools import partial
 
-    from ..fitting import fit_map, fit_summary
-
-    reg = cfg.get("regularisation", "auto")
-    reg = reg if reg == "auto" else float(reg)
-    cap = bool(cfg.get("sampled_cap", True)) and hemisphere in CAP_AWARE
-    res = fit_map(obs_path, out_path,
-                  partial(fit_sh_tile, n=n, hemisphere=hemisphere, reg=reg,
-                          sampled_cap=cap),
-                  sh_outputs(n),
-                  {"model": "sh", "model_version": 2, "hemisphere": hemisphere, "bands": n,
-                   "coefficients": n * n, "sampled_cap": cap,
-                   "regularisation": reg if hemisphere in ("rlsop", "wls") else None,
-                   "layout": "sh.R.00 .. sh.R.(n^2-1), then G, then B; index l(l+1)+m"},
-                  scheduler, workers, log)
-    extra = {}
-    if cap:
-        from ..fitting import open_fit
-
-        g = open_fit(out_path)
-        ok = g["status"][:] == STATUS_OK
-        lam, esc = g["reg"][:][ok], g["guard"][:][ok]
-        extra = {"sampled_cap": True,
-                 "regularisation_median": float(np.median(lam)) if ok.any() else None,
-                 "guarded_texels": int((esc > 0).sum()),
-                 "guard_unresolved_texels": int((esc > GUARD_STEPS).sum()),
-                 "bands_median": float(np.median(g["bands"][:][ok])) if ok.any() else None}
-    return fit_summary(out_path, res, f"sh-{hemisphere}-{n * n}", scheduler=scheduler,
-                       workers=workers, **extra)
-
-
-def sh_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path, name: str,
-               texels: list[tuple[int, int]] | None = None) -> list[Path]:
-    """Coefficient maps of the first bands, residual maps and lobe plots."""
-    from ..fitting import open_fit
-    from ..observation import open_observation_map
-    from ..report import fit_figures, plot_maps
-
-    g = open_fit(fit_path)
-    obs = open_observation_map(obs_path)
-    out_dir = Path(out_dir)
-    n2 = g.attrs["coefficients"]
-    c = g["coeffs"][:].astype(float).reshape(g.attrs["T"], g.attrs["S"], 3, n2)
-    lum = c.transpose(0, 1, 3, 2) @ LUMINANCE
-    l_, m_ = _lm(g.attrs["bands"])
-    maps = {f"y[{l},{m}] (luminance)": lum[..., i]
-            for i, (l, m) in enumerate(zip(l_, m_, strict=True)) if l < 3}
-    paths = [plot_maps(maps, out_dir / f"{name}_params.png",
-                       f"{name}: coefficients of bands 0-2", cols=5, symmetric=True)]
-    return paths + fit_figures(g, obs, out_dir, name,
-                               lambda r, col, d: sh_eval(c[r, col], d), texels)

@@ -16,6 +16,7 @@ import yaml
 
 from ..capture import load_capture
 from ..hdr import load_bracket, merge_bracket, read_hdr
+from ..paths import Processed, read_poses
 
 __all__ = ["hdr_errors", "holdout_against_truth", "intrinsics_errors", "pose_errors",
            "true_directions"]
@@ -51,7 +52,7 @@ def hdr_errors(capture: str | Path, truth: str | Path, processed: str | Path,
             from .generate import true_view_radiance
 
             true = true_view_radiance(capture, truth, vid)
-        rad, sat, dark = read_hdr(Path(processed) / "hdr" / f"{vid}.exr")
+        rad, sat, dark = read_hdr(Processed(processed).hdr(vid))
         stack, t = load_bracket(cap.view(vid))
         orc, osat, odark = merge_bracket(stack, t, g_true, low, high)
         ok = ~(sat | dark | osat | odark) & (true.min(-1) > 0)
@@ -71,7 +72,7 @@ def hdr_errors(capture: str | Path, truth: str | Path, processed: str | Path,
 def intrinsics_errors(truth: str | Path, processed: str | Path) -> dict:
     """Focal lengths (relative) and principal point (px) against the truth."""
     K = np.array(yaml.safe_load((Path(truth) / "camera.yaml").read_text())["K"])
-    est = yaml.safe_load((Path(processed) / "camera" / "intrinsics.yaml").read_text())
+    est = yaml.safe_load(Processed(processed).intrinsics.read_text())
     Ke = np.array(est["K"])
     return {"fx_rel": float(Ke[0, 0] / K[0, 0] - 1), "fy_rel": float(Ke[1, 1] / K[1, 1] - 1),
             "principal_px": float(np.hypot(Ke[0, 2] - K[0, 2], Ke[1, 2] - K[1, 2])),
@@ -83,7 +84,7 @@ def pose_errors(truth: str | Path, processed: str | Path) -> dict:
     or not: ``{view id: {"centre_mm", "rotation_deg", "kept", "holdout"}}``."""
     P = np.load(Path(truth) / "poses.npz")
     ids = list(P["view_ids"])
-    recs = yaml.safe_load((Path(processed) / "camera" / "poses.yaml").read_text())["views"]
+    recs = read_poses(Processed(processed).poses)["views"]
     out = {}
     for r in recs:
         if "R" not in r:
@@ -135,10 +136,10 @@ def holdout_against_truth(capture: str | Path, truth: str | Path, processed: str
     from .pbr import read_truth_radiance
 
     cap = load_capture(capture)
-    processed = Path(processed)
-    intr = load_intrinsics(processed / "camera" / "intrinsics.yaml")
-    recs = yaml.safe_load((processed / "camera" / "poses.yaml").read_text())["views"]
-    maps = {m: read_param_map(processed / "params" / f"{m}.exr") for m in models}
+    proc = Processed(processed)
+    intr = load_intrinsics(proc.intrinsics)
+    recs = read_poses(proc.poses)["views"]
+    maps = {m: read_param_map(proc.params(m)) for m in models}
     out, acc = {}, {}
     if per_patch:
         from .pbr import patch_labels
@@ -153,7 +154,7 @@ def holdout_against_truth(capture: str | Path, truth: str | Path, processed: str
         if not (r.get("holdout") and r.get("kept")):
             continue
         R, t = np.asarray(r["R"], float), np.asarray(r["t"], float)
-        photo, sat, _ = read_hdr(processed / "hdr" / f"{r['id']}.exr")
+        photo, sat, _ = read_hdr(proc.hdr(r["id"]))
         clean = read_truth_radiance(truth, r["id"], clean=True)
         P, inside = surface_points(intr, R, t, cap.width_mm, cap.height_mm,
                                    (photo.shape[1], photo.shape[0]))

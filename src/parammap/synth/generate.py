@@ -9,6 +9,7 @@ same bytes.
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 import time
 from dataclasses import asdict, dataclass, replace
@@ -32,6 +33,8 @@ from ..imageio import write_image_atomic
 from ..stores import executor
 from .sampling import sample_directions
 from .scene import Scene, build_scene, mh_truth, true_radiance
+
+logger = logging.getLogger(__name__)
 
 __all__ = ["PRESETS", "Preset", "Response", "generate", "render_radiance"]
 
@@ -472,7 +475,6 @@ def generate(
     seed: int = 0,
     workers: int = 1,
     surface_id: str | None = None,
-    log=print,
 ) -> Path:
     """Write a synthetic capture to ``out`` and its ground truth to ``truth``.
 
@@ -510,8 +512,9 @@ def generate(
     all_dirs, is_hold, poses, view_ids, seeds = view_rig(dirs, preset, K, items, rng, seed,
                                                          preset.calib_images)
 
-    log(f"synth {name}: {len(dirs)} views + {int(is_hold.sum())} held out, {preset.exposures} "
-        f"exposures {times} s, {preset.texels}x{preset.texels} texels, {w}x{h} px")
+    logger.info(f"synth {name}: {len(dirs)} views + {int(is_hold.sum())} held out, "
+                f"{preset.exposures} exposures {times} s, {preset.texels}x{preset.texels} "
+                f"texels, {w}x{h} px")
     jobs = [(world, preset, K, R, t, times, response, int(seeds[k]))
             for k, (R, t) in enumerate(poses)]
     views_yaml = []
@@ -525,7 +528,7 @@ def generate(
                 exps.append({"file": rel, "exposure_s": times[e]})
             views_yaml.append({"id": view_ids[k], "holdout": bool(is_hold[k]), "exposures": exps})
             if (k + 1) % 10 == 0 or k + 1 == len(jobs):
-                log(f"  rendered {k + 1}/{len(jobs)} views")
+                logger.info(f"  rendered {k + 1}/{len(jobs)} views")
 
         # Calibration board photos from varied poses.
         sq = round(0.125 * preset.width_mm, 3)
@@ -560,7 +563,7 @@ def generate(
          "radiance_range": [lo, hi], "shot_noise": preset.shot_noise,
          "read_noise": preset.read_noise}, indent=1))
     publish(((tmp_out, out), (tmp_truth, truth)))
-    log(f"synth {name}: wrote {out} and {truth} in {time.perf_counter() - t0:.1f} s")
+    logger.info(f"synth {name}: wrote {out} and {truth} in {time.perf_counter() - t0:.1f} s")
     return out
 
 

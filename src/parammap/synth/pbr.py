@@ -27,6 +27,7 @@ included), ``clean/<view>.exr`` (high-sample renders of the held-out views),
 from __future__ import annotations
 
 import json
+import logging
 import math
 import time
 from dataclasses import asdict, dataclass, field
@@ -51,6 +52,8 @@ from .generate import (
     write_rig_truth,
 )
 from .sampling import sample_directions
+
+logger = logging.getLogger(__name__)
 
 __all__ = ["PBR_PRESETS", "FilmicResponse", "Light", "PbrPreset", "generate_pbr",
            "patch_labels", "read_truth_radiance"]
@@ -447,7 +450,6 @@ def generate_pbr(
     preset: str | PbrPreset = "pbr-tiny",
     seed: int = 0,
     surface_id: str | None = None,
-    log=print,
 ) -> Path:
     """Render a physically based capture to ``out`` and its ground truth to ``truth``
     (default ``<out>.truth``); both replaced atomically when complete.
@@ -477,9 +479,9 @@ def generate_pbr(
     dirs = sample_directions(preset.scheme, preset.max_zenith_deg, **kw)[: preset.views]
     all_dirs, is_hold, poses, view_ids, seeds = view_rig(dirs, preset, K, items, rng, seed,
                                                          preset.calib_images)
-    log(f"synth {name}: {len(dirs)} views + {int(is_hold.sum())} held out, {w}x{h} px, "
-        f"{len(mats)} material patches, {len(items)} {preset.marker_dictionary} markers, "
-        f"{len(preset.lights)} light(s), Mitsuba {mi.__version__} scalar_rgb")
+    logger.info(f"synth {name}: {len(dirs)} views + {int(is_hold.sum())} held out, {w}x{h} px, "
+                f"{len(mats)} material patches, {len(items)} {preset.marker_dictionary} markers, "
+                f"{len(preset.lights)} light(s), Mitsuba {mi.__version__} scalar_rgb")
 
     radiance = []
     for k, (R, t) in enumerate(poses):
@@ -494,7 +496,7 @@ def generate_pbr(
                       {"R": clean[..., 0], "G": clean[..., 1], "B": clean[..., 2]},
                       {"view_id": view_ids[k], "spp": str(preset.clean_spp)})
         if (k + 1) % 10 == 0 or k + 1 == len(poses):
-            log(f"  rendered {k + 1}/{len(poses)} views ({time.perf_counter() - t0:.0f} s)")
+            logger.info(f"  rendered {k + 1}/{len(poses)} views ({time.perf_counter() - t0:.0f} s)")
 
     # The bracket a photographer would choose: the shortest exposure keeps all but the
     # brightest 0.05 % of the surface below level ~240, then fixed steps of `stops`.
@@ -530,7 +532,7 @@ def generate_pbr(
         img = _expose(rad, 0.6 / 0.8, preset.response, preset,
                       np.random.default_rng(int(seeds[len(all_dirs) + k])))
         _write_photo(tmp_out / f"calibration/board_{k:02d}.{ext}", img, preset)
-    log(f"  rendered {len(cposes)} board photos ({time.perf_counter() - t0:.0f} s)")
+    logger.info(f"  rendered {len(cposes)} board photos ({time.perf_counter() - t0:.0f} s)")
 
     write_capture_yaml(tmp_out, f"Physically based synthetic capture (Mitsuba 3; preset "
                        f"{name}, seed {seed})", sid, preset, items, calib, ext, views_yaml)
@@ -557,7 +559,7 @@ def generate_pbr(
         {"preset": name, "seed": seed, "settings": asdict(preset), "exposure_s": times,
          "radiance_p9995": hi}, indent=1))
     publish(((tmp_out, out), (tmp_truth, truth)))
-    log(f"synth {name}: wrote {out} and {truth} in {time.perf_counter() - t0:.1f} s")
+    logger.info(f"synth {name}: wrote {out} and {truth} in {time.perf_counter() - t0:.1f} s")
     return out
 
 

@@ -24,6 +24,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ..conventions import MH_KD, MH_M, mh_dir, mh_ks, mh_size
 from ..geometry import texel_centres, unit
 
 __all__ = [
@@ -239,12 +240,12 @@ def mh_truth(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     T, S = scene.shape
     ctr = texel_centres(S, T, scene.width_mm, scene.height_mm)
     L = len(scene.light_pos)
-    p = np.full((T, S, 4 + 6 * L), np.nan)
+    p = np.full((T, S, mh_size(L)), np.nan)
     mask = scene.kind == PHONG
-    p[..., 0:3] = scene.kd
-    p[..., 3] = scene.m
+    p[..., MH_KD] = scene.kd
+    p[..., MH_M] = scene.m
     for k, (lp, inten) in enumerate(zip(scene.light_pos, scene.light_int, strict=True)):
-        p[..., 4 + 6 * k: 7 + 6 * k] = inten * scene.ks
-        p[..., 7 + 6 * k: 10 + 6 * k] = _reflect(unit(lp - ctr))
+        p[..., mh_ks(k)] = inten * scene.ks
+        p[..., mh_dir(k)] = _reflect(unit(lp - ctr))
     p[~mask] = np.nan
     return p, mask

@@ -8,31 +8,79 @@ fetched), so the page opens from the file system with no server and works offlin
 Parameter maps travel as base64 float32, regrouped in RGBA layers of a 2-D texture
 array (texel row 0 = texture row 0):
 
-- MH: layer 0 = (Kd.R, Kd.G, Kd.B, m), then per lobe (Ks.R, Ks.G, Ks.B, 0) and
-  (d.X, d.Y, d.Z, 0);
+- MH: layer 0 = (Kd.R, Kd.G, Kd.B, m), then per lobe k (Ks.R, Ks.G, Ks.B, 0) at layer
+  ``1 + 2k`` and (d.X, d.Y, d.Z, 0) at ``2 + 2k``;
 - SH: layer i = (sh.R.i, sh.G.i, sh.B.i, 0) for coefficient i (conventions.md basis);
 - diffuse: layer 0 = (Kd.R, Kd.G, Kd.B, 0).
 
 The fragment shader casts each pixel's ray exactly as :func:`parammap.render.render`
 does (OpenCV intrinsics and distortion, bilinear texel lookup, the model evaluated in the
 pixel's own view direction), so a snapped view matches the Python renderer.
+
+Nothing the Python side defines is re-derived in the page: the shader's constants (SH
+normalisation K_l^m and band limit, the MH texture layout) are generated here from
+:mod:`parammap.conventions` (:func:`glsl_constants`, spliced into the shader), and the
+undistortion of every pixel comes from :func:`parammap.geometry.undistort_normalized`
+on a grid over the image (:func:`undistortion_grid`), interpolated bilinearly.
 """
 
 from __future__ import annotations
 
 import base64
 import json
+import logging
 import math
 import shutil
 from pathlib import Path
 
 import numpy as np
 
-from ..calibration import Intrinsics
+from ..capture import Capture
+from ..conventions import MH_HEAD, MH_KD, mh_dir, mh_ks, mh_lobes, sh_bands, sh_norms
 from ..errors import InputError
+from ..geometry import Intrinsics, undistort_normalized
 from ..params import ParamMap
 
-__all__ = ["viewer_layers", "write_viewer"]
+__all__ = ["glsl_constants", "undistortion_grid", "viewer_layers", "write_surface_viewer",
+           "write_viewer"]
+
+SH_MAX_BANDS = 10  # the shader's loops are unrolled up to this many bands
+MH_MAX_LOBES = 8
+MH_LAYERS_PER_LOBE = 2  # texture layers per lobe: (Ks, 0) then (d, 0)
+UNDISTORT_STEP_PX = 16  # spacing of the undistortion grid (the distortion is smooth)
+
+
+def glsl_constants() -> str:
+    """GLSL ES 3.0 declarations of the conventions the fragment shader uses."""
+    K = sh_norms(SH_MAX_BANDS)
+    klm = ", ".join(f"{K[l, m]:.9g}" if m <= l else "0.0"
+                    for l in range(SH_MAX_BANDS) for m in range(SH_MAX_BANDS))
+    return "\n".join([
+        f"const int SH_MAX_BANDS = {SH_MAX_BANDS};",
+        f"const float KLM[{SH_MAX_BANDS ** 2}] = float[{SH_MAX_BANDS ** 2}]({klm});",
+        f"const int MH_MAX_LOBES = {MH_MAX_LOBES};",
+        f"const int MH_LAYERS_PER_LOBE = {MH_LAYERS_PER_LOBE};",
+    ])
+
+
+def undistortion_grid(intr: Intrinsics, step_px: float = UNDISTORT_STEP_PX) -> dict:
+    """Undistorted normalised coordinates (x, y) on a grid of image pixels.
+
+    Nodes are spaced at most ``step_px`` apart from pixel centre 0 to the last pixel
+    centre in u and v; ``xy`` is (rows, cols, 2) float32, base64, row-major.
+    """
+    W, H = intr.image_size
+    gw = max(2, math.ceil((W - 1) / step_px) + 1)
+    gh = max(2, math.ceil((H - 1) / step_px) + 1)
+    u, v = np.meshgrid(np.linspace(0, W - 1, gw), np.linspace(0, H - 1, gh))
+    K = np.asarray(intr.K, float)
+    yd = (v - K[1, 2]) / K[1, 1]
+    xd = (u - K[0, 2] - K[0, 1] * yd) / K[0, 0]
+    xy = undistort_normalized(np.stack([xd, yd], -1), np.asarray(intr.dist, float))
+    return {"cols": gw, "rows": gh,
+            "xy": base64.b64encode(xy.astype("<f4").tobytes()).decode("ascii")}
+
+logger = logging.getLogger(__name__)
 
 TEMPLATE = Path(__file__).with_name("index.html")
 
@@ -42,23 +90,26 @@ def viewer_layers(pm: ParamMap) -> tuple[np.ndarray, dict]:
     T, S, P = pm.params.shape
     p = np.nan_to_num(pm.params.astype(np.float32))
     if pm.model == "mh":
-        K = (P - 4) // 6
-        layers = [p[..., 0:4]]
-        for k in range(K):
+        K = mh_lobes(P)
+        if K > MH_MAX_LOBES:
+            raise InputError(f"the viewer evaluates up to {MH_MAX_LOBES} MH lobes")
+        layers = [p[..., :MH_HEAD]]
+        for k in range(K):  # MH_LAYERS_PER_LOBE layers per lobe
             z = np.zeros((T, S, 1), np.float32)
-            layers += [np.concatenate([p[..., 4 + 6 * k: 7 + 6 * k], z], -1),
-                       np.concatenate([p[..., 7 + 6 * k: 10 + 6 * k], z], -1)]
+            layers += [np.concatenate([p[..., mh_ks(k)], z], -1),
+                       np.concatenate([p[..., mh_dir(k)], z], -1)]
         info = {"model": "mh", "lobes": K}
     elif pm.model == "sh":
         nc = P // 3
-        n = int(round(math.sqrt(nc)))
-        if n > 10:
-            raise InputError("the viewer evaluates SH up to 10 bands (100 coefficients)")
+        n = sh_bands(nc)
+        if n > SH_MAX_BANDS:
+            raise InputError(f"the viewer evaluates SH up to {SH_MAX_BANDS} bands "
+                             f"({SH_MAX_BANDS ** 2} coefficients)")
         c = p.reshape(T, S, 3, nc).transpose(3, 0, 1, 2)
         layers = list(np.concatenate([c, np.zeros((nc, T, S, 1), np.float32)], -1))
         info = {"model": "sh", "bands": n}
     elif pm.model == "diffuse":
-        layers = [np.concatenate([p[..., 0:3], np.zeros((T, S, 1), np.float32)], -1)]
+        layers = [np.concatenate([p[..., MH_KD], np.zeros((T, S, 1), np.float32)], -1)]
         info = {"model": "diffuse"}
     else:
         raise InputError(f"unknown model {pm.model!r}")
@@ -87,7 +138,9 @@ def write_viewer(out_dir: str | Path, surface_id: str, maps: dict[str, ParamMap]
     data = {"surface": {"id": surface_id, "width_mm": any_map.width_mm,
                         "height_mm": any_map.height_mm},
             "camera": {"K": np.asarray(intr.K).tolist(), "dist": np.asarray(intr.dist).tolist(),
-                       "image_size": list(intr.image_size)},
+                       "image_size": list(intr.image_size),
+                       "undistort": undistortion_grid(intr)},
+            "glsl": glsl_constants(),
             "views": [{"id": v["id"], "holdout": bool(v["holdout"]),
                        "R": np.asarray(v["R"]).tolist(), "t": np.asarray(v["t"]).tolist()}
                       for v in views],
@@ -97,3 +150,26 @@ def write_viewer(out_dir: str | Path, surface_id: str, maps: dict[str, ParamMap]
     tmp.replace(out_dir / "data.js")
     shutil.copyfile(TEMPLATE, out_dir / "index.html")
     return out_dir / "index.html"
+
+
+def write_surface_viewer(cap: Capture, processed: str | Path, models: list[str],
+                         out_dir: str | Path) -> Path:
+    """The viewer stage: the page for the exported maps ``params/<model>.exr`` of
+    ``models``, with every kept view's pose to snap to; the initial gamma is the
+    median of the held-out comparison's (1 before that stage has run)."""
+    from ..calibration import load_intrinsics
+    from ..metrics import read_metrics
+    from ..params import read_param_map
+    from ..paths import Processed, read_poses
+
+    proc = Processed(processed)
+    maps = {name: read_param_map(proc.params(name)) for name in models}
+    views = [r for r in read_poses(proc.poses)["views"] if r["kept"]]
+    gamma = 1.0
+    if proc.metrics("holdout").is_file():
+        g = [v["gamma"] for v in read_metrics(proc.metrics("holdout"))["views"].values()]
+        gamma = float(np.median(g)) if g else gamma
+    path = write_viewer(out_dir, cap.surface_id, maps, load_intrinsics(proc.intrinsics),
+                        views, gamma)
+    logger.info(f"viewer: open {path}")
+    return path

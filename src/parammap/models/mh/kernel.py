@@ -3,7 +3,7 @@
 nlopt calls its objective once per evaluation from Python; at a few hundred
 observations a numpy version spends most of its ~40 us in per-call overhead. This
 kernel does the same arithmetic in one compiled loop (numba), a few microseconds.
-:func:`parammap.models.mh._objective` falls back to numpy where numba is missing.
+:func:`parammap.models.mh.fit._objective` falls back to numpy where numba is missing.
 """
 
 from __future__ import annotations
@@ -11,6 +11,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
+from ...conventions import MH_HEAD, MHX_LNM, MHX_LOBE
 
 try:
     from numba import njit
@@ -22,18 +24,19 @@ LOSSES = {"linear": 0, "soft_l1": 1, "huber": 2}
 
 def _cost_grad(x: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K: int,
                loss: int, f: float, grad: np.ndarray, want_grad: bool) -> float:
-    """Cost of x-space parameters ``x`` (4 + 5K) on directions V (n, 3) and scaled
-    radiance L (n, 3), each observation weighted by Wt (n,); fills ``grad`` when
+    """Cost of x-space parameters ``x`` (``conventions.mhx_size(K)``) on directions
+    V (n, 3) and scaled radiance L (n, 3), each observation weighted by Wt (n,); fills ``grad`` when
     ``want_grad``. Same layout and maths as the numpy objective in
-    :mod:`parammap.models.mh`."""
+    :mod:`parammap.models.mh.fit`."""
     n = V.shape[0]
-    m = math.exp(x[3])
+    m = math.exp(x[MHX_LNM])
     d = np.empty((K, 3))
     dth = np.empty((K, 3))
     dph = np.empty((K, 3))
     for k in range(K):
-        th = x[7 + 5 * k]
-        ph = x[8 + 5 * k]
+        b = MH_HEAD + MHX_LOBE * k
+        th = x[b + 3]
+        ph = x[b + 4]
         st, ct, sp, cp = math.sin(th), math.cos(th), math.sin(ph), math.cos(ph)
         d[k, 0], d[k, 1], d[k, 2] = st * cp, st * sp, ct
         dth[k, 0], dth[k, 1], dth[k, 2] = ct * cp, ct * sp, -st
@@ -56,7 +59,7 @@ def _cost_grad(x: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K: i
             else:
                 lc, p = 0.0, 0.0
             C[k], P[k], LC[k] = c, p, lc
-            b = 4 + 5 * k
+            b = MH_HEAD + MHX_LOBE * k
             r0 += x[b] * p
             r1 += x[b + 1] * p
             r2 += x[b + 2] * p
@@ -87,12 +90,12 @@ def _cost_grad(x: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K: i
                 p = P[k]
                 if p == 0.0:
                     continue
-                b = 4 + 5 * k
+                b = MH_HEAD + MHX_LOBE * k
                 grad[b] += p * e0
                 grad[b + 1] += p * e1
                 grad[b + 2] += p * e2
                 gp = (e0 * x[b] + e1 * x[b + 1] + e2 * x[b + 2]) * p
-                grad[3] += gp * LC[k] * m
+                grad[MHX_LNM] += gp * LC[k] * m
                 gd = gp * m / C[k]
                 grad[b + 3] += gd * (v0 * dth[k, 0] + v1 * dth[k, 1] + v2 * dth[k, 2])
                 grad[b + 4] += gd * (v0 * dph[k, 0] + v1 * dph[k, 1])

@@ -1,0 +1,622 @@
+"""The MH fit: batched Levenberg-Marquardt over a tile, the bounded per-texel nlopt
+polish, lobe selection (K = auto, negligible lobes), and a tile of texels."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import nlopt
+import numpy as np
+
+from ...conventions import (
+    MH_M,
+    MHX_KD,
+    MHX_LNM,
+    FitStatus,
+    mh_dir,
+    mh_dir_z,
+    mh_ks,
+    mh_lobe,
+    mh_lobes,
+    mh_size,
+    mhx_ks,
+    mhx_phi,
+    mhx_size,
+    mhx_theta,
+)
+from ..residuals import mean_percentage_residual
+from ..weights import noise_weights, reduced_chi2
+from .initial import initial_guess_batch, initial_guess_published
+from .kernel import LOSSES, cost_grad, gram
+from .model import (
+    LN_M_MAX,
+    M_MIN,
+    _from_x,
+    _lobes_present,
+    _params_to_x_batch,
+    _sort_lobes,
+    _sort_lobes_batch,
+    _to_x,
+    _x_to_params_batch,
+    bic,
+    mh_eval,
+)
+
+ALGORITHMS = {
+    "lbfgs": nlopt.LD_LBFGS,
+    "slsqp": nlopt.LD_SLSQP,
+    "mma": nlopt.LD_MMA,
+    "ccsaq": nlopt.LD_CCSAQ,
+    "tnewton": nlopt.LD_TNEWTON_PRECOND_RESTART,
+    "var2": nlopt.LD_VAR2,
+    "bobyqa": nlopt.LN_BOBYQA,
+}
+
+BATCH_EVALS = 25  # evaluations of the stacked-texel polish before the per-texel fallback
+KS_CAP = 20.0  # Ks <= KS_CAP x the texel's brightest observation (scaled units)
+
+
+def _bounds(K: int, ks_max: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds in x-space. ``ks_max`` caps the lobe amplitudes: a peak between samples
+    may exceed every observation, but not by orders of magnitude; without a cap a
+    narrow lobe whose peak no view saw can grow without limit (a spike in renders)."""
+    nx = mhx_size(K)
+    lb, ub = np.zeros(nx), np.full(nx, np.inf)
+    for k in range(K):
+        ub[mhx_ks(k)] = ks_max
+    ub[MHX_LNM] = LN_M_MAX
+    for k in range(K):
+        lb[mhx_theta(k)], ub[mhx_theta(k)] = 0.0, math.pi / 2
+        lb[mhx_phi(k)], ub[mhx_phi(k)] = -3 * math.pi, 3 * math.pi
+    return lb, ub
+
+
+def _normal_equations(X, V, Ls, W, K, LL=None, need_A: bool = True):
+    """Cost, Gauss-Newton matrix J^T J (B, nx, nx) and gradient J^T r (B, nx) of the
+    weighted least-squares problem in x-space, for a batch of texels.
+
+    The model of each channel is a combination ``a_c . q_n`` of a few per-observation
+    vectors q (1 and per lobe p_k), and every Jacobian column a per-channel multiple of
+    q or of p's derivatives (ln m, theta, phi). So cost, J^T J and J^T r all follow from
+    the small Gram matrix of these vectors: no (N x 3)-sized array is formed.
+    ``LL`` (B, 3) = sum of w L^2, constant over iterations.
+    """
+    B, N, _ = V.shape
+    nx = X.shape[1]
+    nb = 1 + 4 * K
+    m = np.exp(X[:, MHX_LNM])
+    q = np.empty((B, N, nb), V.dtype)  # observation-major: contiguous rows for gram()
+    q[:, :, 0] = 1.0
+    coef = np.zeros((B, 3, nx, nb))  # Jacobian columns in terms of q
+    amod = np.zeros((B, 3, nb))  # model = amod . q
+    amod[:, :, 0] = X[:, MHX_KD]
+    for c in range(3):
+        coef[:, c, c, 0] = 1.0
+    for k in range(K):
+        th, ph = X[:, mhx_theta(k)], X[:, mhx_phi(k)]
+        st, ct, sp, cp = np.sin(th), np.cos(th), np.sin(ph), np.cos(ph)
+        d = np.stack([st * cp, st * sp, ct], -1)
+        dth = np.stack([ct * cp, ct * sp, -st], -1)
+        dph = np.stack([-st * sp, st * cp, np.zeros_like(st)], -1)
+        c_ = np.matmul(np.stack([d, dth, dph], 1), V.transpose(0, 2, 1))  # (B, 3, N)
+        cos = c_[:, 0]
+        pos = cos > 0
+        cc = np.where(pos, cos, 1.0)
+        lnc = np.log(cc)
+        pk = np.where(pos, np.exp(m[:, None] * lnc), 0.0)
+        ks = X[:, mhx_ks(k)]
+        dpdc = pk * m[:, None] / cc
+        q[:, :, 1 + 4 * k] = pk
+        q[:, :, 2 + 4 * k] = pk * lnc * m[:, None]
+        q[:, :, 3 + 4 * k] = dpdc * c_[:, 1]
+        q[:, :, 4 + 4 * k] = dpdc * c_[:, 2]
+        amod[:, :, 1 + 4 * k] = ks
+        for c in range(3):
+            coef[:, c, mhx_ks(k).start + c, 1 + 4 * k] = 1.0
+            coef[:, c, MHX_LNM, 2 + 4 * k] = ks[:, c]
+            coef[:, c, mhx_theta(k), 3 + 4 * k] = ks[:, c]
+            coef[:, c, mhx_phi(k), 4 + 4 * k] = ks[:, c]
+    Q, qL, _ = gram(q, Ls, W)  # (B, nb, nb), (B, 3, nb)
+    qL = qL.transpose(0, 2, 1)
+    if LL is None:
+        LL = (W[..., None] * Ls * Ls).sum(1)
+    # R = q_w r = Q a - qL, per channel; cost = a Q a - 2 a qL + LL
+    Qa = np.matmul(amod, Q)  # (B, 3, nb)
+    R = Qa.transpose(0, 2, 1) - qL  # (B, nb, 3)
+    cost = ((Qa * amod).sum(-1) - 2 * (amod * qL.transpose(0, 2, 1)).sum(-1) + LL).sum(-1)
+    cf = coef  # (B, 3, nx, nb)
+    A = np.matmul(np.matmul(cf, Q[:, None]), cf.transpose(0, 1, 3, 2)).sum(1) if need_A \
+        else None
+    g = np.matmul(cf, R.transpose(0, 2, 1)[..., None])[..., 0].sum(1)
+    return np.maximum(cost, 0.0), A, g
+
+
+def refine_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, P0: np.ndarray,
+                 iters: int = 8) -> np.ndarray:
+    """Projected Levenberg-Marquardt steps on a batch of texels at once (vectorised),
+    in the bounded x-space of the nlopt fit. Brings an initial guess close to the
+    optimum so the per-texel nlopt fit only polishes. (B, N, 3) inputs, (B, 4 + 6K)."""
+    K = mh_lobes(P0.shape[1])
+    s = np.maximum((L * W[..., None]).sum((1, 2)) / np.maximum(3 * W.sum(1), 1), 1e-12)
+    Ls = L / s[:, None, None]
+    X = _params_to_x_batch(P0, s)
+    lb, ub = _bounds(K)
+    ub = np.broadcast_to(ub, X.shape).copy()
+    ksmax = KS_CAP * np.max(np.where(W[..., None] > 0, Ls, 0), axis=(1, 2))
+    for k in range(K):
+        ub[:, mhx_ks(k)] = ksmax[:, None]
+    X = np.clip(X, lb, ub)
+    lam = np.full(len(X), 1e-3)
+    LL = (W[..., None] * Ls * Ls).sum(1)
+    cost, A, g = _normal_equations(X, V, Ls, W, K, LL)
+    nx = X.shape[1]
+    eye = np.eye(nx)
+    act = np.arange(len(X))  # texels still improving
+    for _ in range(iters):
+        dA = np.maximum(np.diagonal(A[act], axis1=1, axis2=2), 1e-12)
+        try:
+            step = np.linalg.solve(A[act] + (lam[act, None] * dA)[..., None] * eye,
+                                   -g[act, :, None])[..., 0]
+        except np.linalg.LinAlgError:
+            break
+        Xn = np.clip(X[act] + step, lb, ub[act])
+        cn, An, gn = _normal_equations(Xn, V[act], Ls[act], W[act], K, LL[act])
+        better = np.isfinite(cn) & (cn < cost[act])
+        gain = np.where(better, (cost[act] - cn) / np.maximum(cost[act], 1e-300), 0.0)
+        b = act[better]
+        X[b], A[b], g[b], cost[b] = Xn[better], An[better], gn[better], cn[better]
+        lam[act] = np.where(better, lam[act] * 0.3, lam[act] * 10)
+        act = act[(gain > 1e-8) | (~better & (lam[act] < 1e6))]
+        if len(act) == 0:
+            break
+    return _x_to_params_batch(X, s)
+
+
+
+def polish_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, P0: np.ndarray,
+                 cfg: MhFitConfig) -> tuple[np.ndarray, np.ndarray, int, np.ndarray, int]:
+    """One bounded nlopt run over a whole batch of texels (least squares only).
+
+    The sum of the texels' objectives is separable, so its minimum is every texel's own
+    minimum; one nlopt call with the stacked parameters evaluates all texels in a few
+    vectorised numpy operations instead of a Python callback per texel. Started next
+    to the optimum (:func:`refine_batch`), it needs few evaluations. A texel whose
+    projected gradient is not small afterwards is reported as not converged, and
+    :func:`fit_mh_tile` fits it alone with :func:`fit_texel`.
+
+    Returns
+    -------
+    params (B, 4 + 6K), rss (B,) in radiance units, evaluations, converged (B,) bool,
+    nlopt result code.
+    """
+    B = len(P0)
+    K = mh_lobes(P0.shape[1])
+    s = np.maximum((L * W[..., None]).sum((1, 2)) / np.maximum(3 * W.sum(1), 1), 1e-12)
+    Ls = L / s[:, None, None]
+    LL = (W[..., None] * Ls * Ls).sum(1)
+    X0 = _params_to_x_batch(P0, s)
+    lb1, ub1 = _bounds(K)
+    lb = np.broadcast_to(lb1, X0.shape).copy()
+    ub = np.broadcast_to(ub1, X0.shape).copy()
+    ksmax = KS_CAP * np.max(np.where(W[..., None] > 0, Ls, 0), axis=(1, 2))
+    for k in range(K):
+        ub[:, mhx_ks(k)] = ksmax[:, None]
+    X0 = np.clip(X0, lb, ub)
+    nx = X0.shape[1]
+    best = [math.inf, X0.ravel().copy(), None]
+
+    def fn(x: np.ndarray, grad: np.ndarray) -> float:
+        X = x.reshape(B, nx)
+        cost, _, g = _normal_equations(X, V, Ls, W, K, LL, need_A=False)
+        val = float(cost.sum())
+        if grad.size > 0:
+            grad[:] = (2 * g).ravel()
+        if val < best[0]:
+            best[0], best[1], best[2] = val, x.copy(), (cost, 2 * g)
+        return val
+
+    opt = nlopt.opt(ALGORITHMS.get(cfg.algorithm, nlopt.LD_LBFGS), B * nx)
+    opt.set_lower_bounds(lb.ravel())
+    opt.set_upper_bounds(ub.ravel())
+    opt.set_min_objective(fn)
+    opt.set_ftol_rel(cfg.ftol_rel)
+    opt.set_xtol_rel(cfg.xtol_rel)
+    # few evaluations: texels that need more are better served alone afterwards
+    opt.set_maxeval(min(cfg.max_evals, BATCH_EVALS))
+    try:
+        opt.optimize(X0.ravel())
+        code = int(opt.last_optimize_result())
+    except Exception:  # noqa: BLE001 - keep the best point (round-off stops)
+        code = -4
+    X = best[1].reshape(B, nx)
+    if best[2] is None:
+        fn(X.ravel(), np.empty(B * nx))
+    cost, grad = best[2]
+    # first-order check per texel: no coordinate can still lower the cost by more
+    # than a tiny fraction with a small relative step
+    free = ~(((X <= lb) & (grad > 0)) | ((X >= ub) & (grad < 0)))
+    pg = np.where(free, grad, 0.0) * np.maximum(np.abs(X), 0.1)
+    converged = np.abs(pg).max(1) <= 1e-3 * np.maximum(cost, 1e-12)
+    P = np.stack([_sort_lobes(p) for p in _x_to_params_batch(X, s)])
+    return P, cost * s * s, int(opt.get_numevals()), converged, code
+
+
+# ---------------------------------------------------------------------------------
+# nlopt fit of one texel
+
+
+@dataclass(frozen=True)
+class MhFitConfig:
+    """Options of the per-texel fit (config section ``fit.mh``)."""
+
+    algorithm: str = "lbfgs"
+    init: str = "better"  # better | published
+    loss: str = "linear"  # linear | soft_l1 | huber
+    f_scale: float = 0.05  # robust loss scale, relative to the texel's radiance scale
+    max_evals: int = 400
+    ftol_rel: float = 1e-10
+    xtol_rel: float = 1e-8
+    bic_margin: float = 10.0  # auto-K adds a lobe only if BIC drops by more
+    bic_floor: float = 1e-3  # residuals below this fraction of the radiance are noise
+    polish: str = "texel"  # texel (one nlopt run per texel) | batch (stacked texels first)
+
+
+@dataclass
+class FitResult:
+    params: np.ndarray  # (4 + 6K,)
+    rss: float
+    evals: int
+    status: int
+    nlopt_code: int
+
+
+
+def _objective(V: np.ndarray, L: np.ndarray, K: int, loss: str, f: float,
+               compiled: bool | None = None, w: np.ndarray | None = None):
+    """nlopt objective with analytic gradient, on scaled radiance L (n, 3), each
+    observation's loss weighted by ``w`` (n,; default 1).
+
+    The compiled kernel (:mod:`._mh_kernel`) by default; the numpy version (all lobes
+    at once, few numpy calls) where numba is missing or ``compiled=False``. Both keep
+    the best point evaluated in ``fn.best``.
+    """
+    best = [math.inf, None]
+    wv = np.ones(len(V)) if w is None else np.ascontiguousarray(w, dtype=float)
+    if compiled is None:
+        compiled = cost_grad is not None
+    if compiled:
+        Vc = np.ascontiguousarray(V, dtype=float)
+        Lc = np.ascontiguousarray(L, dtype=float)
+        code = LOSSES[loss]
+        fl = float(f)
+        nograd = np.empty(mhx_size(K))
+
+        def fn_c(x: np.ndarray, grad: np.ndarray) -> float:
+            want = grad.size > 0
+            val = cost_grad(x, Vc, Lc, wv, K, code, fl, grad if want else nograd, want)
+            if val < best[0]:
+                best[0], best[1] = val, x.copy()
+            return val
+
+        fn_c.best = best
+        return fn_c
+
+    idx_ks = np.array([mhx_ks(k).start + c for k in range(K) for c in range(3)])
+    idx_th = np.array([mhx_theta(k) for k in range(K)])
+    idx_ph = idx_th + 1
+
+    def fn(x: np.ndarray, grad: np.ndarray) -> float:
+        m = math.exp(x[MHX_LNM])
+        th, ph = x[idx_th], x[idx_ph]
+        st, ct, sp, cp = np.sin(th), np.cos(th), np.sin(ph), np.cos(ph)
+        C = V @ np.stack([st * cp, st * sp, ct], 1).T  # (n, K)
+        pos = C > 0
+        Cs = np.where(pos, C, 1.0)
+        lc = np.log(Cs)
+        P = np.where(pos, np.exp(m * lc), 0.0)
+        KS = x[idx_ks].reshape(K, 3)
+        r = P @ KS + x[MHX_KD] - L
+        if loss == "linear":
+            val = float(np.vdot(wv[:, None] * r, r))
+            dr = 2 * r
+        elif loss == "soft_l1":
+            sq = np.sqrt(1 + (r / f) ** 2)
+            val = float(np.sum(wv[:, None] * 2 * f * f * (sq - 1)))
+            dr = 2 * r / sq
+        else:  # huber
+            a = np.abs(r)
+            val = float(np.sum(wv[:, None] * np.where(a <= f, r * r, 2 * f * a - f * f)))
+            dr = np.where(a <= f, 2 * r, 2 * f * np.sign(r))
+        dr = wv[:, None] * dr
+        if grad.size > 0:
+            G = dr @ KS.T  # (n, K): sum over channels of dr * Ks
+            grad[MHX_KD] = dr.sum(0)
+            grad[idx_ks] = (P.T @ dr).ravel()
+            GP = G * P
+            grad[MHX_LNM] = float(np.vdot(GP, lc)) * m
+            Gd = GP * (m / Cs)
+            grad[idx_th] = np.einsum("nk,nk->k", V @ np.stack([ct * cp, ct * sp, -st], 1).T, Gd)
+            grad[idx_ph] = np.einsum("nk,nk->k", V @ np.stack([-st * sp, st * cp, 0 * st], 1).T,
+                                     Gd)
+        if val < best[0]:
+            best[0], best[1] = val, x.copy()
+        return val
+
+    fn.best = best
+    return fn
+
+
+def fit_texel(V: np.ndarray, L: np.ndarray, p0: np.ndarray,
+              cfg: MhFitConfig = MhFitConfig(), w: np.ndarray | None = None) -> FitResult:
+    """Bounded nlopt fit of one texel from initial parameters ``p0`` (4 + 6K).
+
+    Parameters
+    ----------
+    V : (n, 3) unit view directions of the valid observations.
+    L : (n, 3) their radiance.
+    w : (n,) observation weights (:mod:`.weights`; default 1); the RSS is weighted.
+
+    Returns
+    -------
+    FitResult with parameters in conventions.md layout (lobes sorted by strength) and
+    the residual sum of squares in radiance units squared.
+    """
+    K = mh_lobes(len(p0))
+    s = float(max(np.mean(L), 1e-12))
+    Ls = L / s
+    x0 = _to_x(p0, s)
+    nx = len(x0)
+    lb, ub = _bounds(K, KS_CAP * float(np.max(Ls)))
+    x0 = np.clip(x0, lb, ub)
+    opt = nlopt.opt(ALGORITHMS[cfg.algorithm], nx)
+    opt.set_lower_bounds(lb)
+    opt.set_upper_bounds(ub)
+    fn = _objective(V, Ls, K, cfg.loss, cfg.f_scale, w=w)
+    opt.set_min_objective(fn)
+    opt.set_ftol_rel(cfg.ftol_rel)
+    opt.set_xtol_rel(cfg.xtol_rel)
+    opt.set_maxeval(cfg.max_evals)
+    status = FitStatus.OK
+    try:
+        x = opt.optimize(x0)
+        code = int(opt.last_optimize_result())
+    except Exception:  # noqa: BLE001 - nlopt's errors do not share one base class
+        # Keep the best point reached: round-off and "generic failure" stops happen
+        # mostly at an already converged start.
+        x = fn.best[1] if fn.best[1] is not None else x0
+        code = -4
+    if fn.best[1] is not None:
+        x = fn.best[1]  # the best point evaluated (what nlopt returns, or better)
+    p = _sort_lobes(_from_x(x, s))
+    if cfg.loss == "linear" and fn.best[1] is not None:
+        rss = fn.best[0] * s * s  # the objective is the RSS of the scaled radiance
+    else:
+        rss = float(np.sum((1.0 if w is None else w[:, None]) * (mh_eval(p, V) - L) ** 2))
+    if not np.all(np.isfinite(p)) or not math.isfinite(rss):
+        status = FitStatus.FAILED
+    return FitResult(p, rss, int(opt.get_numevals()), status, code)
+
+
+
+# ---------------------------------------------------------------------------------
+# A tile of texels
+
+
+def mh_outputs(K_max: int) -> dict[str, tuple[tuple[int, ...], str, float]]:
+    """Arrays of an MH fit store: name -> (trailing shape, dtype, fill value)."""
+    return {
+        "params": ((mh_size(K_max),), "float32", float("nan")),
+        "rmse": ((3,), "float32", float("nan")),
+        "mpr": ((3,), "float32", float("nan")),
+        "chi2": ((), "float32", float("nan")),
+        "k_used": ((), "int8", 0),
+        "evals": ((), "int32", 0),
+        "status": ((), "int8", int(FitStatus.NOT_FITTED)),
+    }
+
+
+def fit_mh_tile(
+    radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, K: int | str,
+    cfg: MhFitConfig = MhFitConfig(), K_max: int = 3, noise: np.ndarray | None = None,
+) -> dict[str, np.ndarray]:
+    """Fit every texel of a tile.
+
+    Parameters
+    ----------
+    radiance, direction : (t, u, N, 3); valid : (t, u, N) bool.
+    noise : (t, u, N) relative sd per observation: observations are weighted by
+        :func:`parammap.models.weights.noise_weights` (LM, nlopt and the K = 0 start),
+        and ``chi2`` is reported.
+    K : lobes, or ``"auto"`` (add lobes up to ``K_max`` while BIC improves by more than
+        ``cfg.bic_margin``).
+
+    Returns
+    -------
+    dict of arrays shaped (t, u, ...) as :func:`mh_outputs` (params padded to K_max
+    lobes with Ks = 0, d = +z). A texel with too few observations or a failed
+    optimisation is flagged in ``status`` and never stops the tile.
+    """
+    t, u, N, _ = radiance.shape
+    Kmax = K_max if K == "auto" else int(K)
+    out = {k: np.full((t, u) + shp, fill, dtype) for k, (shp, dtype, fill) in
+           mh_outputs(Kmax).items()}
+    V = direction.reshape(t * u, N, 3).astype(float)
+    L = radiance.reshape(t * u, N, 3).astype(float)
+    W = (valid.reshape(t * u, N) & np.isfinite(L).all(-1) & np.isfinite(V).all(-1))
+    L = np.where(W[..., None], L, 0.0)
+    V = np.where(W[..., None], V, [0.0, 0.0, 1.0])
+    NZ = None if noise is None else noise.reshape(t * u, N)
+    NW = noise_weights(NZ, W)
+    nobs = W.sum(1)
+    Ks = range(1, Kmax + 1) if K == "auto" else [Kmax]
+    todo = np.flatnonzero(nobs >= 4)  # 004: at least four observations
+    few = np.flatnonzero(nobs < 4)
+    flat = {k: v.reshape((t * u,) + v.shape[2:]) for k, v in out.items()}
+    flat["status"][few] = FitStatus.TOO_FEW
+    if len(todo) == 0:
+        return out
+    init = initial_guess_batch if cfg.init == "better" else initial_guess_published
+    Wf = NW[todo]
+    # the initial guesses in float32 (twice as fast; LM and nlopt then work in float64)
+    V32, L32, W32 = V[todo].astype(np.float32), L[todo].astype(np.float32), Wf.astype(np.float32)
+    inits = {k: init(V32, L32, W32, k).astype(float) for k in Ks}
+    if cfg.init == "better":
+        inits = {k: refine_batch(V[todo], L[todo], Wf, p0) for k, p0 in inits.items()}
+    polished = {}
+    if cfg.polish == "batch" and cfg.loss == "linear" and cfg.algorithm != "bobyqa":
+        for k in Ks:
+            P, rss, ev, conv, code = polish_batch(V[todo], L[todo], Wf, inits[k], cfg)
+            polished[k] = (P, rss, ev, conv & np.isfinite(P).all(1) & np.isfinite(rss), code)
+    for j, b in enumerate(todo):
+        w = W[b]
+        v, y, wt = V[b][w], L[b][w], NW[b][w]
+        best, best_bic, evals = None, math.inf, 0
+        if K == "auto":
+            # K = 0 first: a lobe must pay for itself against a diffuse texel
+            kd = (wt[:, None] * y).sum(0) / wt.sum()
+            p0 = np.r_[kd, M_MIN]
+            floor = (cfg.bic_floor * float(np.mean(np.abs(y)))) ** 2
+            rss0 = float(np.sum(wt[:, None] * (y - kd) ** 2))
+            best, best_bic = (FitResult(p0, rss0, 0, FitStatus.OK, 0), 0), bic(rss0, y.size, 0,
+                                                                            floor)
+        for k in Ks:
+            if k in polished and polished[k][3][j]:
+                P, rss, ev, _, code = polished[k]
+                r = FitResult(P[j], float(rss[j]), ev, FitStatus.OK, code)
+            else:
+                start = polished[k][0][j] if k in polished else inits[k][j]
+                try:
+                    r = fit_texel(v, y, start, cfg, w=wt)
+                except Exception:  # noqa: BLE001 - a failed texel is flagged, never fatal
+                    r = FitResult(np.full(mh_size(k), np.nan), math.inf, 0, FitStatus.FAILED,
+                                  -1)
+            evals += r.evals
+            floor = (cfg.bic_floor * float(np.mean(np.abs(y)))) ** 2
+            crit = bic(r.rss, y.size, k, floor) if r.status == FitStatus.OK else math.inf
+            if best is None or (K != "auto" and r.status == FitStatus.OK) or \
+                    crit < best_bic - cfg.bic_margin:
+                best, best_bic = (r, k), crit
+            elif K == "auto":
+                break
+        r, k = best
+        p = np.zeros(mh_size(Kmax))
+        p[: mh_size(k)] = r.params
+        for extra in range(k, Kmax):
+            p[mh_dir_z(extra)] = 1.0  # unused lobe: Ks = 0, d = +z
+        flat["params"][b] = p
+        flat["k_used"][b] = k
+        flat["evals"][b] = evals
+        flat["status"][b] = r.status
+    # residual diagnostics for the whole tile at once
+    ok = todo[flat["status"][todo] == FitStatus.OK]
+    if len(ok):
+        P = flat["params"][ok].astype(float)
+        before = _lobes_present(P)
+        P = drop_negligible_lobes(P, V[ok], L[ok], W[ok])
+        after = _lobes_present(P)
+        for j in np.flatnonzero(after < before):
+            # the lobes left were fitted beside the one now gone: refit them alone
+            b, k = ok[j], int(after[j])
+            flat["k_used"][b] = k
+            w = W[b]
+            v, y, wt = V[b][w], L[b][w], NW[b][w]
+            if k == 0:
+                P[j, :3] = (wt[:, None] * y).sum(0) / wt.sum()
+                continue
+            p0 = P[j, : mh_size(k)]
+            rss0 = float(np.sum(wt[:, None] * (mh_eval(p0, v) - y) ** 2))
+            try:
+                r = fit_texel(v, y, p0.copy(), cfg, w=wt)
+            except Exception:  # noqa: BLE001 - keep the unrefitted lobes
+                continue
+            if r.status == FitStatus.OK and r.rss < rss0:
+                P[j, : mh_size(k)] = r.params
+        flat["params"][ok] = P
+        fitted = mh_eval(flat["params"][ok].astype(float), V[ok])
+        w = W[ok][..., None]
+        n = np.maximum(w.sum(1), 1)
+        flat["rmse"][ok] = np.sqrt((np.where(w, fitted - L[ok], 0) ** 2).sum(1) / n)
+        flat["mpr"][ok] = mean_percentage_residual(L[ok], fitted, W[ok])
+        if NZ is not None:
+            # free parameters: Kd, m, and per lobe Ks and a direction (two angles)
+            flat["chi2"][ok] = reduced_chi2(L[ok], fitted, NZ[ok], W[ok],
+                                            mhx_size(flat["k_used"][ok].astype(int)))
+    return out
+
+
+# A texel whose RMSE exceeds this many times the median of its neighbourhood is refit
+# from its neighbours' parameters (the texels of one material share a minimum; a poor
+# local minimum shows as a "stain" of high residual among well-fitted neighbours).
+# Observations that must see a lobe above twice the texel's noise for it to count as
+# measured: three views x three channels are the fewest residuals that locate a peak
+# (direction, width) and its colour. Five (the lobe's parameter count) also removed
+# real, sharp lobes that 17 views of 004 ch. 13.2 still recover.
+MIN_SUPPORT = 3
+
+
+
+def drop_negligible_lobes(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
+                          floor: float = 1e-3) -> np.ndarray:
+    """Write lobes the data do not support as absent, instead of noise.
+
+    Two lobes that split one highlight between them are merged into one (Ks summed,
+    direction weighted by strength); then a lobe is written as absent (Ks = 0, d = +z;
+    m = 1 when no lobe is left) when the texel's data do not pay for it, or when fewer
+    than :data:`MIN_SUPPORT` observations see it above twice the noise.
+    Both use the criterion of ``auto`` (BIC): a change is made where ``n ln(RSS'/RSS)``
+    stays below ``5 ln n`` (the five parameters a lobe costs), with the mean squared
+    residual floored at ``(floor x mean radiance)^2`` as in :func:`bic`.
+
+    Parameters
+    ----------
+    P : (n, 4 + 6K) fitted parameters; V, L : (n, N, 3) directions and radiance;
+    W : (n, N) valid.
+    """
+    P = np.array(P, float, copy=True)
+    K = mh_lobes(P.shape[1])
+    if K == 0:
+        return P
+    w = W.astype(bool)[..., None]
+    nres = 3 * np.maximum(W.sum(1), 1)
+    fl = (floor * np.abs(np.where(w, L, 0)).sum((1, 2)) / nres) ** 2
+
+    def rss(Q):
+        r = np.where(w, mh_eval(Q, V) - L, 0.0)
+        return np.maximum((r ** 2).sum((1, 2)), fl * nres)
+
+    pen = 5 * np.log(nres)
+
+    def better(Q, base):
+        return nres * np.log(rss(Q) / base) < pen
+
+    for k in range(K):
+        for j in range(k + 1, K):
+            a, b = mh_lobe(k), mh_lobe(j)
+            wa = P[:, a][:, :3].sum(1, keepdims=True)
+            wb = P[:, b][:, :3].sum(1, keepdims=True)
+            d = P[:, a][:, 3:] * wa + P[:, b][:, 3:] * wb
+            d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+            Q = P.copy()
+            Q[:, a] = np.c_[P[:, a][:, :3] + P[:, b][:, :3], d]
+            Q[:, b] = [0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+            ok = (wa[:, 0] > 0) & (wb[:, 0] > 0) & better(Q, rss(P))
+            P[ok] = Q[ok]
+    for k in range(K):
+        Q = P.copy()
+        Q[:, mh_lobe(k)] = [0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+        # seen above twice the noise in fewer than MIN_SUPPORT observations, a lobe is
+        # not determined by the data (a noise spike, a highlight that fell between
+        # views) and would only sparkle in other views
+        noise = np.sqrt(rss(P) / nres)
+        c = np.clip(np.einsum("nvj,nj->nv", V, P[:, mh_dir(k)]), 0, None) \
+            ** P[:, MH_M, None] * P[:, mh_ks(k)].max(1, keepdims=True)
+        support = (W & (c > 2 * noise[:, None])).sum(1)
+        ok = (P[:, mh_ks(k)].sum(1) > 0) & (better(Q, rss(P))
+                                                       | (support < MIN_SUPPORT))
+        P[ok] = Q[ok]
+    none = _lobes_present(P) == 0
+    P[none, MH_M] = M_MIN
+    return _sort_lobes_batch(P)
+
+

@@ -1,0 +1,162 @@
+"""The MH model itself: evaluation, metrics, the fitters' x space and lobe order.
+
+``L_c(v) = Kd_c + sum_k Ks_kc * max(0, d_k . v) ** m`` per RGB channel, K lobes sharing
+one shininess m (000 eq. 1, 004 eq. 11.2); the parameter layout is
+:mod:`parammap.conventions` (``mh_*``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ...conventions import (
+    MH_KD,
+    MH_M,
+    MHX_KD,
+    MHX_LNM,
+    mh_dir,
+    mh_ks,
+    mh_lobes,
+    mh_size,
+    mhx_ks,
+    mhx_phi,
+    mhx_size,
+    mhx_theta,
+)
+from ...errors import InputError
+
+M_MIN, M_MAX = 1.0, 10000.0
+LN_M_MAX = math.log(M_MAX)
+
+
+def mh_eval(params: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """Evaluate MH parameter vectors.
+
+    Parameters
+    ----------
+    params : (..., 4 + 6K) conventions.md layout.
+    directions : (..., N, 3) unit view directions, surface frame.
+
+    Returns
+    -------
+    (..., N, 3) radiance.
+    """
+    params = np.asarray(params, float)
+    v = np.asarray(directions, float)
+    K = mh_lobes(params.shape[-1])
+    out = np.broadcast_to(params[..., None, MH_KD], v.shape).copy()
+    m = params[..., MH_M][..., None]
+    for k in range(K):
+        ks = params[..., mh_ks(k)]
+        d = params[..., mh_dir(k)]
+        c = np.clip(np.einsum("...nc,...c->...n", v, d), 0.0, None)
+        out += (c ** m)[..., None] * ks[..., None, :]
+    return out
+
+
+def bic(rss: float, n: int, K: int, floor: float = 0.0) -> float:
+    """Bayesian information criterion of a K-lobe fit with ``n`` residuals (d has two
+    degrees of freedom, so 4 + 5K free parameters). ``floor`` is the smallest mean
+    squared residual taken as real: below it (noise-free data) extra lobes only fit
+    round-off, which must not count as evidence."""
+    k = 3 if K == 0 else mhx_size(K)  # K = 0: Kd alone (no shininess to fit)
+    return n * math.log(max(rss / n, floor, 1e-300)) + k * math.log(n)
+
+
+
+def _angles(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    return np.arccos(np.clip(d[..., 2], -1, 1)), np.arctan2(d[..., 1], d[..., 0])
+
+
+
+def _params_to_x_batch(P: np.ndarray, s: np.ndarray) -> np.ndarray:
+    B = P.shape[0]
+    K = mh_lobes(P.shape[1])
+    X = np.empty((B, mhx_size(K)))
+    X[:, MHX_KD] = P[:, MH_KD] / s[:, None]
+    X[:, MHX_LNM] = np.log(np.clip(P[:, MH_M], M_MIN, M_MAX))
+    for k in range(K):
+        X[:, mhx_ks(k)] = P[:, mh_ks(k)] / s[:, None]
+        X[:, mhx_theta(k)], X[:, mhx_phi(k)] = _angles(P[:, mh_dir(k)])
+    return X
+
+
+def _x_to_params_batch(X: np.ndarray, s: np.ndarray) -> np.ndarray:
+    B = X.shape[0]
+    K = (X.shape[1] - 4) // 5
+    P = np.empty((B, mh_size(K)))
+    P[:, MH_KD] = X[:, MHX_KD] * s[:, None]
+    P[:, MH_M] = np.exp(X[:, MHX_LNM])
+    for k in range(K):
+        th, ph = X[:, mhx_theta(k)], X[:, mhx_phi(k)]
+        P[:, mh_ks(k)] = X[:, mhx_ks(k)] * s[:, None]
+        P[:, mh_dir(k)] = np.stack(
+            [np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1)
+    return P
+
+
+
+def _to_x(p: np.ndarray, s: float) -> np.ndarray:
+    K = mh_lobes(len(p))
+    x = np.empty(mhx_size(K))
+    x[MHX_KD] = p[MH_KD] / s
+    x[MHX_LNM] = math.log(min(max(p[MH_M], M_MIN), M_MAX))
+    for k in range(K):
+        x[mhx_ks(k)] = p[mh_ks(k)] / s
+        th, ph = _angles(p[mh_dir(k)])
+        x[mhx_theta(k)], x[mhx_phi(k)] = th, ph
+    return x
+
+
+def _from_x(x: np.ndarray, s: float) -> np.ndarray:
+    K = (len(x) - 4) // 5
+    p = np.empty(mh_size(K))
+    p[MH_KD] = x[MHX_KD] * s
+    p[MH_M] = math.exp(x[MHX_LNM])
+    for k in range(K):
+        p[mh_ks(k)] = x[mhx_ks(k)] * s
+        th, ph = x[mhx_theta(k)], x[mhx_phi(k)]
+        p[mh_dir(k)] = (math.sin(th) * math.cos(ph), math.sin(th) * math.sin(ph),
+                                    math.cos(th))
+    return p
+
+
+
+def _sort_lobes(p: np.ndarray) -> np.ndarray:
+    K = mh_lobes(len(p))
+    if K < 2:
+        return p
+    lobes = p[4:].reshape(K, 6)
+    order = np.argsort(-lobes[:, :3].sum(1), kind="stable")
+    out = p.copy()
+    out[4:] = lobes[order].ravel()
+    return out
+
+
+
+def _lobes_present(P: np.ndarray) -> np.ndarray:
+    """(n,) number of lobes with a non-zero Ks in parameter rows P (n, 4 + 6K)."""
+    K = mh_lobes(P.shape[1])
+    return sum((P[:, mh_ks(k)].sum(1) > 0).astype(int) for k in range(K))
+
+
+def _sort_lobes_batch(P: np.ndarray) -> np.ndarray:
+    return np.array([_sort_lobes(p) for p in P]) if len(P) else P
+
+
+def parse_lobes(K: str | int) -> int | str:
+    """``"auto"`` or a positive lobe count from a model name part."""
+    if str(K) == "auto":
+        return "auto"
+    try:
+        k = int(K)
+    except ValueError:
+        k = 0
+    if k < 1:
+        raise InputError(f"MH lobes must be a positive integer or auto (got {K!r})")
+    return k
+
+
