@@ -56,3 +56,17 @@ def test_a_moved_number_a_changed_pixel_and_a_missing_file_are_found(tmp_path):
     shutil.copy(tmp_path / "a" / "fig.png", tmp_path / "b" / "fig.png")
     assert main([str(tmp_path / "a"), str(tmp_path / "b"), "--rtol", "1e-6"]) == 0
     assert main([str(tmp_path / "a"), str(tmp_path / "b")]) == 1
+
+
+def test_added_metadata_counts_only_when_asked(tmp_path):
+    _tree(tmp_path / "a")
+    shutil.copytree(tmp_path / "a", tmp_path / "b")
+    data = json.loads((tmp_path / "b" / "metrics" / "fit.json").read_text())
+    data["units"] = {"rmse": "radiance"}  # metadata a newer version writes
+    (tmp_path / "b" / "metrics" / "fit.json").write_text(json.dumps(data))
+    (d,), _, _ = compare_trees(tmp_path / "a", tmp_path / "b")
+    assert d.added == ["/units"] and not d.what
+    assert main([str(tmp_path / "a"), str(tmp_path / "b")]) == 1
+    assert main([str(tmp_path / "a"), str(tmp_path / "b"), "--allow-added"]) == 0
+    # removed metadata is a difference either way
+    assert main([str(tmp_path / "b"), str(tmp_path / "a"), "--allow-added"]) == 1

@@ -181,14 +181,107 @@ def _check_schema(c: _Ctx, raw: Any) -> None:
     c.fail(_key(e.path), e.message)
 
 
+def _markers(c: _Ctx, raw: dict) -> tuple[str, np.ndarray, np.ndarray]:
+    """Dictionary name, ids (M,) and corners (M, 4, 2) mm of the surface markers.
+
+    A capture may have no markers yet (a bracket alone): the HDR stage still runs and
+    the pose stage drops every view with that reason."""
+    markers = raw.get("markers") or {}
+    dict_name = markers.get("dictionary", "DICT_4X4_50")
+    try:
+        dictionary = aruco_dictionary(dict_name)
+    except ValueError as exc:
+        c.fail("markers.dictionary", str(exc))
+    items = markers.get("items") or []
+    if 0 < len(items) < 4:
+        c.fail("markers.items", f"needs at least 4 markers (got {len(items)})")
+    ids, corners = [], []
+    n_dict = dictionary.bytesList.shape[0]
+    for k, item in enumerate(items):
+        where = f"markers.items[{k}]"
+        mid = item["id"]
+        if mid >= n_dict:
+            c.fail(f"{where}.id", f"{mid} is not in {dict_name} (ids 0..{n_dict - 1})")
+        if mid in ids:
+            c.fail(f"{where}.id", f"duplicate marker id {mid}")
+        arr = np.asarray(item["corners_mm"], float)
+        if not np.all(np.isfinite(arr)):
+            c.fail(f"{where}.corners_mm", "must be 4 corners of [x, y] in mm")
+        ids.append(mid)
+        corners.append(arr)
+    return dict_name, np.asarray(ids, int), np.asarray(corners, float).reshape(-1, 4, 2)
+
+
+def _calibration(c: _Ctx, raw: dict) -> tuple[dict, list[Path], Path | None]:
+    """The calibration section, its board photos and a saved intrinsics file.
+
+    Calibration may be absent for a bracket-only capture; the calibrate stage then
+    stops with a clear message."""
+    calib = raw.get("calibration") or {}
+    if not calib:
+        return {}, [], None
+    board = c.get(calib, "board", "calibration", str)
+    for key in ("squares_x", "squares_y"):
+        c.get(calib, key, "calibration")
+    square = c.positive(calib, "square_mm", "calibration")
+    if board == "charuco":
+        if c.positive(calib, "marker_mm", "calibration") >= square:
+            c.fail("calibration.marker_mm", "must be smaller than square_mm")
+        try:
+            aruco_dictionary(c.get(calib, "dictionary", "calibration", str))
+        except ValueError as exc:
+            c.fail("calibration.dictionary", str(exc))
+    intr = calib.get("intrinsics")
+    intr_path = c.path(intr, "calibration.intrinsics") if intr else None
+    pattern = calib.get("images")
+    if intr_path is None:
+        pattern = c.get(calib, "images", "calibration", str)
+    images: list[Path] = []
+    if pattern:
+        if Path(pattern).is_absolute() or ".." in Path(pattern).parts:
+            c.fail("calibration.images", f"pattern {pattern!r} leaves the capture directory")
+        images = sorted(Path(p).resolve() for p in glob.glob(str(c.root / pattern)))
+        if not images and intr_path is None:
+            c.fail("calibration.images", f"pattern {pattern!r} matches no file")
+    return dict(calib), images, intr_path
+
+
+def _views(c: _Ctx, raw: dict) -> list[View]:
+    """Every view with its exposures (times from capture.yaml, or from EXIF)."""
+    views, seen = [], set()
+    for k, v in enumerate(raw["views"]):
+        where = f"views[{k}]"
+        vid = str(v["id"])
+        if vid in seen:
+            c.fail(f"{where}.id", f"duplicate view id {vid!r}")
+        seen.add(vid)
+        exps = []
+        for e, ex in enumerate(v["exposures"]):
+            ew = f"{where}.exposures[{e}]"
+            p = c.path(ex["file"], f"{ew}.file")
+            t = ex.get("exposure_s")
+            if t is None:
+                # EXIF is read from the header only, cheap enough for every load.
+                t = exif_exposure_time(p) if p.is_file() else None
+                if t is None:
+                    c.fail(f"{ew}.exposure_s", f"missing, and {p.name} has no EXIF ExposureTime")
+            elif not np.isfinite(float(t)):
+                c.fail(f"{ew}.exposure_s", f"must be positive (got {t})")
+            exps.append(Exposure(p, float(t)))
+        views.append(View(vid, bool(v.get("holdout", False)), tuple(exps)))
+    return views
+
+
 def load_capture(directory: str | Path, check_images: bool = False) -> Capture:
-    """Parse and check ``<directory>/capture.yaml``.
+    """Parse and check ``<directory>/capture.yaml``: first against its JSON schema
+    (:func:`capture_schema`), then what a schema cannot express (files, dictionaries,
+    duplicate ids, EXIF exposure times).
 
     Parameters
     ----------
     directory : the capture directory.
     check_images : also decode every photo, check sizes agree within the views and
-        within the calibration set, and read EXIF exposure times.
+        within the calibration set.
 
     Raises
     ------
@@ -207,133 +300,22 @@ def load_capture(directory: str | Path, check_images: bool = False) -> Capture:
     if not isinstance(raw, dict):
         c.fail("<top>", "must be a mapping")
     _check_schema(c, raw)
-
-    surface = c.get(raw, "surface", "", dict)
-    sid = c.get(surface, "id", "surface", (str, int))
-    width = c.positive(surface, "width_mm", "surface")
-    height = c.positive(surface, "height_mm", "surface")
-
-    # A capture may have no markers yet (a bracket alone): the HDR stage still runs and
-    # the pose stage drops every view with that reason.
-    markers = raw.get("markers")
-    if markers is None:
-        markers = {}
-    elif not isinstance(markers, dict):
-        c.fail("markers", "must be a mapping")
-    dict_name = markers.get("dictionary", "DICT_4X4_50")
-    if markers:
-        dict_name = c.get(markers, "dictionary", "markers", str)
-    try:
-        dictionary = aruco_dictionary(dict_name)
-    except ValueError as exc:
-        c.fail("markers.dictionary", str(exc))
-    items = markers.get("items") or []
-    if not isinstance(items, list):
-        c.fail("markers.items", "must be a list")
-    if 0 < len(items) < 4:
-        c.fail("markers.items", f"needs at least 4 markers (got {len(items)})")
-    ids, corners = [], []
-    n_dict = dictionary.bytesList.shape[0]
-    for k, item in enumerate(items):
-        where = f"markers.items[{k}]"
-        mid = c.get(item, "id", where, int)
-        if not 0 <= mid < n_dict:
-            c.fail(f"{where}.id", f"{mid} is not in {dict_name} (ids 0..{n_dict - 1})")
-        if mid in ids:
-            c.fail(f"{where}.id", f"duplicate marker id {mid}")
-        cm = c.get(item, "corners_mm", where, list)
-        try:
-            arr = np.asarray(cm, float)
-        except (TypeError, ValueError):
-            arr = np.zeros(0)
-        if arr.shape != (4, 2) or not np.all(np.isfinite(arr)):
-            c.fail(f"{where}.corners_mm", "must be 4 corners of [x, y] in mm")
-        ids.append(mid)
-        corners.append(arr)
-
-    # Calibration may be absent for a bracket-only capture; the calibrate stage then
-    # stops with a clear message.
-    calib = raw.get("calibration") or {}
-    if not isinstance(calib, dict):
-        c.fail("calibration", "must be a mapping")
-    calib_images: list[Path] = []
-    intr_path = None
-    if calib:
-        board = c.get(calib, "board", "calibration", str)
-        if board not in ("charuco", "chessboard"):
-            c.fail("calibration.board", f"must be charuco or chessboard (got {board!r})")
-        for key in ("squares_x", "squares_y"):
-            v = c.get(calib, key, "calibration", int)
-            if v < 2:
-                c.fail(f"calibration.{key}", f"must be at least 2 (got {v})")
-        c.positive(calib, "square_mm", "calibration")
-        if board == "charuco":
-            mm = c.positive(calib, "marker_mm", "calibration")
-            if mm >= float(calib["square_mm"]):
-                c.fail("calibration.marker_mm", "must be smaller than square_mm")
-            try:
-                aruco_dictionary(c.get(calib, "dictionary", "calibration", str))
-            except ValueError as exc:
-                c.fail("calibration.dictionary", str(exc))
-        intr = calib.get("intrinsics")
-        intr_path = c.path(intr, "calibration.intrinsics") if intr else None
-        pattern = calib.get("images")
-        if intr_path is None:
-            pattern = c.get(calib, "images", "calibration", str)
-        if pattern:
-            if Path(pattern).is_absolute() or ".." in Path(pattern).parts:
-                c.fail("calibration.images", f"pattern {pattern!r} leaves the capture directory")
-            calib_images = sorted(Path(p).resolve() for p in glob.glob(str(c.root / pattern)))
-            if not calib_images and intr_path is None:
-                c.fail("calibration.images", f"pattern {pattern!r} matches no file")
-
-    camera = raw.get("camera") or {}
-    response = camera.get("response", "auto") if isinstance(camera, dict) else None
-    if not isinstance(response, str):
-        c.fail("camera.response", f"must be auto, linear or a path (got {response!r})")
+    surface = raw["surface"]
+    dict_name, ids, corners = _markers(c, raw)
+    calib, calib_images, intr_path = _calibration(c, raw)
+    response = (raw.get("camera") or {}).get("response", "auto")
     if response not in ("auto", "linear"):
         response = str(c.path(response, "camera.response"))
-
-    views_raw = c.get(raw, "views", "", list)
-    if not views_raw:
-        c.fail("views", "no views")
-    views, seen = [], set()
-    for k, v in enumerate(views_raw):
-        where = f"views[{k}]"
-        vid = str(c.get(v, "id", where, (str, int)))
-        if vid in seen:
-            c.fail(f"{where}.id", f"duplicate view id {vid!r}")
-        seen.add(vid)
-        holdout = v.get("holdout", False) if isinstance(v, dict) else False
-        if not isinstance(holdout, bool):
-            c.fail(f"{where}.holdout", f"must be true or false (got {holdout!r})")
-        exps_raw = c.get(v, "exposures", where, list)
-        if not exps_raw:
-            c.fail(f"{where}.exposures", "no exposures")
-        exps = []
-        for e, ex in enumerate(exps_raw):
-            ew = f"{where}.exposures[{e}]"
-            p = c.path(c.get(ex, "file", ew, str), f"{ew}.file")
-            t = ex.get("exposure_s")
-            if t is None:
-                # EXIF is read from the header only, cheap enough for every load.
-                t = exif_exposure_time(p) if p.is_file() else None
-                if t is None:
-                    c.fail(f"{ew}.exposure_s", f"missing, and {p.name} has no EXIF ExposureTime")
-            else:
-                t = c.positive(ex, "exposure_s", ew)
-            exps.append(Exposure(p, float(t)))
-        views.append(View(vid, holdout, tuple(exps)))
-
     cap = Capture(
-        root=c.root, surface_id=str(sid), width_mm=width, height_mm=height,
-        marker_dictionary=dict_name, marker_ids=np.asarray(ids, int),
-        marker_corners=np.asarray(corners, float).reshape(-1, 4, 2), calibration=dict(calib),
-        calibration_images=calib_images, intrinsics_path=intr_path,
-        response=response, views=views, raw=raw,
+        root=c.root, surface_id=str(surface["id"]),
+        width_mm=c.positive(surface, "width_mm", "surface"),
+        height_mm=c.positive(surface, "height_mm", "surface"),
+        marker_dictionary=dict_name, marker_ids=ids,
+        marker_corners=corners, calibration=calib, calibration_images=calib_images,
+        intrinsics_path=intr_path, response=response, views=_views(c, raw), raw=raw,
     )
     if check_images:
-        _check_images(c, cap, views_raw)
+        _check_images(c, cap, raw["views"])
     return cap
 
 

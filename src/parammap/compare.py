@@ -16,8 +16,9 @@ run to run and are skipped. Numbers that differ are reported with their largest
 relative difference; a tree is *equal to float precision* when no number moved by more
 than ``rtol`` (default 0: identical).
 
-Usage: ``python -m parammap.compare A B [--rtol 1e-6]``; exit status 0 when the trees
-agree, 1 when not.
+Usage: ``python -m parammap.compare A B [--rtol 1e-6] [--allow-added]``; exit status 0
+when the trees agree, 1 when not. With ``--allow-added``, keys, attributes and arrays
+that only B has (metadata a newer version writes) are listed but do not count.
 """
 
 from __future__ import annotations
@@ -53,6 +54,14 @@ class Difference:
     what: list[str] = field(default_factory=list)
     max_rel: float = 0.0  # largest relative difference of numbers that moved
     exact: bool = False  # something other than a number differs (shape, text, key)
+    added: list[str] = field(default_factory=list)  # keys or arrays only B has
+
+    def only(self, what: str, in_a: bool) -> None:
+        """A key, attribute or array present in one tree only: in B, an addition."""
+        if in_a:
+            self.add(f"{what}: only in A")
+        else:
+            self.added.append(what)
 
     def add(self, what: str, rel: float | None = None) -> None:
         self.what.append(what)
@@ -91,7 +100,7 @@ def _compare_values(a: Any, b: Any, where: str, diff: Difference) -> None:
             if k in VOLATILE_KEYS:
                 continue
             if k not in a or k not in b:
-                diff.add(f"{where}/{k}: only in {'B' if k not in a else 'A'}")
+                diff.only(f"{where}/{k}", k in a)
             else:
                 _compare_values(a[k], b[k], f"{where}/{k}", diff)
         return
@@ -129,7 +138,7 @@ def _arrays(a: dict[str, np.ndarray], b: dict[str, np.ndarray], where: str,
             diff: Difference) -> None:
     for k in sorted(set(a) | set(b)):
         if k not in a or k not in b:
-            diff.add(f"{where}{k}: only in {'B' if k not in a else 'A'}")
+            diff.only(f"{where}{k}", k in a)
             continue
         r = _rel(a[k], b[k])
         if r is None or r > 0:
@@ -156,7 +165,7 @@ def _compare_zarr(a: Path, b: Path, diff: Difference) -> None:
     nb = {k for k, _ in gb.arrays()}
     for k in sorted(na | nb):
         if k not in na or k not in nb:
-            diff.add(f"array {k}: only in {'B' if k not in na else 'A'}")
+            diff.only(f"array {k}", k in na)
             continue
         r = _rel(ga[k][...], gb[k][...])
         if r is None or r > 0:
@@ -259,7 +268,7 @@ def compare_trees(a: str | Path, b: str | Path) -> tuple[list[Difference], list[
     diffs = []
     for rel in sorted(ea & eb):
         d = compare_file(a / rel, b / rel, rel)
-        if d.what:
+        if d.what or d.added:
             diffs.append(d)
     return diffs, sorted(ea - eb), sorted(eb - ea)
 
@@ -271,6 +280,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("b", type=Path, help="second tree")
     ap.add_argument("--rtol", type=float, default=0.0,
                     help="largest relative difference of a number still counted as equal")
+    ap.add_argument("--allow-added", action="store_true",
+                    help="keys, attributes or arrays that only B has (new metadata) do not "
+                         "count as differences")
     args = ap.parse_args(argv)
     for p in (args.a, args.b):
         if not p.is_dir():
@@ -278,19 +290,23 @@ def main(argv: list[str] | None = None) -> int:
             return 2
     diffs, only_a, only_b = compare_trees(args.a, args.b)
     n = len(set(_entries(args.a)) & set(_entries(args.b)))
-    bad = [d for d in diffs if d.exact or d.max_rel > args.rtol]
+    bad = [d for d in diffs if d.exact or d.max_rel > args.rtol
+           or (d.added and not args.allow_added)]
+    near = [d for d in diffs if d.max_rel and d not in bad]
     for d in diffs:
-        kind = "DIFFERS" if d in bad else "float  "
-        detail = "; ".join(d.what[:4]) + (f" (+{len(d.what) - 4})" if len(d.what) > 4 else "")
+        kind = "DIFFERS" if d in bad else ("float  " if d.max_rel else "added  ")
+        what = d.what + [f"{a}: added" for a in d.added]
+        detail = "; ".join(what[:4]) + (f" (+{len(what) - 4})" if len(what) > 4 else "")
         rel = f" max rel {d.max_rel:.2g}" if d.max_rel else ""
         print(f"{kind} {d.path}{rel}: {detail}")
     for p in only_a:
         print(f"only in {args.a}: {p}")
     for p in only_b:
         print(f"only in {args.b}: {p}")
-    print(f"compared {n} entries: {n - len(diffs)} identical, {len(diffs) - len(bad)} equal "
-          f"within rtol {args.rtol:g}, {len(bad)} different; {len(only_a)} + {len(only_b)} "
-          f"in one tree only")
+    added = len(diffs) - len(bad) - len(near)
+    print(f"compared {n} entries: {n - len(diffs)} identical, {added} identical but for "
+          f"added keys, {len(near)} equal within rtol {args.rtol:g}, {len(bad)} different; "
+          f"{len(only_a)} + {len(only_b)} in one tree only")
     return 1 if bad else 0
 
 
