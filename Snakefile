@@ -16,6 +16,7 @@ include: "workflow/rules/hdr.smk"
 include: "workflow/rules/observation.smk"
 include: "workflow/rules/fit.smk"
 include: "workflow/rules/report.smk"
+include: "workflow/rules/paper.smk"
 
 
 rule all:

@@ -209,6 +209,14 @@ def _viewer(a: argparse.Namespace) -> int:
     return 0
 
 
+@_command("paper")
+def _paper(a: argparse.Namespace) -> int:
+    from .paper import run_paper
+
+    run_paper(a.out, a.experiment, a.quick)
+    return 0
+
+
 @_command("figures")
 def _figures(a: argparse.Namespace) -> int:
     from .figures import make_figures
@@ -298,6 +306,13 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, help="data/processed/<id>")
     s.add_argument("--figures", required=True, help="viewer folder, reports/<id>/viewer")
     s.add_argument("--model", action="append", required=True, help="model name, repeatable")
+
+    s = add("paper", help="regenerate 004's experiments under the published conditions")
+    s.add_argument("--out", default="reports/paper", help="report folder (reports/paper)")
+    s.add_argument("--experiment", action="append",
+                   help="only this experiment (repeatable): point_area, second_light, "
+                        "sh_sweep, sizes, sampling")
+    s.add_argument("--quick", action="store_true", help="a reduced SH sweep (tests)")
 
     s = add("figures", help="report figures and tables from stage outputs")
     s.add_argument("kind", help="response | hdr | calibration | poses | observation | model | "

@@ -1,0 +1,92 @@
+"""004's experiments under the published conditions (issue 16): 289 icosahedron views,
+8-bit renders clipped at 255, the published lights and colour; ``parammap paper
+--quick`` as the suite runs it. Values 004 leaves unstated are listed in
+``reports/paper/README.md``; the assertions are on what does not depend on them."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+
+from parammap.cli import main
+
+
+def _table(path):
+    with path.open() as f:
+        rows = list(csv.DictReader(f))
+    num = (lambda s: np.array([float(x) for x in s.split()]) if s else None)  # noqa: E731
+    return {r["case"]: {k: num(r[k]) if k in ("published", "ours_published_method",
+                                               "ours_defaults") else r[k]
+                        for k in r} for r in rows}
+
+
+@pytest.fixture(scope="module")
+def paper(tmp_path_factory):
+    out = tmp_path_factory.mktemp("paper")
+    assert main(["paper", "--out", str(out), "--quick"]) == 0
+    return out
+
+
+def test_published_conditions_are_stated(paper):
+    text = (paper / "README.md").read_text()
+    assert "289 icosahedron directions" in text and "8 bits" in text
+    for unstated in ("ks, m", "camera distance", "area light", "second light"):
+        assert f"- {unstated}:" in text
+
+
+def test_one_lobe_on_one_light_fits_to_the_8_bit_floor(paper):
+    t = _table(paper / "point_area.csv")
+    for case in ("point light [8, 8]", "point light [14, 14]", "area light [8, 8]"):
+        ours = t[case]["ours_published_method"]
+        # G and B sit at level 15: half a level of quantisation is 3.3 %
+        assert ours[0] < 2.0 and (ours[1:] < 4.0).all(), (case, ours)
+        assert t[case]["published"] is not None
+
+
+def test_second_light_needs_a_second_lobe(paper):
+    """004 ch. 11.3.2: one lobe leaves 10-22 % in G and B (red clipped: 0); two lobes
+    and auto (ours, not published) reach the 8-bit floor."""
+    t = _table(paper / "second_light.csv")
+    for xy in ("[450, 450]", "[-450, -450]", "[-1500, -1500]"):
+        one = t[f"second light at {xy}, K = 1"]
+        assert one["ours_published_method"][0] == 0.0 and one["published"][0] == 0.0
+        assert 5.0 < one["ours_published_method"][1] < 40.0
+        for K in ("2", "auto"):
+            assert (t[f"second light at {xy}, K = {K}"]["ours_defaults"] < 1.5).all()
+    near = t["second light at [450, 450], K = 1"]["ours_published_method"][1]
+    far = t["second light at [-1500, -1500], K = 1"]["ours_published_method"][1]
+    assert far > near  # as published: merged when close, the weak one lost when apart
+
+
+def test_sh_sweep_reproduces_the_published_projections(paper):
+    """004 ch. 12.5 at 100 coefficients: ZH [7.67, 16.72] and LSOP's overshoot near the
+    equator (about 0.55 against 0.4 measured); our sampled-cap projection fits the
+    same data better and follows the measured values there."""
+    t = _table(paper / "sh_sweep.csv")
+    zh = t["sh-zh-100"]["ours_published_method"]
+    assert abs(zh[0] - 7.67) < 3 and abs(zh[1] - 16.72) < 5
+    lsop = t["sh-lsop-100"]
+    note = lsop["note"]
+    measured = float(note.split("measured ")[1].split(",")[0])
+    lsop_eq = float(note.split("lsop ")[1].split(",")[0])
+    ours_eq = float(note.split("sampled cap) ")[1].split(" ")[0])
+    assert lsop_eq > 1.5 * measured and abs(ours_eq - measured) < 0.05 * measured
+    for hemi in ("zh", "lsop"):
+        for nc in (16, 100):
+            row = t[f"sh-{hemi}-{nc}"]
+            assert (row["ours_defaults"][1:] < row["ours_published_method"][1:]).all()
+
+
+def test_sizes_follow_the_published_formulas(paper):
+    for case, row in _table(paper / "sizes.csv").items():
+        np.testing.assert_allclose(row["ours_published_method"], row["published"],
+                                   atol=0.011, err_msg=case)
+
+
+def test_published_sampling_schemes(paper):
+    t = _table(paper / "sampling.csv")
+    assert t["latitude-longitude (113)"]["ours_published_method"][0] == 113
+    assert t["icosahedron level 3 to 85 deg (289)"]["ours_published_method"][0] == 289
+    assert (paper / "sampling.png").stat().st_size > 10_000
