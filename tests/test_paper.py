@@ -90,3 +90,21 @@ def test_published_sampling_schemes(paper):
     assert t["latitude-longitude (113)"]["ours_published_method"][0] == 113
     assert t["icosahedron level 3 to 85 deg (289)"]["ours_published_method"][0] == 289
     assert (paper / "sampling.png").stat().st_size > 10_000
+
+
+def test_shininess_limit_of_lsop_36_as_published(paper):
+    """004 ch. 13.1: LSOP-36 follows a highlight up to a shininess of about 15; MH all
+    eight bands."""
+    t = _table(paper / "shininess.csv")
+    assert 10 <= t["highest m followed, sh-lsop-36"]["ours_published_method"][0] <= 25
+    assert t["highest m followed, sh-lsop-16"]["ours_published_method"][0] < 15
+    assert t["highest m followed, mh-1"]["ours_published_method"][0] == 200
+
+
+def test_more_views_help_sh_more_than_mh(paper):
+    """004 ch. 13.2: MH from 73 views is close to 305; SH-36 needs the views (17 < 73 <
+    305) everywhere on the hemisphere."""
+    t = _table(paper / "view_count.csv")
+    assert (t["MH-1 from 73 views against 305"]["ours_published_method"][:3] < 5).all()
+    e = {n: t[f"SH-36 from {n} views"]["ours_published_method"] for n in ("17", "73", "305")}
+    assert (e["305"] < e["73"]).all() and (e["73"] < e["17"]).all()
