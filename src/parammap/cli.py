@@ -311,7 +311,7 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--out", default="reports/paper", help="report folder (reports/paper)")
     s.add_argument("--experiment", action="append",
                    help="only this experiment (repeatable): point_area, second_light, "
-                        "sh_sweep, sizes, sampling")
+                        "sh_sweep, shininess, view_count, initialisers, sizes, sampling")
     s.add_argument("--quick", action="store_true", help="a reduced SH sweep (tests)")
 
     s = add("figures", help="report figures and tables from stage outputs")

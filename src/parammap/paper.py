@@ -11,6 +11,10 @@ leaves them unstated. Experiments (004 chapter in brackets):
 - ``sh_sweep`` (12.5): SH with 16 ... 100 coefficients, ZH and LSOP as published (and
   mirror), against our sampled-cap projections; residuals and the values near the
   equator.
+- ``shininess`` (13.1): eight bands of increasing shininess; the highest each model
+  follows.
+- ``view_count`` (13.2-13.3): 17 / 73 / 305 views and the non-uniform 73 + 81.
+- ``initialisers`` (001): the greedy virtual lights against 004's initial guess.
 - ``sizes`` (tables 9.1, 11.1, 12.1): storage by formula, as published, and measured
   for our EXR files.
 - ``sampling`` (8.1): the spiral and latitude-longitude schemes as published, with a
@@ -343,6 +347,41 @@ def exp_view_count(c: Conditions = CONDITIONS) -> list[dict[str, Any]]:
     return rows
 
 
+def exp_initialisers(c: Conditions = CONDITIONS) -> list[dict[str, Any]]:
+    """001's greedy virtual lights (a lobe at the largest residual, linear least squares
+    for the coefficients, golden-section search over the exponent; our ``better``
+    initialiser, adapted to one shared m) against 004's published initial guess, on the
+    scenes of 004 ch. 11.3.1-11.3.2: residual of the start, of the fit, and the
+    objective evaluations the fit needed."""
+    from .models.mh import initial_guess_batch, initial_guess_published, mh_eval
+    from .models.residuals import mean_percentage_residual
+
+    rows = []
+    scenes = {"point light, K = 1": ([c.light], [1.0], 1),
+              "second light at [-1500, -1500], K = 2":
+                  ([c.light, (-1500.0, -1500.0, 2000.0)], [1.0, c.second_light_intensity], 2)}
+    for name, (lights, ints, K) in scenes.items():
+        case = published_case(lights, ints, c)
+        n = c.texels * c.texels
+        V = case.direction.reshape(n, -1, 3).astype(float)
+        L = case.radiance.reshape(n, -1, 3).astype(float)
+        W = case.valid.reshape(n, -1).astype(float)
+        out = {}
+        for init, guess in (("published", initial_guess_published),
+                            ("better", initial_guess_batch)):
+            P0 = guess(V, L, W, K)
+            start = np.median(mean_percentage_residual(L, mh_eval(P0, V)), 0)
+            o = _fit_mh(case, K, init)
+            out[init] = (start, np.median(o["mpr"].reshape(n, 3), 0),
+                         float(o["evals"].mean()))
+        for what, k in (("start: median mean % residual", 0),
+                        ("fit: median mean % residual", 1), ("fit: mean evaluations", 2)):
+            rows.append(_row("initialisers", f"{name}, {what}", None, out["published"][k],
+                             out["better"][k], "004's guess | 001's greedy virtual lights "
+                             "(ours)"))
+    return rows
+
+
 def spiral_published(n: int = 100, turns: float = 6.0) -> np.ndarray:
     """004 ch. 8.1.1 as published: zenith in equal steps from the horizon to the normal,
     azimuth in steps of 2 pi R / N (004 writes the zenith range as [pi; 0] in pi / N
@@ -415,7 +454,8 @@ def exp_sampling(out_dir: str | Path | None = None) -> list[dict[str, Any]]:
 
 EXPERIMENTS = {"point_area": exp_point_area, "second_light": exp_second_light,
                "sh_sweep": exp_sh_sweep, "shininess": exp_shininess,
-               "view_count": exp_view_count, "sizes": exp_sizes, "sampling": exp_sampling}
+               "view_count": exp_view_count, "initialisers": exp_initialisers,
+               "sizes": exp_sizes, "sampling": exp_sampling}
 
 
 def _write_csv(path: Path, rows: list[dict[str, Any]]) -> Path:
