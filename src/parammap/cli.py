@@ -213,7 +213,7 @@ def _viewer(a: argparse.Namespace) -> int:
 def _paper(a: argparse.Namespace) -> int:
     from .paper import run_paper
 
-    run_paper(a.out, a.experiment, a.quick)
+    run_paper(a.out, a.experiment, a.quick, a.capture, a.processed, a.workers)
     return 0
 
 
@@ -313,6 +313,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="only this experiment (repeatable): point_area, second_light, "
                         "sh_sweep, shininess, view_count, initialisers, sizes, sampling")
     s.add_argument("--quick", action="store_true", help="a reduced SH sweep (tests)")
+    s.add_argument("--capture", help="a capture for 004 ch. 16's held-out tables")
+    s.add_argument("--processed", help="its processed folder (poses, HDR, observation map)")
+    s.add_argument("--workers", type=int, default=2, help="processes for those fits")
 
     s = add("figures", help="report figures and tables from stage outputs")
     s.add_argument("kind", help="response | hdr | calibration | poses | observation | model | "
