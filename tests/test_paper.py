@@ -144,3 +144,18 @@ def test_held_out_tables_in_the_layout_of_004_ch16(tiny_processed, tmp_path):
         values = np.array([float(r[c]) for c in cols])
         assert np.isfinite(values).all() and (values >= 0).all() and (values < 128).all()
     assert sum(r["view"].startswith("published") for r in rows) == 4
+
+
+def test_planar_voronoi_areas_as_published():
+    """004's quadrature: planar Voronoi cells in the unit disc divided by cos(theta);
+    they cover the hemisphere (2 pi) when the views reach the equator, and differ from
+    the spherical cells most near the equator."""
+    from parammap.models.sh import planar_solid_angles, solid_angles
+    from parammap.synth.sampling import icosahedron
+
+    d = icosahedron(3, 90.0)
+    planar, spherical = planar_solid_angles(d), solid_angles(d)
+    assert abs(planar.sum() / (2 * np.pi) - 1) < 0.03
+    low, high = d[:, 2] < 0.2, d[:, 2] > 0.8
+    rel = np.abs(planar / spherical - 1)
+    assert rel[high].mean() < 0.1 and rel[low].mean() > rel[high].mean()

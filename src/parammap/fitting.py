@@ -307,10 +307,11 @@ def fit_sh_map(obs_path: str | Path, out_path: str | Path, hemisphere: str, n: i
     cap = bool(cfg.get("sampled_cap", True)) and hemisphere in SH_CAP_AWARE
     res = fit_map(obs_path, out_path,
                   partial(fit_sh_tile, n=n, hemisphere=hemisphere, reg=reg,
-                          sampled_cap=cap),
+                          sampled_cap=cap, areas=cfg.get("solid_angles", "spherical")),
                   sh_outputs(n),
                   {"model": "sh", "model_version": 2, "hemisphere": hemisphere, "bands": n,
                    "coefficients": n * n, "sampled_cap": cap,
+                   "solid_angles": cfg.get("solid_angles", "spherical"),
                    "regularisation": reg if hemisphere in ("rlsop", "wls") else None,
                    "layout": "sh.R.00 .. sh.R.(n^2-1), then G, then B; index l(l+1)+m"},
                   scheduler, workers)

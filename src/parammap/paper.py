@@ -185,14 +185,18 @@ def exp_sh_sweep(c: Conditions = CONDITIONS, bands=(4, 5, 6, 7, 8, 9, 10)
     rows = []
     for n in bands:
         fits = {}
-        for hemi, cap in (("zh", False), ("mirror", False), ("lsop", False), ("rlsop", True)):
-            o = fit_sh_tile(L, V, W, n, hemi, sampled_cap=cap)
+        for hemi, cap, areas in (("zh", False, "spherical"), ("mirror", False, "spherical"),
+                                 ("lsop", False, "spherical"), ("rlsop", True, "spherical"),
+                                 ("zh", False, "planar"), ("lsop", False, "planar")):
+            o = fit_sh_tile(L, V, W, n, hemi, sampled_cap=cap, areas=areas)
+            hemi = hemi if areas == "spherical" else f"{hemi} planar"
             coeffs = o["coeffs"][0, 0].astype(float).reshape(3, n * n)
             eq = float((sh_eval(coeffs, V[0, 0, low].astype(float)) @ lum).mean())
             fits[hemi] = (o["mpr"][0, 0], eq)
         measured_eq = float((L[0, 0, low] @ lum).mean())
-        for hemi in ("zh", "mirror", "lsop"):
-            name = f"sh-{hemi}-{n * n}"
+        for hemi in ("zh", "mirror", "lsop", "zh planar", "lsop planar"):
+            name = f"sh-{hemi.split()[0]}-{n * n}" + (" (004's planar Voronoi areas / cos)"
+                                                      if "planar" in hemi else "")
             rows.append(_row("sh_sweep", name, PUBLISHED.get(name), fits[hemi][0],
                              fits["rlsop"][0],
                              f"near the equator: measured {measured_eq:.3f}, {hemi} "

@@ -51,6 +51,7 @@ __all__ = [
     "project",
     "sh_basis",
     "parse_sh_model",
+    "planar_solid_angles",
     "project_cap",
     "sh_eval",
     "sh_outputs",
@@ -202,6 +203,39 @@ def solid_angles(directions: np.ndarray, reference: np.ndarray | None = None) ->
         contrib = _signed_area(v, m1, u) + _signed_area(v, u, m2)
         area += np.bincount((offs + tri[:, k]).ravel(), contrib.ravel(), minlength=B * 2 * N)
     return area.reshape(B, 2 * N)[:, :N].reshape(batch + (N,))
+
+
+def planar_solid_angles(directions: np.ndarray, grid: int = 512) -> np.ndarray:
+    """004's quadrature weights (ch. 12.2): the area of each direction's Voronoi cell in
+    the projection onto the surface plane (inside the unit disc), divided by its
+    cos(theta). Kept to reproduce the published projections' artefacts; the cells are
+    measured on a ``grid`` x ``grid`` raster of the disc (nearest projected direction).
+
+    Parameters
+    ----------
+    directions : (..., N, 3) unit vectors with z > 0.
+
+    Returns
+    -------
+    (..., N) weights in steradians (approximately; they sum to about 2 pi only where
+    the views reach the equator).
+    """
+    from scipy.spatial import cKDTree
+
+    d = np.asarray(directions, float)
+    batch, N = d.shape[:-2], d.shape[-2]
+    d = d.reshape((-1, N, 3))
+    t = (np.arange(grid) + 0.5) / grid * 2 - 1
+    X, Y = np.meshgrid(t, t)
+    disc = X ** 2 + Y ** 2 <= 1
+    pts = np.stack([X[disc], Y[disc]], 1)
+    cell = (2.0 / grid) ** 2
+    out = np.empty(d.shape[:2])
+    for b in range(len(d)):
+        _, idx = cKDTree(d[b, :, :2]).query(pts)
+        area = np.bincount(idx, minlength=N) * cell
+        out[b] = area / np.maximum(d[b, :, 2], 1e-3)
+    return out.reshape(batch + (N,))
 
 
 def project(
@@ -526,14 +560,17 @@ def sh_outputs(n: int) -> dict[str, tuple[tuple[int, ...], str, float]]:
 def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, n: int,
                 hemisphere: str, reg: float | str = "auto", batch: int = 256,
                 min_obs: int | None = None, sampled_cap: bool = True,
-                noise: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                noise: np.ndarray | None = None, areas: str = "spherical",
+                ) -> dict[str, np.ndarray]:
     """Project every texel of a tile, batched (texels sharing one validity pattern
     share one triangulation and one :class:`SampledCap`). (t, u, N, 3) inputs; outputs
     as :func:`sh_outputs`. ``sampled_cap`` (default) fits lsop, rlsop and wls with
     :func:`project_cap` and its guard; ``False`` gives the published projections of
     :func:`project` (Voronoi cells out to the equator, fixed ``reg``). ``noise`` (t, u,
     N) relative sd per observation: cell weights are multiplied by the noise weights
-    of :func:`parammap.models.weights.noise_weights`, and ``chi2`` is reported."""
+    of :func:`parammap.models.weights.noise_weights`, and ``chi2`` is reported.
+    ``areas``: ``spherical`` Voronoi cells (default) or 004's ``planar`` cells divided
+    by cos(theta) (:func:`planar_solid_angles`), for reproducing its artefacts."""
     t, u, N, _ = radiance.shape
     out = {k: np.full((t, u) + shp, fill, dtype) for k, (shp, dtype, fill) in
            sh_outputs(n).items()}
@@ -559,7 +596,8 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
             sel = idx[s0:s0 + batch]
             v, y = V[sel][:, w], L[sel][:, w]
             try:
-                omega = solid_angles(v) * NW[sel][:, w]
+                omega = (planar_solid_angles(v) if areas == "planar" else solid_angles(v)) \
+                    * NW[sel][:, w]
                 Y = sh_basis(v, n)
                 if sampled_cap and hemisphere in SH_CAP_AWARE:
                     c, lam, esc, bands = guarded_project(y, v, omega, n, hemisphere, reg, Y)
