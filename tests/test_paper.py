@@ -89,7 +89,8 @@ def test_published_sampling_schemes(paper):
     t = _table(paper / "sampling.csv")
     assert t["latitude-longitude (113)"]["ours_published_method"][0] == 113
     assert t["icosahedron level 3 to 85 deg (289)"]["ours_published_method"][0] == 289
-    assert (paper / "sampling.png").stat().st_size > 10_000
+    for fig in ("sampling", "point_area", "second_light", "sh_sweep", "shininess"):
+        assert (paper / f"{fig}.png").stat().st_size > 10_000, fig
 
 
 def test_shininess_limit_of_lsop_36_as_published(paper):

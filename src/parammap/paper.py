@@ -30,6 +30,7 @@ colour [200, 15, 15], 289 icosahedron views, renders in 8 bits (clipped at 255).
 from __future__ import annotations
 
 import csv
+import inspect
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -131,47 +132,84 @@ def _row(experiment: str, case: str, published, ours_pub, ours_def, note: str = 
             "note": note}
 
 
-def exp_point_area(c: Conditions = CONDITIONS) -> list[dict[str, Any]]:
-    """004 ch. 11.3.1: mean percentage residual of a one-lobe fit, point vs area light."""
+def _lobe_figure(out_dir: str | Path | None, name: str, entries: list[dict],
+                 title: str) -> None:
+    """Measured and fitted radiance over the hemisphere with percentage residuals, as
+    004's figures draw them (``<out_dir>/<name>.png``)."""
+    if out_dir is not None and entries:
+        from .report import plot_lobes
+
+        plot_lobes(entries, Path(out_dir) / f"{name}.png", title)
+
+
+def _entry(label: str, case: Case, texel: tuple[int, int], fitted: np.ndarray) -> dict:
+    r, col = texel
+    return {"label": label, "direction": case.direction[r, col].astype(float),
+            "measured": case.radiance[r, col].astype(float), "fitted": fitted}
+
+
+def _mh_fitted(o: dict, case: Case, texel: tuple[int, int]) -> np.ndarray:
+    from .models.mh import mh_eval
+
+    r, col = texel
+    return mh_eval(o["params"][r, col].astype(float), case.direction[r, col].astype(float))
+
+
+def exp_point_area(c: Conditions = CONDITIONS, out_dir: str | Path | None = None,
+                   ) -> list[dict[str, Any]]:
+    """004 ch. 11.3.1: mean percentage residual of a one-lobe fit, point vs area light
+    (figure: 004 figs. 11.6-11.8)."""
     point = published_case([c.light], [1.0], c)
     g = np.arange(-1, 2) * c.area_pitch_mm
     grid = [(c.light[0] + a, c.light[1] + b, c.light[2]) for a in g for b in g]
     area = published_case(grid, [1.0 / 9] * 9, c)
-    rows = []
+    rows, entries = [], []
     for name, case, texel in (("point light [8, 8]", point, (8, 8)),
                               ("point light [14, 14]", point, (14, 14)),
                               ("area light [8, 8]", area, (8, 8))):
         r, col = _st(*texel, c)
-        pub = _fit_mh(case, 1, "published")["mpr"][r, col]
+        o_pub = _fit_mh(case, 1, "published")
         ours = _fit_mh(case, 1, "better")["mpr"][r, col]
-        rows.append(_row("point_area", name, PUBLISHED[name], pub, ours,
+        rows.append(_row("point_area", name, PUBLISHED[name], o_pub["mpr"][r, col], ours,
                          "mean % residual R G B at one texel, one lobe"))
+        entries.append(_entry(name, case, (r, col), _mh_fitted(o_pub, case, (r, col))))
+    _lobe_figure(out_dir, "point_area", entries, "004 ch. 11.3.1: one lobe, point and "
+                 "area light (measured dots, fitted crosses; % residual below)")
     return rows
 
 
-def exp_second_light(c: Conditions = CONDITIONS) -> list[dict[str, Any]]:
+def exp_second_light(c: Conditions = CONDITIONS, out_dir: str | Path | None = None,
+                     ) -> list[dict[str, Any]]:
     """004 ch. 11.3.2: one lobe for two lights ever further apart (published), then two
-    lobes and auto (ours)."""
-    rows = []
+    lobes and auto (ours); figure: 004 fig. 11.9 and the same with two lobes."""
+    rows, entries = [], []
     r, col = _st(8, 8, c)
     for xy in ((450, 450), (-450, -450), (-1500, -1500)):
         case = published_case([c.light, (xy[0], xy[1], 2000.0)],
                               [1.0, c.second_light_intensity], c)
         name = f"second light at [{xy[0]}, {xy[1]}]"
-        one_pub = _fit_mh(case, 1, "published")["mpr"][r, col]
+        o1 = _fit_mh(case, 1, "published")
         one = _fit_mh(case, 1, "better")["mpr"][r, col]
-        rows.append(_row("second_light", name + ", K = 1", PUBLISHED[name], one_pub, one))
+        rows.append(_row("second_light", name + ", K = 1", PUBLISHED[name],
+                         o1["mpr"][r, col], one))
+        entries.append(_entry(f"[{xy[0]}, {xy[1]}], K = 1", case, (r, col),
+                              _mh_fitted(o1, case, (r, col))))
         for K in (2, "auto"):
             o_pub = _fit_mh(case, K, "published")
             o = _fit_mh(case, K, "better")
+            if K == 2:
+                entries.append(_entry(f"[{xy[0]}, {xy[1]}], K = 2", case, (r, col),
+                                      _mh_fitted(o, case, (r, col))))
             rows.append(_row("second_light", f"{name}, K = {K}", None, o_pub["mpr"][r, col],
                              o["mpr"][r, col], f"lobes used {int(o['k_used'][r, col])}"
                              if K == "auto" else "not published (004: further work)"))
+    _lobe_figure(out_dir, "second_light", entries, "004 ch. 11.3.2: a second light, one "
+                 "lobe as published and two lobes")
     return rows
 
 
-def exp_sh_sweep(c: Conditions = CONDITIONS, bands=(4, 5, 6, 7, 8, 9, 10)
-                 ) -> list[dict[str, Any]]:
+def exp_sh_sweep(c: Conditions = CONDITIONS, bands=(4, 5, 6, 7, 8, 9, 10),
+                 out_dir: str | Path | None = None) -> list[dict[str, Any]]:
     """004 ch. 12.5: SH with 16 ... 100 coefficients on a strong and a weak highlight;
     mean % residual at texel [8, 8] and the values near the equator (views above
     80 deg zenith), published projections against our sampled-cap ones."""
@@ -182,7 +220,7 @@ def exp_sh_sweep(c: Conditions = CONDITIONS, bands=(4, 5, 6, 7, 8, 9, 10)
     L, V, W = case.radiance[sl], case.direction[sl], case.valid[sl]
     low = V[0, 0, :, 2] < np.cos(np.radians(80.0))
     lum = np.array([0.2126, 0.7152, 0.0722])
-    rows = []
+    rows, entries = [], []
     for n in bands:
         fits = {}
         for hemi, cap, areas in (("zh", False, "spherical"), ("mirror", False, "spherical"),
@@ -193,6 +231,11 @@ def exp_sh_sweep(c: Conditions = CONDITIONS, bands=(4, 5, 6, 7, 8, 9, 10)
             coeffs = o["coeffs"][0, 0].astype(float).reshape(3, n * n)
             eq = float((sh_eval(coeffs, V[0, 0, low].astype(float)) @ lum).mean())
             fits[hemi] = (o["mpr"][0, 0], eq)
+            if hemi in ("zh", "lsop", "rlsop") and n in (bands[0], bands[-1]):
+                entries.append({"label": f"{hemi}-{n * n}" + (" (ours)" if cap else ""),
+                                "direction": V[0, 0].astype(float),
+                                "measured": L[0, 0].astype(float),
+                                "fitted": sh_eval(coeffs, V[0, 0].astype(float))})
         measured_eq = float((L[0, 0, low] @ lum).mean())
         for hemi in ("zh", "mirror", "lsop", "zh planar", "lsop planar"):
             name = f"sh-{hemi.split()[0]}-{n * n}" + (" (004's planar Voronoi areas / cos)"
@@ -203,6 +246,8 @@ def exp_sh_sweep(c: Conditions = CONDITIONS, bands=(4, 5, 6, 7, 8, 9, 10)
                              f"{fits[hemi][1]:.3f}, ours (rlsop, sampled cap) "
                              f"{fits['rlsop'][1]:.3f} (004 at 100: measured ~0.4, ZH ~0.25, "
                              f"LSOP ~0.55)"))
+    _lobe_figure(out_dir, "sh_sweep", entries, "004 ch. 12.5: SH with the fewest and the "
+                 "most coefficients, ZH and LSOP as published and ours (figs. 12.7-12.9)")
     return rows
 
 
@@ -239,12 +284,13 @@ def _luminance(x: np.ndarray) -> np.ndarray:
     return np.asarray(x, float) @ np.array([0.2126, 0.7152, 0.0722])
 
 
-def exp_shininess(c: Conditions = CONDITIONS) -> list[dict[str, Any]]:
+def exp_shininess(c: Conditions = CONDITIONS, out_dir: str | Path | None = None,
+                  ) -> list[dict[str, Any]]:
     """004 ch. 13.1: eight bands of increasing shininess (305 views, as 004 used here);
     per band and model the error of the fitted peak (at the brightest view) and the
     mean % residual; the highest band each model follows within ``PEAK_TOLERANCE``.
     Ks = 0.2 keeps the peak below 255 (004: unstated)."""
-    rows, follows = [], {}
+    rows, follows, entries = [], {}, []
     for m in SHININESS_BANDS:
         case = phong_case(colour=c.colour, ks=0.2, m=m, lights=[c.light], level=3,
                           max_zenith_deg=90.0, texels=4,
@@ -267,6 +313,9 @@ def exp_shininess(c: Conditions = CONDITIONS) -> list[dict[str, Any]]:
                 fitted = sh_eval(o["coeffs"][0, 0].astype(float).reshape(3, n * n),
                                  V[0, 0].astype(float))
             peak = abs(_luminance(fitted[k]) / _luminance(L[0, 0, k]) - 1)
+            if m == 15.0 and "ours" not in name:  # 004 fig. 13.1: the fourth band
+                entries.append({"label": f"m = 15, {name}", "direction": V[0, 0].astype(float),
+                                "measured": L[0, 0].astype(float), "fitted": fitted})
             if peak <= PEAK_TOLERANCE:
                 follows[name] = m
             rows.append(_row("shininess", f"m = {m:g}, {name}", None, [peak * 100],
@@ -279,6 +328,8 @@ def exp_shininess(c: Conditions = CONDITIONS) -> list[dict[str, Any]]:
                          [follows.get(name, 0.0)], None,
                          f"bands {' '.join(f'{b:g}' for b in SHININESS_BANDS)}; peak "
                          f"within {PEAK_TOLERANCE:.0%}"))
+    _lobe_figure(out_dir, "shininess", entries, "004 ch. 13.1: the fourth band (m = 15), "
+                 "MH and LSOP-16 / 36 (fig. 13.1)")
     return rows
 
 
@@ -572,13 +623,11 @@ def run_paper(out_dir: str | Path, experiments: list[str] | None = None,
             raise InputError(f"unknown experiment {name!r} (one of {', '.join(EXPERIMENTS)})")
         logger.info(f"paper: {name}")
         fn = EXPERIMENTS[name]
-        if name == "sh_sweep" and quick:
-            rows = fn(bands=(4, 10))
-        elif name == "sampling":
-            rows = fn(out)
-            paths.append(out / "sampling.png")
-        else:
-            rows = fn()
+        kw = {"bands": (4, 10)} if name == "sh_sweep" and quick else {}
+        if "out_dir" in inspect.signature(fn).parameters:
+            kw["out_dir"] = out
+        rows = fn(**kw)
+        paths += [p for p in (out / f"{name}.png",) if p.is_file()]
         paths.append(_write_csv(out / f"{name}.csv", rows))
     if capture is not None and processed is not None:
         logger.info("paper: holdout (004 ch. 16)")
