@@ -93,6 +93,7 @@ def test_mismatched_image_size(tiny_copy, capsys):
     rc, _, err = _run(tiny_copy, capsys)
     assert rc == 2
     assert "views[3].exposures[1].file" in err and "differs" in err and len(err.splitlines()) == 1
+    assert "views/v003_1.png" in err  # the file, not only its key
 
 
 def test_unreadable_image(tiny_copy, capsys):

@@ -86,6 +86,7 @@ _LAYOUT_PATTERNS = {
     "SH normalisation": r"factorial\(",
     "SH hemisphere list": r"\"zh\", \"mirror\"",
     "status as a number": r"status\"?\]?(\[[^\]]*\])*\s*(==|!=|=)\s*[0-3]\b",
+    "luminance weights": r"0\.2126",
 }
 
 

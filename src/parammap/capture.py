@@ -329,10 +329,11 @@ def _check_images(c: _Ctx, cap: Capture, views_raw: list) -> None:
             except ImageReadError as exc:
                 c.fail(key, str(exc))
             if view_size is None:
-                view_size, first = img.shape[:2], key
+                view_size, first = img.shape[:2], f"{key} ({ex.path.relative_to(c.root)})"
             elif img.shape[:2] != view_size:
-                c.fail(key, f"image size {img.shape[1]}x{img.shape[0]} differs from "
-                            f"{view_size[1]}x{view_size[0]} of {first}")
+                c.fail(key, f"{ex.path.relative_to(c.root)}: image size {img.shape[1]}x"
+                            f"{img.shape[0]} differs from {view_size[1]}x{view_size[0]} of "
+                            f"{first}")
     calib_size = None
     for p in cap.calibration_images:
         try:

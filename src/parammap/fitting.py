@@ -10,14 +10,16 @@ driver gathers for the metrics.
 The scheduler comes from config: ``processes`` (default; nlopt callbacks hold the GIL),
 ``threads``, ``synchronous``, or the address of a dask.distributed scheduler
 (``tcp://host:8786``) for a cluster, with no code change. The whole store is written
-under a temporary name and renamed when every tile is done.
+under a temporary name (``.<model>.zarr.partial``) and renamed when every tile is done;
+a marker per finished tile (``.<model>.zarr.tiles/``) lets a killed fit resume: run
+again with the same observation map and config, it fits only the tiles left, and the
+finished store is identical to an uninterrupted run's.
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
-import os
 import shutil
 import sys
 import time
@@ -34,6 +36,7 @@ import zarr
 from . import __version__
 from .conventions import SH_CAP_AWARE, FitStatus
 from .errors import InputError
+from .metrics import digest
 from .models.mh import (
     ALGORITHMS,
     REPAIR_FACTOR,
@@ -48,7 +51,7 @@ from .models.mh import (
 )
 from .models.sh import GUARD_STEPS, fit_sh_tile, sh_outputs
 from .observation import open_observation_map
-from .stores import COMPLETE_ATTR, open_complete
+from .stores import COMPLETE_ATTR, open_complete, worker_initializer
 
 logger = logging.getLogger(__name__)
 
@@ -77,9 +80,17 @@ class FitError(InputError):
     """A missing, incomplete or mismatched fit store, or a bad fit setting."""
 
 
+def _marker(done_dir: str, name: str, block_info) -> Path:
+    bi, bj, _ = block_info[0]["chunk-location"]
+    return Path(done_dir) / f"{name}-{bi}-{bj}"
+
+
 def _fit_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path: str,
-               tile_fn: TileFn) -> np.ndarray:
+               tile_fn: TileFn, done_dir: str) -> np.ndarray:
     (r0, r1), (c0, c1), _ = block_info[0]["array-location"]
+    marker = _marker(done_dir, "fit", block_info)
+    if marker.is_file():  # finished by an earlier, interrupted run
+        return np.asarray(zarr.open_group(out_path, mode="r")["status"][r0:r1, c0:c1], np.int8)
     g = zarr.open_group(obs_path, mode="r")
     rad = g["radiance"][r0:r1, c0:c1]
     dirs = g["direction"][r0:r1, c0:c1]
@@ -89,11 +100,13 @@ def _fit_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path: s
     out = zarr.open_group(out_path, mode="r+")
     for name, arr in res.items():
         out[name][r0:r1, c0:c1] = arr
+    marker.touch()  # only once every array of the tile is written
     return np.asarray(res["status"], np.int8)
 
 
 def _repair_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path: str,
-                  repair_fn: RepairFn, halo: int, phase: tuple[int, int]) -> np.ndarray:
+                  repair_fn: RepairFn, halo: int, phase: tuple[int, int],
+                  done_dir: str) -> np.ndarray:
     """One tile of the repair pass: only tiles of this checkerboard ``phase`` work, so
     no tile rewrites what a neighbour is reading as its halo."""
     (r0, r1), (c0, c1), _ = block_info[0]["array-location"]
@@ -101,19 +114,35 @@ def _repair_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path
     changed = np.zeros((r1 - r0, c1 - c0), np.int8)
     if (bi % 2, bj % 2) != phase:
         return changed
+    marker = _marker(done_dir, "repair", block_info)
+    if marker.is_file():  # the texels it changed, as recorded when it finished
+        return np.load(marker, allow_pickle=False)
     out = zarr.open_group(out_path, mode="r+")
+    # a run killed while writing this tile's repair left it half written: put back
+    # what the tile held before, so the refit sees what an uninterrupted run saw
+    before = marker.with_name(marker.name + ".before.npz")
+    if before.is_file():
+        with np.load(before) as held:
+            for name in held.files:
+                out[name][r0:r1, c0:c1] = held[name]
     T, S = out["status"].shape
     R0, R1, C0, C1 = max(r0 - halo, 0), min(r1 + halo, T), max(c0 - halo, 0), min(c1 + halo, S)
     fields = {name: out[name][R0:R1, C0:C1] for name in out.array_keys()}
     g = zarr.open_group(obs_path, mode="r")
     res = repair_fn(fields, g["radiance"][r0:r1, c0:c1], g["direction"][r0:r1, c0:c1],
                     np.asarray(valid), (r0 - R0, c0 - C0))
-    if res is None:
-        return changed
-    for name, arr in res.items():
-        if name != "changed":
-            out[name][r0:r1, c0:c1] = arr
-    return np.asarray(res["changed"], np.int8)
+    if res is not None:
+        tmp = before.with_name(before.name + ".tmp")
+        with tmp.open("wb") as f:
+            np.savez(f, **{name: out[name][r0:r1, c0:c1] for name in res if name != "changed"})
+        tmp.replace(before)
+        for name, arr in res.items():
+            if name != "changed":
+                out[name][r0:r1, c0:c1] = arr
+        changed = np.asarray(res["changed"], np.int8)
+    with marker.open("wb") as f:
+        np.save(f, changed)
+    return changed
 
 
 def _show_progress() -> bool:
@@ -130,8 +159,8 @@ def _compute(x, scheduler: str, workers: int):
             if _show_progress():
                 progress(fut)
             return fut.result()
-    kw = {"processes": {"num_workers": workers}, "threads": {"num_workers": workers},
-          "synchronous": {}}
+    kw = {"processes": {"num_workers": workers, "initializer": worker_initializer()},
+          "threads": {"num_workers": workers}, "synchronous": {}}
     if scheduler not in kw:
         raise FitError(f"fit.scheduler: unknown scheduler {scheduler!r} (processes, threads, "
                        "synchronous or a tcp:// address)")
@@ -180,8 +209,83 @@ def fit_map(
     T, S, N = obs["valid"].shape
     tile = obs.attrs["tile"]
     out_path = Path(out_path)
-    tmp = out_path.with_name(f".{out_path.name}.tmp-{os.getpid()}")
+    # A partial store under a fixed name, with a marker per finished tile beside it: a
+    # killed run resumes where it stopped when the same fit of the same observation map
+    # runs again; anything else starts afresh.
+    tmp = out_path.with_name(f".{out_path.name}.partial")
+    done = out_path.with_name(f".{out_path.name}.tiles")
+    key = digest({"attrs": attrs, "outputs": {k: [list(v[0]), v[1], v[2]]
+                                              for k, v in outputs.items()},
+                  "observation": dict(obs.attrs), "shape": [T, S, N],
+                  "observation_mtime_ns": _mtime_ns(Path(obs_path) / "zarr.json"),
+                  "repair": repair_fn is not None, "software": __version__})
+    valid = da.from_zarr(obs["valid"])
+    ntiles = len(valid.chunks[0]) * len(valid.chunks[1])
+    g = _resume_or_create(tmp, done, key, ntiles, outputs, (T, S, tile))
+    g.attrs.update({**attrs, "S": S, "T": T, "tile": tile,
+                    "width_mm": obs.attrs["width_mm"], "height_mm": obs.attrs["height_mm"],
+                    "observation_views": len(obs.attrs["view_ids"]),
+                    "software": f"parammap {__version__}"})
+    logger.info(f"fit: {T}x{S} texels, {N} views, {ntiles} tiles, scheduler {scheduler}, "
+                f"{workers} workers")
+    status = valid.map_blocks(
+        _fit_block, obs_path=str(obs_path), out_path=str(tmp), tile_fn=tile_fn,
+        done_dir=str(done), drop_axis=2, dtype=np.int8, meta=np.array((), np.int8),
+        chunks=valid.chunks[:2])
+    t0 = time.perf_counter()
+    with dask.config.set({"optimization.fuse.active": False}):
+        status = np.asarray(_compute(status, scheduler, workers))
+        repaired = 0
+        if repair_fn is not None:
+            for phase in ((0, 0), (0, 1), (1, 0), (1, 1)):
+                ch = valid.map_blocks(
+                    _repair_block, obs_path=str(obs_path), out_path=str(tmp),
+                    repair_fn=repair_fn, halo=halo, phase=phase, done_dir=str(done),
+                    drop_axis=2, dtype=np.int8, meta=np.array((), np.int8),
+                    chunks=valid.chunks[:2])
+                repaired += int(np.asarray(_compute(ch, scheduler, workers)).sum())
+            status = g["status"][:]
+            logger.info(f"fit: repair pass refitted {repaired} texels from their neighbours")
+    seconds = time.perf_counter() - t0
+    del g.attrs["parammap_resume_key"]
+    g.attrs[COMPLETE_ATTR] = True
+    if out_path.exists():
+        shutil.rmtree(out_path)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    tmp.rename(out_path)
+    shutil.rmtree(done, ignore_errors=True)
+    logger.info(f"fit: {T * S} texels in {seconds:.1f} s ({T * S / seconds:.1f} texels/s)")
+    return {"texels": T * S, "seconds": seconds, "texels_per_second": T * S / seconds,
+            "status": status, "repaired": repaired}
+
+
+def _mtime_ns(path: Path) -> int:
+    try:
+        return path.stat().st_mtime_ns
+    except OSError:
+        return 0
+
+
+def _resume_or_create(tmp: Path, done: Path, key: str, ntiles: int,
+                      outputs: dict[str, tuple[tuple[int, ...], str, Any]],
+                      grid: tuple[int, int, int]) -> zarr.Group:
+    """The partial store of an interrupted run of this very fit (``key``), or a new one."""
+    T, S, tile = grid
+    if tmp.is_dir() and done.is_dir():
+        try:
+            g = zarr.open_group(tmp, mode="r+")
+            same = g.attrs.get("parammap_resume_key") == key
+        except Exception:  # noqa: BLE001 - an unreadable partial store is started afresh
+            same = False
+        if same:
+            n = len(list(done.glob("fit-*")))
+            logger.info(f"fit: resuming an interrupted run, {n} of {ntiles} tiles done")
+            return g
+        logger.info("fit: a partial store of another input or config is there; starting "
+                    "afresh")
     shutil.rmtree(tmp, ignore_errors=True)
+    shutil.rmtree(done, ignore_errors=True)
+    done.mkdir(parents=True)
     g = zarr.open_group(tmp, mode="w")
     comp = zarr.codecs.BloscCodec(cname="zstd", clevel=3, shuffle="shuffle")
     for name, (shape, dtype, fill) in outputs.items():
@@ -190,43 +294,8 @@ def fit_map(
         g.create_array(name, shape=(T, S) + tuple(shape), chunks=(tile, tile) + tuple(shape),
                        dtype=dtype, compressors=comp, fill_value=fill, dimension_names=dims,
                        attributes={"units": FIT_UNITS.get(name, "")})
-    g.attrs.update({**attrs, "S": S, "T": T, "tile": tile,
-                    "width_mm": obs.attrs["width_mm"], "height_mm": obs.attrs["height_mm"],
-                    "observation_views": len(obs.attrs["view_ids"]),
-                    "software": f"parammap {__version__}"})
-    valid = da.from_zarr(obs["valid"])
-    ntiles = len(valid.chunks[0]) * len(valid.chunks[1])
-    logger.info(f"fit: {T}x{S} texels, {N} views, {ntiles} tiles, scheduler {scheduler}, "
-                f"{workers} workers")
-    status = valid.map_blocks(
-        _fit_block, obs_path=str(obs_path), out_path=str(tmp), tile_fn=tile_fn,
-        drop_axis=2, dtype=np.int8, meta=np.array((), np.int8),
-        chunks=valid.chunks[:2])
-    t0 = time.perf_counter()
-    try:
-        with dask.config.set({"optimization.fuse.active": False}):
-            status = np.asarray(_compute(status, scheduler, workers))
-            repaired = 0
-            if repair_fn is not None:
-                for phase in ((0, 0), (0, 1), (1, 0), (1, 1)):
-                    ch = valid.map_blocks(
-                        _repair_block, obs_path=str(obs_path), out_path=str(tmp),
-                        repair_fn=repair_fn, halo=halo, phase=phase, drop_axis=2,
-                        dtype=np.int8, meta=np.array((), np.int8), chunks=valid.chunks[:2])
-                    repaired += int(np.asarray(_compute(ch, scheduler, workers)).sum())
-                status = g["status"][:]
-                logger.info(f"fit: repair pass refitted {repaired} texels from their neighbours")
-        seconds = time.perf_counter() - t0
-        g.attrs[COMPLETE_ATTR] = True
-        if out_path.exists():
-            shutil.rmtree(out_path)
-        out_path.parent.mkdir(parents=True, exist_ok=True)
-        tmp.rename(out_path)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-    logger.info(f"fit: {T * S} texels in {seconds:.1f} s ({T * S / seconds:.1f} texels/s)")
-    return {"texels": T * S, "seconds": seconds, "texels_per_second": T * S / seconds,
-            "status": status, "repaired": repaired}
+    g.attrs["parammap_resume_key"] = key
+    return g
 
 
 def open_fit(path: str | Path) -> zarr.Group:

@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from .conventions import mh_size
+from .conventions import LUMINANCE, mh_size
 from .models.mh import MhFitConfig, fit_mh_tile
 from .models.sh import fit_sh_tile, sh_eval
 from .synth.cases import Case, phong_case
@@ -219,7 +219,7 @@ def exp_sh_sweep(c: Conditions = CONDITIONS, bands=(4, 5, 6, 7, 8, 9, 10),
     sl = (slice(r, r + 1), slice(col, col + 1))
     L, V, W = case.radiance[sl], case.direction[sl], case.valid[sl]
     low = V[0, 0, :, 2] < np.cos(np.radians(80.0))
-    lum = np.array([0.2126, 0.7152, 0.0722])
+    lum = LUMINANCE
     rows, entries = [], []
     for n in bands:
         fits = {}
@@ -237,7 +237,7 @@ def exp_sh_sweep(c: Conditions = CONDITIONS, bands=(4, 5, 6, 7, 8, 9, 10),
                                 "measured": L[0, 0].astype(float),
                                 "fitted": sh_eval(coeffs, V[0, 0].astype(float))})
         measured_eq = float((L[0, 0, low] @ lum).mean())
-        for hemi in ("zh", "mirror", "lsop", "zh planar", "lsop planar"):
+        for hemi in (h for h in fits if h != "rlsop"):
             name = f"sh-{hemi.split()[0]}-{n * n}" + (" (004's planar Voronoi areas / cos)"
                                                       if "planar" in hemi else "")
             rows.append(_row("sh_sweep", name, PUBLISHED.get(name), fits[hemi][0],
@@ -281,7 +281,7 @@ PEAK_TOLERANCE = 0.10  # a model "follows" a band when its peak is within 10 %
 
 
 def _luminance(x: np.ndarray) -> np.ndarray:
-    return np.asarray(x, float) @ np.array([0.2126, 0.7152, 0.0722])
+    return np.asarray(x, float) @ LUMINANCE
 
 
 def exp_shininess(c: Conditions = CONDITIONS, out_dir: str | Path | None = None,

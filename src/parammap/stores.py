@@ -7,7 +7,8 @@ from pathlib import Path
 
 import zarr
 
-__all__ = ["COMPLETE_ATTR", "executor", "open_complete", "store_bytes"]
+__all__ = ["COMPLETE_ATTR", "die_with_parent", "executor", "open_complete", "store_bytes",
+           "worker_initializer"]
 
 # Set on a store's group only after every chunk is written and just before the rename
 # from its temporary name: a store without it is never accepted.
@@ -28,9 +29,38 @@ class _Serial:
         return map(fn, jobs)
 
 
+def die_with_parent(parent: int) -> None:
+    """Worker-process initializer: end this worker when ``parent`` (the process that
+    started it) dies, even by SIGKILL (a pre-empting scheduler, the out-of-memory
+    killer), which gives the pool no chance to stop its workers. Linux (prctl);
+    elsewhere only the check that the parent is still there."""
+    import ctypes
+    import os
+    import signal
+    import sys
+
+    if sys.platform.startswith("linux"):
+        try:
+            ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PDEATHSIG
+        except OSError:
+            pass
+    if os.getppid() != parent:  # it died before the line above took effect
+        os._exit(1)
+
+
+def worker_initializer():
+    """:func:`die_with_parent` bound to this process, for a pool's ``initializer``."""
+    import os
+    from functools import partial
+
+    return partial(die_with_parent, os.getpid())
+
+
 def executor(workers: int):
-    """A process pool of ``workers``, or in-process execution for one worker."""
-    return ProcessPoolExecutor(workers) if workers > 1 else _Serial()
+    """A process pool of ``workers`` (ended with their parent, :func:`die_with_parent`),
+    or in-process execution for one worker."""
+    return ProcessPoolExecutor(workers, initializer=worker_initializer()) if workers > 1 \
+        else _Serial()
 
 
 def store_bytes(path: str | Path) -> int:

@@ -1,0 +1,134 @@
+"""A killed fit resumes where it stopped (issue 19): only the tiles left are fitted, and
+the finished store is byte for byte the store of an uninterrupted run."""
+
+from __future__ import annotations
+
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+
+from parammap.fitting import fit_map
+from parammap.models.mh import REPAIR_RADIUS, MhFitConfig, fit_mh_tile, mh_outputs, repair_mh_tile
+from parammap.observation import write_observation_arrays
+from parammap.synth.cases import phong_case
+
+
+class Killed(RuntimeError):
+    pass
+
+
+class Tiles:
+    """A tile function that counts its calls and dies at call ``die_at``."""
+
+    def __init__(self, die_at=None):
+        self.calls, self.die_at = 0, die_at
+        self.fn = partial(fit_mh_tile, K=1, cfg=MhFitConfig(), K_max=1)
+
+    def __call__(self, *args, **kw):
+        self.calls += 1
+        if self.calls == self.die_at:
+            raise Killed("pre-empted")
+        return self.fn(*args, **kw)
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    return {p.relative_to(root).as_posix(): p.read_bytes()
+            for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture()
+def obs(tmp_path):
+    case = phong_case(texels=8, level=2, noise=0.002)
+    return write_observation_arrays(tmp_path / "obs.zarr", case.radiance, case.direction,
+                                    case.valid, 1000.0, 1000.0, tile=2)
+
+
+def _fit(obs, out, tiles):
+    repair = partial(repair_mh_tile, K=1, cfg=MhFitConfig())
+    return fit_map(obs, out, tiles, mh_outputs(1), {"model": "mh", "lobes": "1"},
+                   "synchronous", 1, repair_fn=repair, halo=REPAIR_RADIUS)
+
+
+def test_killed_fit_resumes_and_matches_an_uninterrupted_run(obs, tmp_path):
+    ref = Tiles()
+    _fit(obs, tmp_path / "ref" / "mh-1.zarr", ref)
+    assert ref.calls == 16  # 8 x 8 texels in 2 x 2 tiles
+    out = tmp_path / "run" / "mh-1.zarr"
+    first = Tiles(die_at=9)
+    with pytest.raises(Killed):
+        _fit(obs, out, first)
+    assert not out.exists() and (out.parent / ".mh-1.zarr.partial").is_dir()
+    second = Tiles()
+    m = _fit(obs, out, second)
+    assert second.calls == 16 - 8  # only the tiles the killed run had not finished
+    assert m["status"].shape == (8, 8)
+    assert _files(out) == _files(tmp_path / "ref" / "mh-1.zarr")
+    assert not (out.parent / ".mh-1.zarr.partial").exists()
+    assert not (out.parent / ".mh-1.zarr.tiles").exists()
+
+
+def test_a_changed_config_starts_afresh(obs, tmp_path):
+    out = tmp_path / "mh-1.zarr"
+    with pytest.raises(Killed):
+        _fit(obs, out, Tiles(die_at=5))
+    again = Tiles()
+    repair = partial(repair_mh_tile, K=1, cfg=MhFitConfig())
+    fit_map(obs, out, again, mh_outputs(1), {"model": "mh", "lobes": "1", "other": 1},
+            "synchronous", 1, repair_fn=repair, halo=REPAIR_RADIUS)
+    assert again.calls == 16
+    assert np.isfinite(zarr.open_group(out)["params"][:]).all()
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs Linux /proc")
+def test_no_worker_outlives_a_killed_fit(tmp_path):
+    """kill -9 of the driver (a pre-empting scheduler, the OOM killer): its worker
+    processes end with it."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    case = phong_case(texels=24, level=3, noise=0.002)
+    obs = write_observation_arrays(tmp_path / "obs.zarr", case.radiance, case.direction,
+                                   case.valid, 1000.0, 1000.0, tile=4)
+    code = ("from parammap.fitting import fit_mh_map\n"
+            "if __name__ == '__main__':\n"
+            f"    fit_mh_map({str(obs)!r}, {str(tmp_path / 'mh.zarr')!r}, 'auto', {{}}, "
+            "'processes', 2)\n")
+    script = tmp_path / "drive.py"
+    script.write_text(code)
+    driver = subprocess.Popen([sys.executable, str(script)], stderr=subprocess.DEVNULL)
+    workers: list[int] = []
+    deadline = time.time() + 60
+    while time.time() < deadline and len(workers) < 2 and driver.poll() is None:
+        time.sleep(0.2)
+        workers = [c for c in _children(driver.pid) if _alive(c)]
+    assert driver.poll() is None and workers, "the fit ended before its workers were seen"
+    os.kill(driver.pid, signal.SIGKILL)
+    driver.wait()
+    time.sleep(3)
+    assert not [w for w in workers if _alive(w)]
