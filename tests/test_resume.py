@@ -132,3 +132,24 @@ def test_no_worker_outlives_a_killed_fit(tmp_path):
     driver.wait()
     time.sleep(3)
     assert not [w for w in workers if _alive(w)]
+
+
+def test_fit_through_a_dask_distributed_cluster_address(tmp_path):
+    """fit.scheduler set to a dask.distributed scheduler's address (a cluster) gives the
+    maps of the in-process scheduler."""
+    distributed = pytest.importorskip("distributed")
+
+    from parammap.fitting import fit_mh_map
+
+    case = phong_case(texels=8, level=2, noise=0.002)
+    obs = write_observation_arrays(tmp_path / "obs.zarr", case.radiance, case.direction,
+                                   case.valid, 1000.0, 1000.0, tile=4)
+    fit_mh_map(obs, tmp_path / "local.zarr", 1, {}, "synchronous", 1)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  protocol="tcp", dashboard_address=None) as cluster:
+        assert cluster.scheduler_address.startswith("tcp://")
+        m = fit_mh_map(obs, tmp_path / "cluster.zarr", 1, {}, cluster.scheduler_address, 2)
+    assert m["fitted"] == 64
+    a, b = zarr.open_group(tmp_path / "local.zarr"), zarr.open_group(tmp_path / "cluster.zarr")
+    for name in ("params", "rmse", "status"):
+        np.testing.assert_array_equal(a[name][:], b[name][:])
