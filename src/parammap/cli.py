@@ -217,6 +217,14 @@ def _paper(a: argparse.Namespace) -> int:
     return 0
 
 
+@_command("batch-summary")
+def _batch_summary(a: argparse.Namespace) -> int:
+    from .figures import batch_summary
+
+    batch_summary(a.processed, a.surface, a.model or [], a.out)
+    return 0
+
+
 @_command("figures")
 def _figures(a: argparse.Namespace) -> int:
     from .figures import make_figures
@@ -316,6 +324,12 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--capture", help="a capture for 004 ch. 16's held-out tables")
     s.add_argument("--processed", help="its processed folder (poses, HDR, observation map)")
     s.add_argument("--workers", type=int, default=2, help="processes for those fits")
+
+    s = add("batch-summary", help="one table and figure over every surface of a run")
+    s.add_argument("--processed", default="data/processed", help="processed folder root")
+    s.add_argument("--surface", action="append", required=True, help="surface id, repeatable")
+    s.add_argument("--model", action="append", help="model name, repeatable")
+    s.add_argument("--out", default="reports", help="folder for summary.csv and summary.png")
 
     s = add("figures", help="report figures and tables from stage outputs")
     s.add_argument("kind", help="response | hdr | calibration | poses | observation | model | "

@@ -286,3 +286,67 @@ def sh_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path, 
                        f"{name}: coefficients of bands 0-2", cols=5, symmetric=True)]
     return paths + fit_figures(g, obs, out_dir, name,
                                lambda r, col, d: sh_eval(c[r, col], d), texels)
+
+
+def _robust_outliers(values: np.ndarray, k: float = 3.0) -> np.ndarray:
+    """Values further than ``k`` scaled MADs from the median (NaN: never)."""
+    v = np.asarray(values, float)
+    ok = np.isfinite(v)
+    if ok.sum() < 3:
+        return np.zeros(v.shape, bool)
+    med = np.median(v[ok])
+    mad = 1.4826 * np.median(np.abs(v[ok] - med))
+    return ok & (np.abs(v - med) > k * max(mad, 1e-9 * max(abs(med), 1.0)))
+
+
+def batch_summary(processed_dir: str | Path, surfaces: list[str], models: list[str],
+                  out_dir: str | Path) -> list[Path]:
+    """One row per surface of a run (views kept, calibration and pose RMS, map size,
+    per-model fit residual and held-out error, fit time), ``summary.csv`` and
+    ``summary.png`` in ``out_dir``; values more than 3 MADs from the run's median are
+    marked, so a lab processing many surfaces sees the outliers at a glance."""
+    import matplotlib.pyplot as plt
+
+    rows = []
+    for sid in surfaces:
+        proc = Processed(Path(processed_dir) / sid)
+
+        def metric(stage: str, proc=proc) -> dict:
+            path = proc.metrics(stage)
+            return read_metrics(path) if path.is_file() else {}
+
+        poses, cal, obs, hold = (metric(s) for s in ("poses", "calibration", "observation",
+                                                     "holdout"))
+        row = {"surface": sid, "views": poses.get("views"),
+               "kept_fraction": poses.get("kept_fraction"),
+               "calibration_rms_px": cal.get("rms_px"),
+               "pose_median_rms_px": poses.get("median_rms_px"),
+               "texels": obs.get("texels"), "valid_fraction": obs.get("valid_fraction")}
+        for m in models:
+            fit = metric(f"fit-{m}")
+            mpr = fit.get("mean_percentage_residual")
+            row[f"{m} residual %"] = float(np.mean(mpr)) if mpr else None
+            row[f"{m} seconds"] = fit.get("seconds")
+            diffs = [v["models"][m]["mean_diff_8bit"] for v in hold.get("views", {}).values()
+                     if m in v.get("models", {})]
+            row[f"{m} held-out 8-bit"] = float(np.mean(diffs)) if diffs else None
+        rows.append(row)
+    out = Path(out_dir)
+    paths = [_write_csv(out / "summary.csv", rows)]
+    cols = [k for k in rows[0] if k != "surface"] if rows else []
+    fig, axes = plt.subplots(len(cols), 1, figsize=(max(4.0, 0.35 * len(rows) + 2),
+                                                    1.1 * len(cols) + 0.6), squeeze=False)
+    x = np.arange(len(rows))
+    for ax, col in zip(axes[:, 0], cols, strict=True):
+        v = np.array([np.nan if r[col] is None else float(r[col]) for r in rows])
+        bad = _robust_outliers(v)
+        ax.scatter(x[~bad], v[~bad], s=12, color="tab:blue")
+        ax.scatter(x[bad], v[bad], s=24, color="tab:red", marker="x")
+        ax.set_ylabel(col, fontsize=6, rotation=0, ha="right", va="center")
+        ax.tick_params(labelsize=6)
+        ax.set_xticks([])
+    if rows:
+        axes[-1, 0].set_xticks(x, [r["surface"] for r in rows], rotation=90, fontsize=6)
+    fig.suptitle(f"{len(rows)} surfaces (red: more than 3 MADs from the median)", fontsize=8)
+    paths.append(save_figure(fig, out / "summary.png"))
+    return paths

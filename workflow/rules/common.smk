@@ -89,7 +89,8 @@ def fitted_view_ids(wildcards):
 
 
 def all_targets():
-    return [t for sid in CAPTURES for t in surface_targets(sid)]
+    return [t for sid in CAPTURES for t in surface_targets(sid)] + [
+        f"{REPORTS}/summary.csv", f"{REPORTS}/summary.png"]
 
 
 def synth_for(capdir):

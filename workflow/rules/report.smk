@@ -1,5 +1,6 @@
 # Report figures and tables, built only from stage outputs: deleting reports/ and
 # running the workflow again rebuilds them without refitting anything.
+from pathlib import Path
 
 
 rule fig_response:
@@ -285,3 +286,28 @@ rule viewer:
     shell:
         "{params.cli} viewer {input.capture} --out {params.out} --figures {output}"
         " {params.models} 2> {log}"
+
+
+rule batch_summary:
+    input:
+        metrics=lambda wc: [f"{PROC}/{sid}/metrics/{m}.json" for sid in CAPTURES
+                            for m in ["poses", "calibration", "observation", "holdout"]
+                            + [f"fit-{x}" for x in models()]],
+    output:
+        csv=report(f"{REPORTS}/summary.csv", caption="../report/summary.rst",
+                   category="0 Run summary"),
+        png=report(f"{REPORTS}/summary.png", caption="../report/summary.rst",
+                   category="0 Run summary"),
+    params:
+        cli=PARAMMAP,
+        root=PROC,
+        surfaces=" ".join(f"--surface {sid}" for sid in CAPTURES),
+        models=" ".join(f"--model {m}" for m in models()),
+        out=lambda wc, output: str(Path(output.csv).parent),
+    log:
+        "logs/figures/summary.log",
+    conda:
+        "../envs/parammap.yaml"
+    shell:
+        "{params.cli} batch-summary --processed {params.root} {params.surfaces}"
+        " {params.models} --out {params.out} 2> {log}"
