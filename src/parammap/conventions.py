@@ -12,12 +12,13 @@ from functools import lru_cache
 
 import numpy as np
 
-__all__ = ["DIFFUSE_CHANNELS", "HDR_CHANNELS", "LUMINANCE", "MH_KD", "MH_M", "MH_HEAD",
-           "MH_LOBE", "MHX_KD", "MHX_LNM", "MHX_LOBE", "NOISE_CHANNEL", "SH_HEMISPHERES",
-           "SH_CAP_AWARE",
-           "FitStatus", "mh_channels", "mh_dir", "mh_dir_z", "mh_ks", "mh_lobe",
-           "mh_lobes", "mh_size", "mhx_ks", "mhx_phi", "mhx_size", "mhx_theta",
-           "sh_bands", "sh_channels", "sh_degree_order", "sh_norms"]
+__all__ = [
+    "DIFFUSE_CHANNELS", "HDR_CHANNELS", "LUMINANCE", "MHX_KD", "MHX_LNM", "MHX_LOBE", "MH_HEAD",
+    "MH_KD", "MH_LOBE", "MH_M", "MH_SD_LOBE", "NOISE_CHANNEL", "SH_CAP_AWARE", "SH_HEMISPHERES",
+    "FitStatus", "mh_channels", "mh_dir", "mh_dir_z", "mh_ks", "mh_lobe", "mh_lobes",
+    "mh_sd_channels", "mh_sd_dir", "mh_sd_size", "mh_size", "mhx_ks", "mhx_lobes", "mhx_phi",
+    "mhx_size", "mhx_theta", "sh_bands", "sh_channels", "sh_degree_order", "sh_norms",
+]
 
 #: Rec. 709 / sRGB luminance weights of linear R, G, B.
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
@@ -103,6 +104,38 @@ MHX_LOBE = 5
 def mhx_size(K: int) -> int:
     """Number of free variables of a K-lobe MH fit (4 + 5K)."""
     return MH_HEAD + MHX_LOBE * K
+
+
+def mhx_lobes(n_free: int) -> int:
+    """Number of lobes K of an x-space vector of ``n_free`` = 4 + 5K values."""
+    K, rest = divmod(n_free - MH_HEAD, MHX_LOBE)
+    if K < 0 or rest:
+        raise ValueError(f"MH x-space vectors have 4 + 5K values (got {n_free})")
+    return K
+
+
+#: Per-texel standard deviations of a K-lobe MH fit (fit store ``sd``, EXR ``sd.*``):
+#: ``Kd.R Kd.G Kd.B m`` then per lobe ``Ks.R Ks.G Ks.B d`` (d: the lobe direction's
+#: angular sd in degrees), 4 + 4K values in the parameters' own units.
+MH_SD_LOBE = 4
+
+
+def mh_sd_size(K: int) -> int:
+    """Length of a K-lobe MH standard-deviation vector (4 + 4K)."""
+    return MH_HEAD + MH_SD_LOBE * K
+
+
+def mh_sd_dir(k: int) -> int:
+    """Index of lobe k's direction sd (deg) in a standard-deviation vector."""
+    return MH_HEAD + MH_SD_LOBE * k + 3
+
+
+def mh_sd_channels(K: int) -> list[str]:
+    """Names of the standard deviations of a K-lobe MH map (``sd.`` + parameter)."""
+    names = ["sd.Kd.R", "sd.Kd.G", "sd.Kd.B", "sd.m"]
+    for k in range(1, K + 1):
+        names += [f"sd.lobe{k}.{q}" for q in ("Ks.R", "Ks.G", "Ks.B", "d_deg")]
+    return names
 
 
 def mhx_ks(k: int) -> slice:

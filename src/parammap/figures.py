@@ -22,7 +22,16 @@ from pathlib import Path
 
 import numpy as np
 
-from .conventions import LUMINANCE, MH_KD, MH_M, mh_dir_z, mh_ks, mh_lobes, sh_degree_order
+from .conventions import (
+    LUMINANCE,
+    MH_KD,
+    MH_M,
+    mh_dir_z,
+    mh_ks,
+    mh_lobes,
+    mh_sd_dir,
+    sh_degree_order,
+)
 from .errors import InputError
 from .metrics import read_metrics
 from .paths import Processed, read_poses
@@ -260,6 +269,11 @@ def mh_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path, 
                                                                           -1, 1)))
     if g.attrs.get("lobes") == "auto":
         maps["lobes used"] = g["k_used"][:].astype(float)
+    if "sd" in g:  # how far each texel can be trusted (parammap.models.mh.uncertainty)
+        sd = g["sd"][:].astype(float)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            maps["sd of m / m"] = sd[..., MH_M] / p[..., MH_M]
+        maps["lobe 1 direction sd (deg)"] = sd[..., mh_sd_dir(0)]
     paths = [plot_maps(maps, out_dir / f"{name}_params.png", f"{name}: parameter maps")]
     return paths + fit_figures(g, obs, out_dir, name, lambda r, c, d: mh_eval(p[r, c], d),
                                texels)

@@ -11,7 +11,10 @@ Rows as in the texel convention (row 0 at the top edge), float32 by default (hal
 request), ZIP compression. Header: ``parammap_model`` (mh, sh or diffuse),
 ``parammap_model_version``, ``parammap_layout`` (the channel names, space separated),
 ``parammap_hemisphere`` (SH), ``parammap_radiance_scale`` (a normalisation already
-undone: 1), ``width_mm``, ``height_mm``, ``S``, ``T`` and ``software``.
+undone: 1), ``width_mm``, ``height_mm``, ``S``, ``T`` and ``software``. An MH map may
+carry the per-texel standard deviations of its fit as extra channels ``sd.Kd.R ...
+sd.m sd.lobek.Ks.R ... sd.lobek.d_deg`` (``parammap_sd_layout`` names them;
+:func:`parammap.conventions.mh_sd_channels`).
 """
 
 from __future__ import annotations
@@ -24,7 +27,14 @@ from typing import Any
 import numpy as np
 
 from . import __version__
-from .conventions import DIFFUSE_CHANNELS, mh_channels, mh_lobes, sh_bands, sh_channels
+from .conventions import (
+    DIFFUSE_CHANNELS,
+    mh_channels,
+    mh_lobes,
+    mh_sd_channels,
+    sh_bands,
+    sh_channels,
+)
 from .exr import ExrError, read_exr, write_exr
 
 __all__ = ["MODELS", "ParamMap", "channel_names", "export_maps", "param_map_from_fit",
@@ -72,6 +82,7 @@ class ParamMap:
     height_mm: float
     hemisphere: str | None = None
     attrs: dict[str, Any] = field(default_factory=dict)
+    sd: np.ndarray | None = None  # (T, S, 4 + 4K) MH standard deviations, or None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -90,7 +101,12 @@ def write_param_map(path: str | Path, pm: ParamMap, half: bool = False) -> Path:
         attrs["parammap_hemisphere"] = pm.hemisphere
     for k, v in pm.attrs.items():
         attrs[f"parammap_{k}"] = v
-    return write_exr(path, {n: pm.params[..., i] for i, n in enumerate(names)}, attrs, half)
+    chans = {n: pm.params[..., i] for i, n in enumerate(names)}
+    if pm.sd is not None:
+        sd_names = mh_sd_channels(mh_lobes(pm.params.shape[-1]))
+        attrs["parammap_sd_layout"] = " ".join(sd_names)
+        chans |= {n: pm.sd[..., i] for i, n in enumerate(sd_names)}
+    return write_exr(path, chans, attrs, half)
 
 
 def read_param_map(path: str | Path) -> ParamMap:
@@ -115,7 +131,10 @@ def read_param_map(path: str | Path) -> ParamMap:
         expected = channel_names(model, len(layout))
     except ParamMapError as exc:
         raise ParamMapError(f"{path}: {exc}") from None
-    if layout != expected or set(chans) != set(layout):
+    sd_layout = str(h.get("parammap_sd_layout", "")).split()
+    if sd_layout and (model != "mh" or sd_layout != mh_sd_channels(mh_lobes(len(layout)))):
+        raise ParamMapError(f"{path}: standard deviations do not follow the MH layout")
+    if layout != expected or set(chans) != set(layout) | set(sd_layout):
         raise ParamMapError(f"{path}: channels do not follow the {model} layout "
                             f"(expected {expected[:6]}...)")
     params = np.stack([chans[n] for n in layout], -1).astype(np.float32)
@@ -123,9 +142,10 @@ def read_param_map(path: str | Path) -> ParamMap:
         raise ParamMapError(f"{path}: image size does not match S, T in the header")
     extra = {k[len("parammap_"):]: v for k, v in h.items() if k.startswith("parammap_")
              and k not in ("parammap_model", "parammap_model_version", "parammap_layout",
-                           "parammap_hemisphere")}
+                           "parammap_hemisphere", "parammap_sd_layout")}
+    sd = np.stack([chans[n] for n in sd_layout], -1).astype(np.float32) if sd_layout else None
     return ParamMap(model, params, float(h["width_mm"]), float(h["height_mm"]),
-                    h.get("parammap_hemisphere"), extra)
+                    h.get("parammap_hemisphere"), extra, sd)
 
 
 def param_map_from_fit(fit_path: str | Path) -> ParamMap:
@@ -138,7 +158,7 @@ def param_map_from_fit(fit_path: str | Path) -> ParamMap:
     attrs = {k: g.attrs[k] for k in ("lobes", "K_max", "bands", "coefficients",
                                      "regularisation") if g.attrs.get(k) is not None}
     return ParamMap(model, g[key][:], g.attrs["width_mm"], g.attrs["height_mm"],
-                    g.attrs.get("hemisphere"), attrs)
+                    g.attrs.get("hemisphere"), attrs, g["sd"][:] if "sd" in g else None)
 
 
 def export_maps(processed: str | Path, models: list[str], half: bool = False) -> list[Path]:

@@ -19,6 +19,7 @@ from ...conventions import (
     mh_ks,
     mh_lobe,
     mh_lobes,
+    mh_sd_size,
     mh_size,
     mhx_ks,
     mhx_phi,
@@ -42,6 +43,7 @@ from .model import (
     bic,
     mh_eval,
 )
+from .uncertainty import parameter_sd
 
 ALGORITHMS = {
     "lbfgs": nlopt.LD_LBFGS,
@@ -410,6 +412,7 @@ def mh_outputs(K_max: int) -> dict[str, tuple[tuple[int, ...], str, float]]:
         "rmse": ((3,), "float32", float("nan")),
         "mpr": ((3,), "float32", float("nan")),
         "chi2": ((), "float32", float("nan")),
+        "sd": ((mh_sd_size(K_max),), "float32", float("nan")),
         "k_used": ((), "int8", 0),
         "evals": ((), "int32", 0),
         "status": ((), "int8", int(FitStatus.NOT_FITTED)),
@@ -538,6 +541,8 @@ def fit_mh_tile(
         n = np.maximum(w.sum(1), 1)
         flat["rmse"][ok] = np.sqrt((np.where(w, fitted - L[ok], 0) ** 2).sum(1) / n)
         flat["mpr"][ok] = mean_percentage_residual(L[ok], fitted, W[ok])
+        flat["sd"][ok] = parameter_sd(flat["params"][ok].astype(float), V[ok], L[ok], W[ok],
+                                      NW[ok])
         if NZ is not None:
             # free parameters: Kd, m, and per lobe Ks and a direction (two angles)
             flat["chi2"][ok] = reduced_chi2(L[ok], fitted, NZ[ok], W[ok],
@@ -545,15 +550,11 @@ def fit_mh_tile(
     return out
 
 
-# A texel whose RMSE exceeds this many times the median of its neighbourhood is refit
-# from its neighbours' parameters (the texels of one material share a minimum; a poor
-# local minimum shows as a "stain" of high residual among well-fitted neighbours).
 # Observations that must see a lobe above twice the texel's noise for it to count as
 # measured: three views x three channels are the fewest residuals that locate a peak
 # (direction, width) and its colour. Five (the lobe's parameter count) also removed
 # real, sharp lobes that 17 views of 004 ch. 13.2 still recover.
 MIN_SUPPORT = 3
-
 
 
 def drop_negligible_lobes(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,

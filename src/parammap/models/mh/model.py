@@ -21,6 +21,7 @@ from ...conventions import (
     mh_lobes,
     mh_size,
     mhx_ks,
+    mhx_lobes,
     mhx_phi,
     mhx_size,
     mhx_theta,
@@ -86,7 +87,7 @@ def _params_to_x_batch(P: np.ndarray, s: np.ndarray) -> np.ndarray:
 
 def _x_to_params_batch(X: np.ndarray, s: np.ndarray) -> np.ndarray:
     B = X.shape[0]
-    K = (X.shape[1] - 4) // 5
+    K = mhx_lobes(X.shape[1])
     P = np.empty((B, mh_size(K)))
     P[:, MH_KD] = X[:, MHX_KD] * s[:, None]
     P[:, MH_M] = np.exp(X[:, MHX_LNM])

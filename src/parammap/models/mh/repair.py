@@ -9,6 +9,7 @@ from ...conventions import FitStatus, mh_dir_z, mh_lobes, mh_size
 from ..residuals import mean_percentage_residual
 from .fit import MhFitConfig, fit_texel
 from .model import bic, mh_eval
+from .uncertainty import parameter_sd
 
 # A texel whose RMSE exceeds this many times the median of its neighbourhood is refit
 # from its neighbours' parameters (the texels of one material share a minimum; a poor
@@ -83,8 +84,8 @@ def repair_mh_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
     bad = np.argwhere(outlier[sl])
     if len(bad) == 0:
         return None
-    out = {k: np.array(fields[k][sl]) for k in ("params", "rmse", "mpr", "k_used", "evals",
-                                                "status")}
+    out = {k: np.array(fields[k][sl]) for k in ("params", "rmse", "mpr", "sd", "k_used",
+                                                "evals", "status") if k in fields}
     out["changed"] = np.zeros((t, u), np.int8)
     gy, gx = np.nonzero(good)
     Kmax = mh_lobes(params.shape[-1])
@@ -127,6 +128,9 @@ def repair_mh_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
         out["status"][i, j] = FitStatus.OK
         out["rmse"][i, j] = np.sqrt(((fitted - L) ** 2).mean(0))
         out["mpr"][i, j] = mean_percentage_residual(L, fitted)
+        if "sd" in out:
+            out["sd"][i, j] = parameter_sd(p[None], V[None], L[None],
+                                           np.ones((1, len(V)), bool))[0]
         out["changed"][i, j] = 1
     return out
 
