@@ -153,3 +153,34 @@ def test_fit_through_a_dask_distributed_cluster_address(tmp_path):
     a, b = zarr.open_group(tmp_path / "local.zarr"), zarr.open_group(tmp_path / "cluster.zarr")
     for name in ("params", "rmse", "status"):
         np.testing.assert_array_equal(a[name][:], b[name][:])
+
+
+def test_killed_observation_build_resumes(tiny_processed, tmp_path, monkeypatch):
+    """The observation map's views: a build killed part way samples only the views
+    left when run again, and writes the same store as an uninterrupted build."""
+    import parammap.observation as obsmod
+    from parammap.capture import load_capture
+
+    cap, _, proc = tiny_processed
+    capture = load_capture(cap)
+    ref = tmp_path / "ref" / "observation.zarr"
+    obsmod.build_observation_map(capture, proc, ref, 16, None, 8, workers=1)
+    calls = []
+    real = obsmod._pass1_view
+
+    def dying(job):
+        calls.append(job[1])
+        if len(calls) == 5:
+            raise Killed("pre-empted")
+        return real(job)
+
+    out = tmp_path / "run" / "observation.zarr"
+    monkeypatch.setattr(obsmod, "_pass1_view", dying)
+    with pytest.raises(Killed):
+        obsmod.build_observation_map(capture, proc, out, 16, None, 8, workers=1)
+    calls.clear()
+    monkeypatch.setattr(obsmod, "_pass1_view", lambda job: (calls.append(job[1]), real(job))[1])
+    m = obsmod.build_observation_map(capture, proc, out, 16, None, 8, workers=1)
+    assert len(calls) == m["views"] - 4
+    assert _files(out) == _files(ref)
+    assert not list(out.parent.glob(".*"))

@@ -29,6 +29,7 @@ interrupted build never leaves a store that later steps would accept.
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import os
@@ -48,6 +49,7 @@ from .capture import Capture
 from .errors import InputError
 from .geometry import sample_image, texel_centres, unit
 from .hdr import read_hdr_noise
+from .metrics import digest
 from .paths import PosesError, Processed, read_poses
 from .stores import COMPLETE_ATTR, executor, open_complete, store_bytes
 
@@ -291,6 +293,27 @@ def _pass2_band(job: tuple) -> int:
     return int(valid.sum())
 
 
+def _mtime_ns(path: Path) -> int:
+    try:
+        return Path(path).stat().st_mtime_ns
+    except OSError:
+        return 0
+
+
+def _create_final(final: Path, S: int, T: int, N: int, tile: int) -> zarr.Group:
+    """The observation map's arrays, chunked by texel tiles with all views."""
+    g = zarr.open_group(final, mode="w")
+    comp = _compressor()
+    for name in ("radiance", "direction", "valid", "noise"):
+        trail = (3,) if name in ("radiance", "direction") else ()
+        dtype = "bool" if name == "valid" else "float32"
+        g.create_array(name, shape=(T, S, N) + trail, dimension_names=OBS_DIMS[name],
+                       attributes={"units": OBS_UNITS[name]}, chunks=(tile, tile, N) + trail,
+                       dtype=dtype, compressors=comp,
+                       fill_value=False if name == "valid" else np.nan)
+    return g
+
+
 def build_observation_map(
     cap: Capture,
     processed: str | Path,
@@ -333,15 +356,29 @@ def build_observation_map(
                 + (" (auto: about one texel per photo pixel at the median view)"
                    if texels_x == "auto" else ""))
     tile = int(min(tile, S, T))
-    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
+    # A partial store under a fixed name and a marker per finished view and band: a
+    # build that was killed resumes when run again on the same frames and settings.
+    tmp = out.with_name(f".{out.name}.partial")
+    marks = out.with_name(f".{out.name}.views")
     scratch = tmp / "scratch.zarr"
     final = tmp / "store.zarr"
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    try:
+    key = digest({"views": [(v.id, v.R, v.t, _mtime_ns(v.hdr)) for v in views],
+                  "K": intr.K, "dist": intr.dist, "grid": [S, T, tile],
+                  "sampling": [max_zenith_deg, max_supersample], "config": config or {},
+                  "surface": [cap.width_mm, cap.height_mm, cap.marker_corners],
+                  "software": __version__})
+    resume = tmp.is_dir() and (marks / "key").is_file() and (marks / "key").read_text() == key
+    band = tile
+    if resume:
+        logger.info(f"observation: resuming an interrupted build, "
+                    f"{len(list(marks.glob('view-*')))} of {N} views sampled")
+    else:
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.rmtree(marks, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        marks.mkdir(parents=True)
         # Scratch: one view per chunk row band, fast compression, deleted at the end.
         sg = zarr.open_group(scratch, mode="w")
-        band = tile
         fast = zarr.codecs.BloscCodec(cname="lz4", clevel=1, shuffle="shuffle")
         sg.create_array("radiance", shape=(N, T, S, 3), chunks=(1, band, S, 3),
                         dtype="float32", compressors=fast, fill_value=np.nan)
@@ -349,70 +386,63 @@ def build_observation_map(
                         compressors=fast, fill_value=False)
         sg.create_array("noise", shape=(N, T, S), chunks=(1, band, S), dtype="float32",
                         compressors=fast, fill_value=np.nan)
-        jobs = [(str(scratch), n, v, intr, S, T, cap.width_mm, cap.height_mm, band,
-                 max_zenith_deg, max_supersample) for n, v in enumerate(views)]
-        bytes_read = 0
-        per_view = {}
-        with executor(workers) as ex:
-            for k, (vid, frac, nbytes, _) in enumerate(ex.map(_pass1_view, jobs)):
-                bytes_read += nbytes
-                per_view[vid] = frac
-                if (k + 1) % max(1, N // 10) == 0 or k + 1 == N:
-                    logger.info(f"observation: sampled {k + 1}/{N} views")
-        t_sample = time.perf_counter() - t_start
+        (marks / "key").write_text(key)
+    done = {n: json.loads((marks / f"view-{n}").read_text()) for n in range(N)
+            if (marks / f"view-{n}").is_file()}
+    jobs = [(str(scratch), n, v, intr, S, T, cap.width_mm, cap.height_mm, band,
+             max_zenith_deg, max_supersample) for n, v in enumerate(views) if n not in done]
+    with executor(workers) as ex:
+        for k, (job, res) in enumerate(zip(jobs, ex.map(_pass1_view, jobs), strict=True)):
+            done[job[1]] = list(res[:3])
+            (marks / f"view-{job[1]}").write_text(json.dumps(done[job[1]]))
+            if (k + 1) % max(1, len(jobs) // 10) == 0 or k + 1 == len(jobs):
+                logger.info(f"observation: sampled {len(done)}/{N} views")
+    per_view = {done[n][0]: done[n][1] for n in range(N)}
+    bytes_read = sum(done[n][2] for n in range(N))
+    t_sample = time.perf_counter() - t_start
 
-        g = zarr.open_group(final, mode="w")
-        comp = _compressor()
-        g.create_array("radiance", shape=(T, S, N, 3), dimension_names=OBS_DIMS["radiance"],
-                       attributes={"units": OBS_UNITS["radiance"]},
-                       chunks=(tile, tile, N, 3),
-                       dtype="float32", compressors=comp, fill_value=np.nan)
-        g.create_array("direction", shape=(T, S, N, 3), dimension_names=OBS_DIMS["direction"],
-                       attributes={"units": OBS_UNITS["direction"]},
-                       chunks=(tile, tile, N, 3),
-                       dtype="float32", compressors=comp, fill_value=np.nan)
-        g.create_array("valid", shape=(T, S, N), dimension_names=OBS_DIMS["valid"],
-                       attributes={"units": OBS_UNITS["valid"]},
-                       chunks=(tile, tile, N), dtype="bool",
-                       compressors=comp, fill_value=False)
-        g.create_array("noise", shape=(T, S, N), dimension_names=OBS_DIMS["noise"],
-                       attributes={"units": OBS_UNITS["noise"]},
-                       chunks=(tile, tile, N), dtype="float32",
-                       compressors=comp, fill_value=np.nan)
-        marker = marker_texel_mask(cap, S, T)
-        g.attrs.update({
-            "width_mm": cap.width_mm, "height_mm": cap.height_mm, "S": S, "T": T,
-            "tile": tile, "view_ids": [v.id for v in views], "held_out_view_ids": held,
-            "camera_centres_mm": [v.centre.tolist() for v in views],
-            "calibration": {"K": intr.K.tolist(), "dist": intr.dist.tolist(),
-                            "image_size": list(intr.image_size), "rms_px": intr.rms_px},
-            "units": {"radiance": "relative linear radiance (one global scale)",
-                      "noise": "relative sd of each observation (NaN: not recorded)",
-                      "direction": "unit vector toward the camera, surface frame",
-                      "lengths": "mm"},
-            "sampling": {"method": "texel footprint supersampling, bilinear",
-                         "max_supersample": max_supersample,
-                         "max_zenith_deg": max_zenith_deg},
-            "marker_texels": int(marker.sum()),
-            "surface_id": cap.surface_id, "software": f"parammap {__version__}",
-            "config": config or {},
-        })
-        centres = np.array([v.centre for v in views])
-        bands = [(str(scratch), str(final), r0, min(r0 + tile, T), centres, marker)
-                 for r0 in range(0, T, tile)]
-        nvalid = 0
-        with executor(workers) as ex:
-            for k, nv in enumerate(ex.map(_pass2_band, bands)):
-                nvalid += nv
-                if (k + 1) % max(1, len(bands) // 5) == 0 or k + 1 == len(bands):
-                    logger.info(f"observation: wrote {k + 1}/{len(bands)} tile rows")
-        g.attrs[COMPLETE_ATTR] = True
-        shutil.rmtree(scratch)
-        if out.exists():
-            shutil.rmtree(out)
-        final.rename(out)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+    marker = marker_texel_mask(cap, S, T)
+    if not (marks / "final").is_file():
+        _create_final(final, S, T, N, tile)
+        (marks / "final").touch()
+    g = zarr.open_group(final, mode="r+")
+    g.attrs.update({
+        "width_mm": cap.width_mm, "height_mm": cap.height_mm, "S": S, "T": T,
+        "tile": tile, "view_ids": [v.id for v in views], "held_out_view_ids": held,
+        "camera_centres_mm": [v.centre.tolist() for v in views],
+        "calibration": {"K": intr.K.tolist(), "dist": intr.dist.tolist(),
+                        "image_size": list(intr.image_size), "rms_px": intr.rms_px},
+        "units": {"radiance": "relative linear radiance (one global scale)",
+                  "noise": "relative sd of each observation (NaN: not recorded)",
+                  "direction": "unit vector toward the camera, surface frame",
+                  "lengths": "mm"},
+        "sampling": {"method": "texel footprint supersampling, bilinear",
+                     "max_supersample": max_supersample,
+                     "max_zenith_deg": max_zenith_deg},
+        "marker_texels": int(marker.sum()),
+        "surface_id": cap.surface_id, "software": f"parammap {__version__}",
+        "config": config or {},
+    })
+    centres = np.array([v.centre for v in views])
+    written = {r0: int((marks / f"band-{r0}").read_text()) for r0 in range(0, T, tile)
+               if (marks / f"band-{r0}").is_file()}
+    bands = [(str(scratch), str(final), r0, min(r0 + tile, T), centres, marker)
+             for r0 in range(0, T, tile) if r0 not in written]
+    with executor(workers) as ex:
+        for k, (job, nv) in enumerate(zip(bands, ex.map(_pass2_band, bands), strict=True)):
+            written[job[2]] = nv
+            (marks / f"band-{job[2]}").write_text(str(nv))
+            if (k + 1) % max(1, len(bands) // 5) == 0 or k + 1 == len(bands):
+                logger.info(f"observation: wrote {len(written)}/{len(range(0, T, tile))} "
+                            "tile rows")
+    nvalid = sum(written.values())
+    g.attrs[COMPLETE_ATTR] = True
+    shutil.rmtree(scratch)
+    if out.exists():
+        shutil.rmtree(out)
+    final.rename(out)
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.rmtree(marks, ignore_errors=True)
     seconds = time.perf_counter() - t_start
     on_disk = store_bytes(out)
     uncompressed = T * S * N * (3 * 4 + 3 * 4 + 1)
