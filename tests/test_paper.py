@@ -126,21 +126,21 @@ def test_greedy_virtual_lights_start_near_the_optimum(paper):
 
 
 def test_held_out_tables_in_the_layout_of_004_ch16(tiny_processed, tmp_path):
-    """004 ch. 16 on one of our captures: Phong, SHZH16/64, SHLSOP16/64 as published
-    and our defaults, mean and sd of the 8-bit difference per held-out view."""
+    """004 ch. 16 on one of our captures: mean and sd of the 8-bit difference per
+    held-out view (``--quick``: Phong and SHZH16 as published, our sh-rlsop-36; make
+    paper adds SHZH64, SHLSOP16/64 and our mh-auto)."""
     from parammap.paths import Processed, read_poses
 
     cap, _, out = tiny_processed
     assert main(["paper", "--out", str(tmp_path), "--experiment", "sizes", "--capture",
-                 str(cap), "--processed", str(out), "--workers", "1"]) == 0
+                 str(cap), "--processed", str(out), "--workers", "1", "--quick"]) == 0
     with (tmp_path / "holdout.csv").open() as f:
         rows = list(csv.DictReader(f))
     held = [r["id"] for r in read_poses(Processed(out).poses)["views"]
             if r.get("holdout") and r.get("kept")]
     ours = [r for r in rows if r["view"].split(" ")[0] in held]
     assert len(ours) == len(held) > 0
-    cols = ("Phong", "SHZH16", "SHZH64", "SHLSOP16", "SHLSOP64", "ours mh-auto",
-            "ours sh-rlsop-36")
+    cols = ("Phong", "SHZH16", "ours sh-rlsop-36")  # --quick: the published ones in make paper
     for r in ours:
         values = np.array([float(r[c]) for c in cols])
         assert np.isfinite(values).all() and (values >= 0).all() and (values < 128).all()

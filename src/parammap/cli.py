@@ -130,8 +130,9 @@ def _hdr(a: argparse.Namespace) -> int:
     from .capture import load_capture
     from .hdr import run_hdr
 
-    run_hdr(load_capture(a.capture, check_images=False), a.out, _stage_config(a)["hdr"],
-            a.view, a.response)
+    full = _stage_config(a)
+    run_hdr(load_capture(a.capture, check_images=False), a.out, full["hdr"], a.view,
+            a.response, full["workers"])
     return 0
 
 

@@ -538,25 +538,36 @@ def run_response(cap: Capture, processed: str | Path, cfg: dict,
     return meta
 
 
-def run_hdr(cap: Capture, processed: str | Path, cfg: dict, view_ids: list[str] | None = None,
-            response: str | Path | None = None) -> list[dict]:
-    """The hdr stage: merge the brackets of the given views (default: all) into
-    ``hdr/<view>.exr`` with per-view statistics in ``hdr/<view>.json``."""
+def _merge_job(job: tuple) -> dict:
+    view, g, path, low, high, prov, stats_path = job
     from .metrics import write_metrics
+
+    t0 = time.perf_counter()
+    st = merge_view(view, g, path, low, high, prov)
+    st["seconds"] = time.perf_counter() - t0
+    write_metrics(stats_path, st)
+    return st
+
+
+def run_hdr(cap: Capture, processed: str | Path, cfg: dict, view_ids: list[str] | None = None,
+            response: str | Path | None = None, workers: int = 1) -> list[dict]:
+    """The hdr stage: merge the brackets of the given views (default: all) into
+    ``hdr/<view>.exr`` with per-view statistics in ``hdr/<view>.json``, on ``workers``
+    processes."""
+    from .stores import executor
 
     out = Processed(processed)
     g = None if cap.response == "linear" else load_response(response or out.response_csv)
     views = [cap.view(v) for v in view_ids] if view_ids else cap.views
     prov = {"software": f"parammap {__version__}", "config_digest": digest(cfg),
             "response_digest": "linear" if g is None else digest(g)}
+    jobs = [(v, g, out.hdr(v.id), cfg["low"], cfg["high"], prov, out.hdr_stats(v.id))
+            for v in views]
     stats = []
-    for v in views:
-        t0 = time.perf_counter()
-        st = merge_view(v, g, out.hdr(v.id), cfg["low"], cfg["high"], prov)
-        st["seconds"] = time.perf_counter() - t0
-        write_metrics(out.hdr_stats(v.id), st)
-        logger.info(f"hdr: {v.id} saturated {st['saturated_fraction']:.4f}")
-        stats.append(st)
+    with executor(min(workers, len(jobs)) if jobs else 1) as ex:
+        for v, st in zip(views, ex.map(_merge_job, jobs), strict=True):
+            logger.info(f"hdr: {v.id} saturated {st['saturated_fraction']:.4f}")
+            stats.append(st)
     return stats
 
 

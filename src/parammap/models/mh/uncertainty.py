@@ -77,14 +77,17 @@ def parameter_sd(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
         cols = [*range(mhx_ks(k).start, mhx_ks(k).stop), mhx_theta(k), mhx_phi(k)]
         free[np.ix_(gone, cols)] = False
     free[present == 0, MHX_LNM] = False  # no lobe: no shininess to determine
-    JW = J * w[..., None, None]
+    J = J.reshape(n, -1, nx)
+    JW = J * w.repeat(3, axis=1)[..., None]
     mask = free[:, :, None] & free[:, None, :]
-    A = np.where(mask, np.einsum("bncp,bncq->bpq", JW, J), 0.0) \
+    # batched matmul: an order of magnitude faster than einsum for these small products
+    A = np.where(mask, np.matmul(JW.transpose(0, 2, 1), J), 0.0) \
         + np.eye(nx) * (~free)[:, :, None]
     # the sandwich (A^-1 B A^-1, B from the squared residuals): the noise of a capture
     # grows with the radiance, so the highlight's views are noisier than the rest and
     # the textbook s^2 A^-1 would understate the lobe's uncertainty
-    Bm = np.where(mask, np.einsum("bncp,bnc,bncq->bpq", JW, r * r, JW), 0.0)
+    Jr = JW * r.reshape(n, -1)[..., None]
+    Bm = np.where(mask, np.matmul(Jr.transpose(0, 2, 1), Jr), 0.0)
     dof = 3 * W.sum(1) - free.sum(1)
     scale = 3 * W.sum(1) / np.maximum(dof, 1)
     with np.errstate(invalid="ignore", divide="ignore"):
