@@ -145,6 +145,10 @@ def test_held_out_tables_in_the_layout_of_004_ch16(tiny_processed, tmp_path):
         values = np.array([float(r[c]) for c in cols])
         assert np.isfinite(values).all() and (values >= 0).all() and (values < 128).all()
     assert sum(r["view"].startswith("published") for r in rows) == 4
+    with (tmp_path / "sizes_measured.csv").open() as f:
+        sizes = {r["item"]: r for r in csv.DictReader(f)}
+    obs = sizes["observation map (zarr)"]
+    assert 0 < float(obs["bytes_per_texel"]) < 3 * float(obs["formula_bytes_per_texel"])
 
 
 def test_planar_voronoi_areas_as_published():
