@@ -369,8 +369,12 @@ def _radiance_range(scene: Scene, rng) -> tuple[float, float]:
     rr, cc = np.meshgrid(np.arange(0, T, step), np.arange(0, S, step), indexing="ij")
     dirs = sample_directions("icosahedron", 89.0, level=4)
     lo, hi = np.inf, 0.0
-    for r, c in zip(rr.ravel(), cc.ravel(), strict=True):
-        L = true_radiance(scene, np.full(len(dirs), r), np.full(len(dirs), c), dirs)
+    rr, cc = rr.ravel(), cc.ravel()
+    batch = 64  # texels per call: whole batches, not one texel at a time
+    for i in range(0, len(rr), batch):
+        r, c = rr[i:i + batch], cc[i:i + batch]
+        L = true_radiance(scene, np.repeat(r, len(dirs)), np.repeat(c, len(dirs)),
+                          np.tile(dirs, (len(r), 1)))
         lo, hi = min(lo, L.min()), max(hi, L.max())
     return float(lo), float(hi)
 
