@@ -22,7 +22,7 @@ from parammap.cli import main
 from parammap.synth import evaluate as ev
 
 
-def run(preset: str, root: Path, models: list[str], seed: int) -> dict:
+def run(preset: str, root: Path, models: list[str], seed: int, reuse_hdr: bool = False) -> dict:
     cap = root / preset
     truth = root / f"{preset}.truth"
     out = root / f"{preset}.proc"
@@ -35,8 +35,11 @@ def run(preset: str, root: Path, models: list[str], seed: int) -> dict:
     fits = [["fit-mh", "--lobes", m.split("-")[1]] if m.startswith("mh-") else
             ["fit-sh", "--model", m] for m in models]
     named = [x for m in models + ["diffuse"] for x in ("--model", m)]
-    for stage in (["response"], ["hdr"], ["calibrate"], ["poses"], ["observe"], *fits,
-                  ["export", *named], ["holdout", *named]):
+    merged = reuse_hdr and any((out / "hdr").glob("*.exr"))
+    stages = [] if merged else [["response"], ["hdr"]]
+    stages += [["calibrate"], ["poses"], ["observe"], *fits, ["export", *named],
+               ["holdout", *named]]
+    for stage in stages:
         t0 = time.perf_counter()
         assert main([stage[0], str(cap), "--out", str(out), *stage[1:]]) == 0, stage
         times[" ".join(stage[:3] if stage[0].startswith("fit") else stage[:1])] = \
@@ -98,9 +101,11 @@ if __name__ == "__main__":
     ap.add_argument("--root", default="data/bench")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--models", nargs="*", default=["mh-1", "mh-2"])
+    ap.add_argument("--reuse-hdr", action="store_true",
+                    help="keep the HDR frames of an earlier run (the merge is the slow part)")
     a = ap.parse_args()
     root = Path(a.root)
     root.mkdir(parents=True, exist_ok=True)
-    r = run(a.preset, root, a.models, a.seed)
+    r = run(a.preset, root, a.models, a.seed, a.reuse_hdr)
     (root / f"{a.preset}.json").write_text(json.dumps(r, indent=1))
     _print(r)
