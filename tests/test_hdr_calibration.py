@@ -336,3 +336,30 @@ def test_uncertain_poses_are_dropped_with_reason(tiny_processed, tmp_path):
     for r in partial:  # the observation map leaves out what a partial view sees poorly
         share = obs["valid"][:, :, ids.index(r["id"])].mean()
         assert 0 < share < full and abs(share / full - r["partial"]) < 0.2, (share, full, r)
+
+
+def test_grazing_markers_missed_at_first_are_found_upsampled():
+    """A marker foreshortened to 30 % (about 1.5 px a cell across the squashed
+    direction): ArUco misses it in the photo; told which ids the capture has,
+    :func:`detect_markers` looks again in the image upsampled 2x and returns it with
+    corners in the photo's own pixel coordinates."""
+    import cv2
+
+    from parammap.calibration import detect_markers
+
+    d = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_5X5_250)
+    src = np.full((440, 440), 255, np.uint8)
+    src[80:-80, 80:-80] = cv2.aruco.generateImageMarker(d, 17, 280, borderBits=1)
+    size, squash = 36.0, 0.3
+    c = np.float32([[100 + 0.15 * size, 100], [100 + 0.85 * size, 100],
+                    [100 + size, 100 + squash * size], [100, 100 + squash * size]])
+    H = cv2.getPerspectiveTransform(np.float32([[80, 80], [360, 80], [360, 360], [80, 360]]), c)
+    # pixel-area rendering: warp at 8x, average 8 x 8 blocks (pixel centres at integers)
+    big = cv2.warpPerspective(src, np.diag([8.0, 8.0, 1.0]) @ H, (1600, 1600),
+                              flags=cv2.INTER_AREA, borderValue=255)
+    img = cv2.resize(big, (200, 200), interpolation=cv2.INTER_AREA)
+    true = c + (0.5 / 8 - 0.5)
+    assert len(detect_markers(img, "DICT_5X5_250")[0]) == 0
+    ids, corners = detect_markers(img, "DICT_5X5_250", np.array([3, 17]))
+    assert list(ids) == [17]
+    assert np.abs(corners[0] - true).max() < 1.0, corners[0] - true

@@ -176,7 +176,7 @@ def marker_views(cap: Capture, intr: Intrinsics, frames, min_markers: int = 4,
     cells = aruco_dictionary(cap.marker_dictionary).markerSize + 2
     out = []
     for vid, rad in frames:
-        ids, corners = detect_markers(to_gray8(rad), cap.marker_dictionary)
+        ids, corners = detect_markers(to_gray8(rad), cap.marker_dictionary, cap.marker_ids)
         use = [k for k, i in enumerate(ids) if int(i) in known]
         if len(use) < min_markers:
             continue
@@ -262,17 +262,37 @@ def load_intrinsics(path: str | Path) -> Intrinsics:
                       int(d.get("images_used", 0)), d.get("per_image_rms_px"))
 
 
-def detect_markers(gray: np.ndarray, dictionary_name: str) -> tuple[np.ndarray, np.ndarray]:
-    """ArUco markers with sub-pixel corners: ids (M,), corners (M, 4, 2)."""
+def detect_markers(gray: np.ndarray, dictionary_name: str,
+                   expected: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """ArUco markers with sub-pixel corners: ids (M,), corners (M, 4, 2).
+
+    With ``expected`` (the ids the capture lists), a second pass looks for the missing
+    ones in the image upsampled 2x with a finer bit sampling: markers foreshortened to a
+    few pixels a cell at grazing views are often found there, and every marker a grazing
+    pose gains constrains it in a new direction.
+    """
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
     params.cornerRefinementMinAccuracy = 0.01
     params.cornerRefinementMaxIterations = 60
     det = cv2.aruco.ArucoDetector(aruco_dictionary(dictionary_name), params)
     corners, ids, _ = det.detectMarkers(gray)
-    if ids is None:
-        return np.zeros(0, int), np.zeros((0, 4, 2))
-    return ids.ravel().astype(int), np.array([c.reshape(4, 2) for c in corners], float)
+    ids = np.zeros(0, int) if ids is None else ids.ravel().astype(int)
+    found = np.array([c.reshape(4, 2) for c in corners], float).reshape(-1, 4, 2)
+    missing = set() if expected is None else set(int(i) for i in expected) - set(ids.tolist())
+    if missing:
+        params.perspectiveRemovePixelPerCell = 8
+        params.perspectiveRemoveIgnoredMarginPerCell = 0.2
+        big = cv2.resize(gray, None, fx=2, fy=2, interpolation=cv2.INTER_CUBIC)
+        c2, i2, _ = cv2.aruco.ArucoDetector(aruco_dictionary(dictionary_name), params) \
+            .detectMarkers(big)
+        add = [k for k, i in enumerate(np.ravel(i2) if i2 is not None else []) if int(i) in missing]
+        if add:
+            # pixel centres: x_big = 2 x + 0.5
+            more = (np.array([c2[k].reshape(4, 2) for k in add], float) - 0.5) / 2.0
+            ids = np.r_[ids, np.ravel(i2)[add].astype(int)]
+            found = np.concatenate([found, more])
+    return ids, found
 
 
 def _to_normalized(uv: np.ndarray, intr: Intrinsics) -> np.ndarray:
@@ -660,7 +680,7 @@ def estimate_pose(
     """
     if len(cap.marker_ids) == 0:
         return {"ok": False, "reason": "capture.yaml lists no surface markers", "markers": []}
-    ids, corners = detect_markers(gray, cap.marker_dictionary)
+    ids, corners = detect_markers(gray, cap.marker_dictionary, cap.marker_ids)
     known = {int(i): k for k, i in enumerate(cap.marker_ids)}
     use = [k for k, i in enumerate(ids) if int(i) in known]
     known_found = list(use)
