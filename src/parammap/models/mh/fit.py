@@ -43,7 +43,7 @@ from .model import (
     bic,
     mh_eval,
 )
-from .uncertainty import parameter_sd
+from .uncertainty import loo_error, parameter_sd
 
 ALGORITHMS = {
     "lbfgs": nlopt.LD_LBFGS,
@@ -262,6 +262,9 @@ class MhFitConfig:
     bic_margin: float = 10.0  # auto-K adds a lobe only if BIC drops by more
     bic_floor: float = 1e-3  # residuals below this fraction of the radiance are noise
     polish: str = "texel"  # texel (one nlopt run per texel) | batch (stacked texels first)
+    # K fixed >= 2: keep the K-th lobe where it predicts left-out views better than K - 1
+    # lobes, judged over this many texels across (0: always K lobes)
+    lobe_window: int = 5
 
 
 @dataclass
@@ -452,7 +455,9 @@ def fit_mh_tile(
     NZ = None if noise is None else noise.reshape(t * u, N)
     NW = noise_weights(NZ, W)
     nobs = W.sum(1)
-    Ks = range(1, Kmax + 1) if K == "auto" else [Kmax]
+    select = K != "auto" and Kmax >= 2 and cfg.lobe_window > 0
+    Ks = range(1, Kmax + 1) if K == "auto" else ([Kmax - 1, Kmax] if select else [Kmax])
+    fewer = np.full((t * u, mh_size(Kmax - 1) if select else 0), np.nan)
     todo = np.flatnonzero(nobs >= 4)  # 004: at least four observations
     few = np.flatnonzero(nobs < 4)
     flat = {k: v.reshape((t * u,) + v.shape[2:]) for k, v in out.items()}
@@ -495,6 +500,8 @@ def fit_mh_tile(
                     r = FitResult(np.full(mh_size(k), np.nan), math.inf, 0, FitStatus.FAILED,
                                   -1)
             evals += r.evals
+            if select and k == Kmax - 1 and r.status == FitStatus.OK:
+                fewer[b] = r.params
             floor = (cfg.bic_floor * float(np.mean(np.abs(y)))) ** 2
             crit = bic(r.rss, y.size, k, floor) if r.status == FitStatus.OK else math.inf
             if best is None or (K != "auto" and r.status == FitStatus.OK) or \
@@ -513,6 +520,8 @@ def fit_mh_tile(
         flat["status"][b] = r.status
     # residual diagnostics for the whole tile at once
     ok = todo[flat["status"][todo] == FitStatus.OK]
+    if select and len(ok):
+        _select_lobes(flat, fewer, ok, (t, u), V, L, W, NW, Kmax, cfg.lobe_window)
     if len(ok):
         P = flat["params"][ok].astype(float)
         before = _lobes_present(P)
@@ -548,6 +557,43 @@ def fit_mh_tile(
             flat["chi2"][ok] = reduced_chi2(L[ok], fitted, NZ[ok], W[ok],
                                             mhx_size(flat["k_used"][ok].astype(int)))
     return out
+
+
+def _select_lobes(flat: dict, fewer: np.ndarray, ok: np.ndarray, shape: tuple[int, int],
+                  V: np.ndarray, L: np.ndarray, W: np.ndarray, NW: np.ndarray, K: int,
+                  window: int) -> None:
+    """Keep a fixed-K fit's last lobe only where it predicts left-out views better.
+
+    A lobe that lowers the residual of the views it was fitted to can still predict
+    worse between them: with sparse views and a lobe shape unlike the model's (a
+    microfacet tail), a second lobe narrows the highlight onto the observed views. The
+    leave-one-view-out error (:func:`~.uncertainty.loo_error`) of the K- and the
+    (K - 1)-lobe fit is compared, summed over ``window`` x ``window`` texels of the tile
+    (neighbours share their material; one texel's error is noisy), and texels where
+    K - 1 lobes predict better take that fit. Changes ``flat`` in place.
+    """
+    from scipy.ndimage import uniform_filter
+
+    cand = ok[np.isfinite(fewer[ok]).all(1)]
+    if len(cand) == 0:
+        return
+    e_k = loo_error(flat["params"][cand].astype(float), V[cand], L[cand], W[cand], NW[cand])
+    e_f = loo_error(fewer[cand], V[cand], L[cand], W[cand], NW[cand])
+    both = np.r_[e_k, e_f]
+    worst = float(np.max(both[np.isfinite(both)], initial=0.0))
+    grids = []
+    for e in (e_k, e_f):
+        g = np.zeros(shape[0] * shape[1])
+        # a view that alone determines the fit (singular leave-one-out): the worst
+        # prediction of the tile
+        g[cand] = np.where(np.isfinite(e), e, worst)
+        grids.append(uniform_filter(g.reshape(shape), window, mode="nearest").ravel())
+    back = cand[grids[1][cand] < grids[0][cand]]
+    p = np.zeros((len(back), mh_size(K)))
+    p[:, : mh_size(K - 1)] = fewer[back]
+    p[:, mh_dir_z(K - 1)] = 1.0  # unused lobe: Ks = 0, d = +z
+    flat["params"][back] = p
+    flat["k_used"][back] = K - 1
 
 
 # Observations that must see a lobe above twice the texel's noise for it to count as

@@ -34,9 +34,84 @@ from ...conventions import (
 )
 from .model import _lobes_present, _params_to_x_batch, _x_to_params_batch, mh_eval
 
-__all__ = ["parameter_sd"]
+__all__ = ["loo_error", "parameter_sd"]
 
 STEP = 1e-6  # relative forward-difference step in x space
+
+
+def _linearised(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
+                weights: np.ndarray | None):
+    """The fit linearised at ``P``: Jacobian J (n, 3N, nx) of the model in x space
+    (zero at invalid observations), J weighted, residuals r (n, N, 3), weights w (n, N),
+    free (n, nx) parameters the texel uses, A = J^T W J (identity on the others) and the
+    mask of free pairs."""
+    n = P.shape[0]
+    nx = mhx_size(mh_lobes(P.shape[1]))
+    w = (np.ones(W.shape) if weights is None else np.asarray(weights, float)) * W
+    ones = np.ones(n)
+    X = _params_to_x_batch(P, ones)
+    base = mh_eval(P, V)
+    r = np.where(W[..., None], base - L, 0.0)
+    J = np.empty((n,) + base.shape[1:] + (nx,))
+    for j in range(nx):
+        h = STEP * np.maximum(np.abs(X[:, j]), 1.0)
+        Xh = X.copy()
+        Xh[:, j] += h
+        J[..., j] = (mh_eval(_x_to_params_batch(Xh, ones), V) - base) / h[:, None, None]
+    J = np.where(W[..., None, None], J, 0.0)
+    present = _lobes_present(P)
+    free = np.ones((n, nx), bool)
+    for k in range(mh_lobes(P.shape[1])):
+        gone = present <= k  # lobes are sorted: the first ``present`` are used
+        cols = [*range(mhx_ks(k).start, mhx_ks(k).stop), mhx_theta(k), mhx_phi(k)]
+        free[np.ix_(gone, cols)] = False
+    free[present == 0, MHX_LNM] = False  # no lobe: no shininess to determine
+    J = J.reshape(n, -1, nx)
+    JW = J * w.repeat(3, axis=1)[..., None]
+    mask = free[:, :, None] & free[:, None, :]
+    # batched matmul: an order of magnitude faster than einsum for these small products
+    A = np.where(mask, np.matmul(JW.transpose(0, 2, 1), J), 0.0) \
+        + np.eye(nx) * (~free)[:, :, None]
+    return J, JW, r, w, free, A, mask
+
+
+def loo_error(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
+              weights: np.ndarray | None = None) -> np.ndarray:
+    """Leave-one-view-out prediction error of fitted MH parameters, per texel.
+
+    The linearised fit's leave-one-out residual of view v is ``(I - H_vv)^-1 r_v``, H the
+    (weighted) hat matrix and H_vv its 3 x 3 block of the view's channels: a view that
+    alone determines a lobe (H_vv near I) predicts itself badly once left out. The sum
+    of the squared (weighted) leave-one-out residuals, PRESS, estimates how the texel's
+    fit does in directions no view of it saw, at the cost of one Jacobian.
+
+    Parameters
+    ----------
+    P : (n, 4 + 6K) fitted parameters; V, L : (n, N, 3); W : (n, N) bool;
+    weights : (n, N) the fit's observation weights (default 1).
+
+    Returns
+    -------
+    (n,) weighted PRESS (inf where a view's leave-one-out system is singular).
+    """
+    P = np.asarray(P, float)
+    n, N = W.shape
+    J, _, r, w, free, A, _ = _linearised(P, V, L, W, weights)
+    nx = J.shape[-1]
+    sw = np.sqrt(w).repeat(3, axis=1)[..., None]
+    Jw = np.where(free[:, None, :], J * sw, 0.0).reshape(n, N, 3, nx)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        Ai = np.linalg.pinv(A)
+        H = np.einsum("nvik,nkl,nvjl->nvij", Jw, Ai, Jw, optimize=True)
+        e = (r * np.sqrt(w)[..., None])[..., None]
+        IH = np.eye(3) - H
+        # a view whose block is (nearly) singular is predicted only by itself
+        det = np.linalg.det(IH)
+        bad = ~(np.abs(det) > 1e-9) & W
+        IH = np.where(bad[..., None, None], np.eye(3), IH)
+        loo = np.linalg.solve(IH, e)[..., 0]
+    out = (np.where(W[..., None], loo, 0.0) ** 2).sum((1, 2))
+    return np.where(bad.any(1), np.inf, out)
 
 
 def parameter_sd(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
@@ -57,32 +132,8 @@ def parameter_sd(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
     P = np.asarray(P, float)
     n = P.shape[0]
     K = mh_lobes(P.shape[1])
-    nx = mhx_size(K)
-    w = (np.ones(W.shape) if weights is None else np.asarray(weights, float)) * W
-    ones = np.ones(n)
-    X = _params_to_x_batch(P, ones)
-    base = mh_eval(P, V)
-    r = np.where(W[..., None], base - L, 0.0)
-    J = np.empty((n,) + base.shape[1:] + (nx,))
-    for j in range(nx):
-        h = STEP * np.maximum(np.abs(X[:, j]), 1.0)
-        Xh = X.copy()
-        Xh[:, j] += h
-        J[..., j] = (mh_eval(_x_to_params_batch(Xh, ones), V) - base) / h[:, None, None]
-    J = np.where(W[..., None, None], J, 0.0)
-    present = _lobes_present(P)
-    free = np.ones((n, nx), bool)
-    for k in range(K):
-        gone = present <= k  # lobes are sorted: the first ``present`` are used
-        cols = [*range(mhx_ks(k).start, mhx_ks(k).stop), mhx_theta(k), mhx_phi(k)]
-        free[np.ix_(gone, cols)] = False
-    free[present == 0, MHX_LNM] = False  # no lobe: no shininess to determine
-    J = J.reshape(n, -1, nx)
-    JW = J * w.repeat(3, axis=1)[..., None]
-    mask = free[:, :, None] & free[:, None, :]
-    # batched matmul: an order of magnitude faster than einsum for these small products
-    A = np.where(mask, np.matmul(JW.transpose(0, 2, 1), J), 0.0) \
-        + np.eye(nx) * (~free)[:, :, None]
+    X = _params_to_x_batch(P, np.ones(n))
+    J, JW, r, w, free, A, mask = _linearised(P, V, L, W, weights)
     # the sandwich (A^-1 B A^-1, B from the squared residuals): the noise of a capture
     # grows with the radiance, so the highlight's views are noisier than the rest and
     # the textbook s^2 A^-1 would understate the lobe's uncertainty
