@@ -264,7 +264,7 @@ class MhFitConfig:
     polish: str = "texel"  # texel (one nlopt run per texel) | batch (stacked texels first)
     # K fixed >= 2: keep the K-th lobe where it predicts left-out views better than K - 1
     # lobes, judged over this many texels across (0: always K lobes)
-    lobe_window: int = 5
+    lobe_window: int = 3
 
 
 @dataclass
