@@ -63,9 +63,10 @@ def test_held_out_view_matches_python_renderer(viewer_dir, exact):
         page.goto((vdir / "index.html").as_uri())
         page.wait_for_function("window.viewer && window.viewer.ready", timeout=30000)
         for model in ("mh-2", "sh-wls-16", "diffuse"):
-            page.evaluate(f"viewer.setExact({str(exact).lower()}); viewer.setModel('{model}');"
+            page.evaluate(f"(async () => {{ viewer.setExact({str(exact).lower()});"
+                          f" await viewer.setModel('{model}');"
                           f" viewer.setView('{held['id']}'); viewer.setGamma({gamma});"
-                          " viewer.draw()")
+                          " viewer.draw(); })()")
             shot = _canvas(page)
             pm = read_param_map(out / "params" / f"{model}.exr")
             ref, inside = render(pm, intr, np.array(held["R"]), np.array(held["t"]))
@@ -88,3 +89,28 @@ def test_page_reports_frame_rate(viewer_dir):
         text = page.inner_text("#fps")
         browser.close()
     assert fps > 0 and text.endswith("fps")
+
+
+def test_page_decodes_payloads_as_python_does(viewer_dir):
+    """The page's dequantisation of every payload matches
+    :func:`parammap.viewer.compact.decode_layers` to float32 precision."""
+    import json
+
+    from parammap.viewer.compact import decode_layers
+
+    _, _, vdir = viewer_dir
+    manifest = json.loads((vdir / "manifest.json").read_text())
+    with playwright.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        page = browser.new_page()
+        page.goto((vdir / "index.html").as_uri())
+        page.wait_for_function("window.viewer && window.viewer.ready", timeout=30000)
+        for m in manifest["models"]:
+            got = np.array(page.evaluate(
+                f"(async () => {{ await viewer.setModel('{m['name']}');"
+                f" return Array.from(viewer.layers('{m['name']}')); }})()"), np.float32)
+            text = (vdir / m["file"]).read_text()
+            payload = base64.b64decode(text.split('"')[-2])
+            want = decode_layers(m["compact"], payload, (m["nlayers"], m["T"], m["S"]))
+            np.testing.assert_allclose(got, want.ravel(), rtol=1e-5, atol=1e-6)
+        browser.close()

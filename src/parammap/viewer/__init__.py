@@ -1,12 +1,16 @@
 """A self-contained WebGL2 viewer page for fitted parameter maps.
 
-``write_viewer`` writes ``index.html`` (the shaders and controls, from this package)
-and ``data.js`` beside it: surface size, camera intrinsics, the pose of every captured
-and held-out view, and each model's parameter map. ``data.js`` is a plain script (not
-fetched), so the page opens from the file system with no server and works offline.
+``write_viewer`` writes ``index.html`` (the shaders and controls, from this package),
+``data.js`` (surface size, camera intrinsics, the pose of every captured and held-out
+view, and the manifest of the models), ``manifest.json`` (the same manifest) and one
+``payload-<model>.js`` per model, which the page loads when the model is first shown.
+All are plain scripts (not fetched), so the page opens from the file system with no
+server and works offline.
 
-Parameter maps travel as base64 float32, regrouped in RGBA layers of a 2-D texture
-array (texel row 0 = texture row 0):
+A payload holds the model's texture layers quantised to 8 bits per plane and deflated
+(:mod:`parammap.viewer.compact`: about 7 bytes per texel for MH-2, against 80 as
+float32); the page inflates and dequantises them into float RGBA layers of a 2-D
+texture array (texel row 0 = texture row 0):
 
 - MH: layer 0 = (Kd.R, Kd.G, Kd.B, m), then per lobe k (Ks.R, Ks.G, Ks.B, 0) at layer
   ``1 + 2k`` and (d.X, d.Y, d.Z, 0) at ``2 + 2k``;
@@ -117,8 +121,17 @@ def viewer_layers(pm: ParamMap) -> tuple[np.ndarray, dict]:
 
 
 def write_viewer(out_dir: str | Path, surface_id: str, maps: dict[str, ParamMap],
-                 intr: Intrinsics, views: list[dict], gamma: float) -> Path:
-    """Write ``index.html`` and ``data.js`` into ``out_dir``.
+                 intr: Intrinsics, views: list[dict], gamma: float,
+                 quantisation: dict[str, float] | None = None) -> Path:
+    """Write ``index.html``, ``data.js``, ``manifest.json`` and one payload script per
+    model into ``out_dir``.
+
+    Each model's texture layers travel in 8 bits per plane
+    (:func:`parammap.viewer.compact.encode_layers`) in ``payload-<model>.js``, which the
+    page loads when the model is first shown (a script, so that the page also works
+    from the file system). ``manifest.json`` (also inside ``data.js``) describes the
+    surface, the models, their planes and quantisation, payload sizes and, where given,
+    the measured ``quantisation`` error (mean 8-bit levels) per model.
 
     Parameters
     ----------
@@ -126,17 +139,28 @@ def write_viewer(out_dir: str | Path, surface_id: str, maps: dict[str, ParamMap]
     views : dicts with ``id``, ``holdout``, ``R`` (3x3), ``t`` (3,) for every posed view.
     gamma : initial tone-mapping gamma.
     """
+    from .compact import encode_layers
+
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     any_map = next(iter(maps.values()))
     models = []
     for name, pm in maps.items():
         layers, info = viewer_layers(pm)
-        models.append({"name": name, "S": pm.shape[1], "T": pm.shape[0],
-                       "nlayers": len(layers),
-                       "data": base64.b64encode(layers.tobytes()).decode("ascii"), **info})
-    data = {"surface": {"id": surface_id, "width_mm": any_map.width_mm,
-                        "height_mm": any_map.height_mm},
+        entry, payload = encode_layers(layers, info)
+        file = f"payload-{name}.js"
+        text = (f"(window.PARAMMAP_PAYLOAD = window.PARAMMAP_PAYLOAD || {{}})"
+                f"[{json.dumps(name)}] = \"{base64.b64encode(payload).decode('ascii')}\";\n")
+        _write_atomic(out_dir / file, text)
+        T, S = pm.shape
+        models.append({"name": name, "S": S, "T": T, "nlayers": len(layers), "file": file,
+                       "bytes": len(text), "bytes_per_texel": len(text) / (S * T),
+                       "quantisation_error_8bit": (quantisation or {}).get(name),
+                       "compact": entry, **info})
+    manifest = {"surface": {"id": surface_id, "width_mm": any_map.width_mm,
+                            "height_mm": any_map.height_mm},
+                "models": models}
+    data = {**manifest,
             "camera": {"K": np.asarray(intr.K).tolist(), "dist": np.asarray(intr.dist).tolist(),
                        "image_size": list(intr.image_size),
                        "undistort": undistortion_grid(intr)},
@@ -144,12 +168,17 @@ def write_viewer(out_dir: str | Path, surface_id: str, maps: dict[str, ParamMap]
             "views": [{"id": v["id"], "holdout": bool(v["holdout"]),
                        "R": np.asarray(v["R"]).tolist(), "t": np.asarray(v["t"]).tolist()}
                       for v in views],
-            "gamma": gamma, "models": models}
-    tmp = out_dir / ".data.js.tmp"
-    tmp.write_text("window.PARAMMAP_DATA = " + json.dumps(data) + ";\n")
-    tmp.replace(out_dir / "data.js")
+            "gamma": gamma}
+    _write_atomic(out_dir / "manifest.json", json.dumps(manifest, indent=1))
+    _write_atomic(out_dir / "data.js", "window.PARAMMAP_DATA = " + json.dumps(data) + ";\n")
     shutil.copyfile(TEMPLATE, out_dir / "index.html")
     return out_dir / "index.html"
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
 
 
 def write_surface_viewer(cap: Capture, processed: str | Path, models: list[str],
@@ -161,6 +190,7 @@ def write_surface_viewer(cap: Capture, processed: str | Path, models: list[str],
     from ..metrics import read_metrics
     from ..params import read_param_map
     from ..paths import Processed, read_poses
+    from .compact import quantisation_error
 
     proc = Processed(processed)
     maps = {name: read_param_map(proc.params(name)) for name in models}
@@ -169,7 +199,16 @@ def write_surface_viewer(cap: Capture, processed: str | Path, models: list[str],
     if proc.metrics("holdout").is_file():
         g = [v["gamma"] for v in read_metrics(proc.metrics("holdout"))["views"].values()]
         gamma = float(np.median(g)) if g else gamma
-    path = write_viewer(out_dir, cap.surface_id, maps, load_intrinsics(proc.intrinsics),
-                        views, gamma)
+    intr = load_intrinsics(proc.intrinsics)
+    # the payload's quantisation error, measured where it is looked at: renders of the
+    # held-out views (else three captured views) at the report's gamma
+    shown = [v for v in views if v.get("holdout")] or views[:: max(1, len(views) // 3)][:3]
+    poses = [(np.asarray(v["R"], float), np.asarray(v["t"], float)) for v in shown]
+    quant = {}
+    for name, pm in maps.items():
+        layers, info = viewer_layers(pm)
+        quant[name] = quantisation_error(pm, layers, info, intr, poses, gamma)
+        logger.info(f"viewer: {name} payload quantisation error {quant[name]:.3f} 8-bit levels")
+    path = write_viewer(out_dir, cap.surface_id, maps, intr, views, gamma, quant)
     logger.info(f"viewer: open {path}")
     return path

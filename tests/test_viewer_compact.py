@@ -1,0 +1,80 @@
+"""The viewer's compact payload (issue 17): 8-bit planes, their size and the error they
+add to renders, without a browser (the page's decoder is checked against
+:func:`decode_layers` in ``test_viewer.py``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import yaml
+
+from parammap.calibration import load_intrinsics
+from parammap.cli import main
+from parammap.conventions import mh_dir, mh_ks
+from parammap.params import read_param_map
+from parammap.viewer import viewer_layers
+from parammap.viewer.compact import decode_layers, encode_layers, layers_to_params
+
+
+def _round_trip(pm):
+    layers, info = viewer_layers(pm)
+    entry, payload = encode_layers(layers, info)
+    back = decode_layers(entry, payload, layers.shape[:3])
+    return layers, info, back, payload
+
+
+def test_mh_planes_round_trip_within_their_quantisation(tiny_processed):
+    """MH-2 of the tiny capture: Kd and Ks within half a square-root level, m within half
+    a log level, lobe directions within 0.75 deg (half a level of two hemi-octahedral
+    planes); the layer layout survives
+    (``layers_to_params`` inverts ``viewer_layers``); at most 16 bytes per texel on this
+    small, noisy map (5x less than float32; 9-11 on the demo and pbr-bench maps)."""
+    cap, _, out = tiny_processed
+    assert main(["fit-mh", str(cap), "--out", str(out), "--lobes", "2", "--workers", "1"]) == 0
+    assert main(["export", str(cap), "--out", str(out), "--model", "mh-2"]) == 0
+    pm = read_param_map(out / "params" / "mh-2.exr")
+    layers, info, back, payload = _round_trip(pm)
+    np.testing.assert_array_equal(layers_to_params(layers, info), np.nan_to_num(pm.params))
+    p, q = layers_to_params(layers, info), layers_to_params(back, info)
+    for sl in (slice(0, 3), mh_ks(0), mh_ks(1)):
+        r = np.sqrt(np.maximum(p[..., sl], 0))
+        half = (r.max((0, 1)) - r.min((0, 1))) / 255 / 2 + 1e-7
+        assert (np.abs(np.sqrt(q[..., sl]) - r) <= half).all()
+    lm = np.log(p[..., 3])
+    assert (np.abs(np.log(q[..., 3]) - lm) <= (lm.max() - lm.min()) / 510 + 1e-6).all()
+    for k in (0, 1):
+        cos = np.clip((p[..., mh_dir(k)] * q[..., mh_dir(k)]).sum(-1), -1, 1)
+        ang = np.degrees(np.arccos(cos))
+        assert ang.max() < 0.75 and np.median(ang) < 0.3, (ang.max(), np.median(ang))
+    T, S = pm.shape
+    assert len(payload) * 4 / 3 / (T * S) <= 16
+
+
+def test_viewer_stage_measures_payload_error_below_half_a_level(tiny_processed, tmp_path):
+    """The viewer stage writes ``manifest.json`` with every model's payload size and the
+    error its quantisation adds to renders of the held-out views at the report's gamma:
+    below 0.5 mean 8-bit levels for MH, SH (PCA) and diffuse."""
+    import json
+
+    cap, _, out = tiny_processed
+    assert main(["fit-mh", str(cap), "--out", str(out), "--lobes", "2", "--workers", "1"]) == 0
+    assert main(["fit-sh", str(cap), "--out", str(out), "--model", "sh-rlsop-36",
+                 "--workers", "1"]) == 0
+    models = ["mh-2", "sh-rlsop-36", "diffuse"]
+    assert main(["export", str(cap), "--out", str(out), *[x for m in models
+                                                         for x in ("--model", m)]]) == 0
+    vdir = tmp_path / "viewer"
+    assert main(["viewer", str(cap), "--out", str(out), "--figures", str(vdir),
+                 *[x for m in models for x in ("--model", m)]]) == 0
+    man = json.loads((vdir / "manifest.json").read_text())
+    got = {m["name"]: m for m in man["models"]}
+    assert set(got) == set(models)
+    for name, m in got.items():
+        assert 0 <= m["quantisation_error_8bit"] < 0.5, (name, m["quantisation_error_8bit"])
+        assert (vdir / m["file"]).stat().st_size == m["bytes"]
+    assert got["mh-2"]["bytes_per_texel"] <= 16
+    assert got["sh-rlsop-36"]["compact"]["pca"]["basis"]
+    # the float maps would have been 16 bytes per texel and layer
+    assert got["sh-rlsop-36"]["bytes_per_texel"] < 0.5 * 16 * got["sh-rlsop-36"]["nlayers"]
+    intr = load_intrinsics(out / "camera" / "intrinsics.yaml")
+    assert yaml.safe_load((out / "camera" / "poses.yaml").read_text())["views"]
+    assert intr.image_size
