@@ -187,13 +187,13 @@ def test_chessboard_squares_across_and_down(tmp_path):
     assert intr.rms_px < 0.3
 
 
-@pytest.mark.parametrize("yaw_deg", [0.0, 1.5, 20.0, 44.0])
-def test_marker_edge_refinement_is_sub_tenth_pixel(yaw_deg):
-    """A dark square (one-cell border) on a lighter plane, rendered with pixel-area
-    integration through a distorting lens: refined corners within 0.05 px of the
-    projected truth, at grid-aligned (the hard case for interpolation) and slanted
-    angles, starting from corners 0.4 px off."""
-    from parammap.calibration import refine_marker_corners
+def _rendered_marker(cells: int, dark: float, bright: float, height_mm: float,
+                     yaw_deg: float):
+    """A dark square border (one cell of ``cells``) on a lighter plane, rendered with
+    pixel-area integration through a distorting lens: (luminance (H, W), projected true
+    corners (4, 2), intrinsics)."""
+    import cv2
+
     from parammap.geometry import look_at
     from parammap.synth.generate import render_radiance
 
@@ -202,23 +202,31 @@ def test_marker_edge_refinement_is_sub_tenth_pixel(yaw_deg):
 
     def shade(P, C):
         inside = (P[:, 0] >= 0) & (P[:, 0] <= s) & (P[:, 1] >= 0) & (P[:, 1] <= s)
-        inner = (P[:, 0] >= s / 6) & (P[:, 0] <= 5 * s / 6) & (P[:, 1] >= s / 6) \
-            & (P[:, 1] <= 5 * s / 6)
-        v = np.where(inside & ~inner, 0.05, 0.6) * (1 + 0.002 * P[:, 0])
+        a, b = s / cells, s - s / cells
+        inner = (P[:, 0] >= a) & (P[:, 0] <= b) & (P[:, 1] >= a) & (P[:, 1] <= b)
+        v = np.where(inside & ~inner, dark, bright) * (1 + 0.002 * P[:, 0])
         return np.repeat(v.reshape(-1, 1), 3, axis=1)
 
     K = np.array([[500.0, 0, 322.3], [0, 501.0, 238.7], [0, 0, 1]])
     dist = np.array([-0.1, 0.05, 0.0005, -0.0004, 0.0])
-    eye = np.array([s / 2 + 40, s / 2 - 30, 260.0])
-    R, t = look_at(eye, np.array([s / 2, s / 2, 0.0]), np.radians(yaw_deg))
+    R, t = look_at(np.array([s / 2 + 40, s / 2 - 30, height_mm]),
+                   np.array([s / 2, s / 2, 0.0]), np.radians(yaw_deg))
     rad = render_radiance(shade, (640, 480), K, dist, R, t, ss=2, edge_ss=16)
-    import cv2
+    true = cv2.projectPoints(np.c_[sq, np.zeros(4)], cv2.Rodrigues(R)[0], t, K, dist)[0]
+    return rad.mean(-1), true.reshape(4, 2), Intrinsics(K, dist, (640, 480))
 
-    true, _ = cv2.projectPoints(np.c_[sq, np.zeros(4)], cv2.Rodrigues(R)[0], t, K, dist)
-    true = true.reshape(4, 2)
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 1.5, 20.0, 44.0])
+def test_marker_edge_refinement_is_sub_tenth_pixel(yaw_deg):
+    """A dark square (one-cell border) on a lighter plane, rendered with pixel-area
+    integration through a distorting lens: refined corners within 0.05 px of the
+    projected truth, at grid-aligned (the hard case for interpolation) and slanted
+    angles, starting from corners 0.4 px off."""
+    from parammap.calibration import refine_marker_corners
+
+    lum, true, intr = _rendered_marker(6, 0.05, 0.6, 260.0, yaw_deg)
     start = true + np.array([[0.3, -0.25], [-0.2, 0.3], [0.25, 0.3], [-0.3, -0.2]])
-    intr = Intrinsics(K, dist, (640, 480))
-    got = refine_marker_corners(rad.mean(-1), start[None], intr, cells=6)[0]
+    got = refine_marker_corners(lum, start[None], intr, cells=6)[0]
     err = np.linalg.norm(got - true, axis=1)
     assert err.max() < 0.05, err
 
@@ -229,32 +237,11 @@ def test_marker_edges_are_unbiased_under_pixel_noise():
     refined corners stay centred on the truth (no drift toward the bright side, which
     normalising each column by its own noisy levels gave: +0.13 px) and within 0.12 px
     on average (0.25 px before the blurred-step fit)."""
-    import cv2
-
     from parammap.calibration import refine_marker_corners
-    from parammap.geometry import look_at
-    from parammap.synth.generate import render_radiance
 
-    s = 30.0
-    sq = np.array([[0, s], [s, s], [s, 0], [0, 0]], float)
-
-    def shade(P, C):
-        inside = (P[:, 0] >= 0) & (P[:, 0] <= s) & (P[:, 1] >= 0) & (P[:, 1] <= s)
-        inner = (P[:, 0] >= s / 7) & (P[:, 0] <= 6 * s / 7) & (P[:, 1] >= s / 7) \
-            & (P[:, 1] <= 6 * s / 7)
-        v = np.where(inside & ~inner, 0.04, 0.8) * (1 + 0.002 * P[:, 0])
-        return np.repeat(v.reshape(-1, 1), 3, axis=1)
-
-    K = np.array([[500.0, 0, 322.3], [0, 501.0, 238.7], [0, 0, 1]])
-    dist = np.array([-0.1, 0.05, 0.0005, -0.0004, 0.0])
-    R, t = look_at(np.array([s / 2 + 40, s / 2 - 30, 420.0]), np.array([s / 2, s / 2, 0.0]),
-                   np.radians(20.0))
-    rad = render_radiance(shade, (640, 480), K, dist, R, t, ss=2, edge_ss=16).mean(-1)
-    true = cv2.projectPoints(np.c_[sq, np.zeros(4)], cv2.Rodrigues(R)[0], t, K, dist)[0]
-    true = true.reshape(4, 2)
+    rad, true, intr = _rendered_marker(7, 0.04, 0.8, 420.0, 20.0)
     out = (true - true.mean(0)) / np.linalg.norm(true - true.mean(0), axis=1, keepdims=True)
     rng = np.random.default_rng(3)
-    intr = Intrinsics(K, dist, (640, 480))
     err, outward = [], []
     for _ in range(12):
         img = rad * (1 + 0.15 * rng.standard_normal(rad.shape))

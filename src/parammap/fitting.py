@@ -51,7 +51,7 @@ from .models.mh import (
 )
 from .models.sh import GUARD_STEPS, fit_sh_tile, sh_outputs
 from .observation import open_observation_map
-from .stores import COMPLETE_ATTR, open_complete, worker_initializer
+from .stores import COMPLETE_ATTR, mtime_ns, open_complete, worker_initializer
 
 logger = logging.getLogger(__name__)
 
@@ -219,7 +219,7 @@ def fit_map(
     key = digest({"attrs": attrs, "outputs": {k: [list(v[0]), v[1], v[2]]
                                               for k, v in outputs.items()},
                   "observation": dict(obs.attrs), "shape": [T, S, N],
-                  "observation_mtime_ns": _mtime_ns(Path(obs_path) / "zarr.json"),
+                  "observation_mtime_ns": mtime_ns(Path(obs_path) / "zarr.json"),
                   "repair": repair_fn is not None, "software": __version__})
     valid = da.from_zarr(obs["valid"])
     ntiles = len(valid.chunks[0]) * len(valid.chunks[1])
@@ -259,13 +259,6 @@ def fit_map(
     logger.info(f"fit: {T * S} texels in {seconds:.1f} s ({T * S / seconds:.1f} texels/s)")
     return {"texels": T * S, "seconds": seconds, "texels_per_second": T * S / seconds,
             "status": status, "repaired": repaired}
-
-
-def _mtime_ns(path: Path) -> int:
-    try:
-        return path.stat().st_mtime_ns
-    except OSError:
-        return 0
 
 
 def _resume_or_create(tmp: Path, done: Path, key: str, ntiles: int,

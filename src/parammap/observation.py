@@ -51,7 +51,7 @@ from .geometry import sample_image, texel_centres, unit
 from .hdr import read_hdr_noise
 from .metrics import digest
 from .paths import PosesError, Processed, read_poses
-from .stores import COMPLETE_ATTR, executor, open_complete, store_bytes
+from .stores import COMPLETE_ATTR, executor, mtime_ns, open_complete, store_bytes
 
 logger = logging.getLogger(__name__)
 
@@ -293,13 +293,6 @@ def _pass2_band(job: tuple) -> int:
     return int(valid.sum())
 
 
-def _mtime_ns(path: Path) -> int:
-    try:
-        return Path(path).stat().st_mtime_ns
-    except OSError:
-        return 0
-
-
 def _create_final(final: Path, S: int, T: int, N: int, tile: int) -> zarr.Group:
     """The observation map's arrays, chunked by texel tiles with all views."""
     g = zarr.open_group(final, mode="w")
@@ -362,7 +355,7 @@ def build_observation_map(
     marks = out.with_name(f".{out.name}.views")
     scratch = tmp / "scratch.zarr"
     final = tmp / "store.zarr"
-    key = digest({"views": [(v.id, v.R, v.t, _mtime_ns(v.hdr)) for v in views],
+    key = digest({"views": [(v.id, v.R, v.t, mtime_ns(v.hdr)) for v in views],
                   "K": intr.K, "dist": intr.dist, "grid": [S, T, tile],
                   "sampling": [max_zenith_deg, max_supersample], "config": config or {},
                   "surface": [cap.width_mm, cap.height_mm, cap.marker_corners],

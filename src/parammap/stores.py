@@ -63,6 +63,15 @@ def executor(workers: int):
         else _Serial()
 
 
+def mtime_ns(path: str | Path) -> int:
+    """A file's modification time (ns), 0 when it is missing: part of the keys that say
+    whether a partial store may be resumed."""
+    try:
+        return Path(path).stat().st_mtime_ns
+    except OSError:
+        return 0
+
+
 def store_bytes(path: str | Path) -> int:
     """Bytes on disk of a file or a directory store."""
     path = Path(path)
