@@ -102,7 +102,9 @@ def encode_layers(layers: np.ndarray, info: dict[str, Any]) -> tuple[dict, bytes
     -------
     (manifest entry, payload): the entry lists the planes in payload order (``layer``,
     ``channel``, ``transfer``, ``lo``, ``hi``; or ``const``; or ``derived``) and, for
-    SH, the PCA ``mean`` and ``basis``; the payload is the deflated 8-bit planes.
+    SH, the PCA's ``components`` and ``values``; the payload is the deflated 8-bit
+    planes, then (SH) at the next multiple of 4 bytes the PCA mean and basis as
+    little-endian float32 (``values`` x (1 + ``components``)).
     """
     L, T, S, _ = layers.shape
     x = np.asarray(layers, np.float64)
@@ -122,7 +124,10 @@ def encode_layers(layers: np.ndarray, info: dict[str, Any]) -> tuple[dict, bytes
             q, lo, hi = _quantise(W[:, j])
             data.append(q)
             planes.append({"component": j, "transfer": "linear", "lo": lo, "hi": hi})
-        entry["pca"] = {"mean": mean.tolist(), "basis": V[:, :k].T.tolist()}
+        entry["pca"] = {"components": k, "values": L * 3}
+        pad = -(k * T * S) % 4
+        data += [np.zeros(pad, np.uint8),
+                 np.r_[mean, V[:, :k].T.ravel()].astype("<f4").view(np.uint8)]
     else:
         mh = info["model"] == "mh"
         for layer in range(L):
@@ -156,13 +161,14 @@ def decode_layers(entry: dict, payload: bytes, shape: tuple[int, int, int]) -> n
     out = np.zeros((L, T, S, 4))
     n, pos = T * S, 0
     if "pca" in entry:
-        mean = np.asarray(entry["pca"]["mean"])
-        basis = np.asarray(entry["pca"]["basis"])
-        W = np.empty((n, len(entry["planes"])))
+        k, nv = entry["pca"]["components"], entry["pca"]["values"]
+        W = np.empty((n, k))
         for j, p in enumerate(entry["planes"]):
             W[:, j] = _dequantise(raw[pos:pos + n], p["lo"], p["hi"])
             pos += n
-        X = mean + W @ basis
+        pos += -pos % 4
+        f = raw[pos:pos + 4 * nv * (k + 1)].view("<f4").astype(np.float64)
+        X = f[:nv] + W @ f[nv:].reshape(k, nv)
         out[..., :3] = X.reshape(T, S, L, 3).transpose(2, 0, 1, 3)
         return out.astype(np.float32)
     derived = []
