@@ -100,8 +100,8 @@ def viewer_layers(pm: ParamMap) -> tuple[np.ndarray, dict]:
         layers = [p[..., :MH_HEAD]]
         for k in range(K):  # MH_LAYERS_PER_LOBE layers per lobe
             z = np.zeros((T, S, 1), np.float32)
-            layers += [np.concatenate([p[..., mh_ks(k)], z], -1),
-                       np.concatenate([p[..., mh_dir(k)], z], -1)]
+            layers += [np.concatenate([p[..., mh_ks(k)], z], -1),  # layer 1 + 2k
+                       np.concatenate([p[..., mh_dir(k)], z], -1)]  # layer 2 + 2k
         info = {"model": "mh", "lobes": K}
     elif pm.model == "sh":
         nc = P // 3

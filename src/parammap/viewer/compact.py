@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from ..conventions import MH_HEAD, mh_dir, mh_ks, mh_size
+from . import MH_LAYERS_PER_LOBE  # the viewer's texture layout (viewer_layers)
 
 __all__ = ["PCA_UNEXPLAINED", "decode_layers", "encode_layers", "layers_to_params",
            "quantisation_error"]
@@ -87,7 +88,7 @@ def _mh_role(layer: int, channel: int) -> str:
     """What a channel of an MH texture layer holds: head (Kd, m), Ks, or direction."""
     if layer == 0:
         return "m" if channel == 3 else "kd"
-    return "ks" if (layer - 1) % 2 == 0 else "dir"
+    return "ks" if (layer - 1) % MH_LAYERS_PER_LOBE == 0 else "dir"
 
 
 def encode_layers(layers: np.ndarray, info: dict[str, Any]) -> tuple[dict, bytes]:
@@ -191,12 +192,12 @@ def layers_to_params(layers: np.ndarray, info: dict[str, Any]) -> np.ndarray:
     inverse of :func:`parammap.viewer.viewer_layers`)."""
     L, T, S, _ = layers.shape
     if info["model"] == "mh":
-        K = (L - 1) // 2  # a head layer, then two layers per lobe
+        K = (L - 1) // MH_LAYERS_PER_LOBE  # a head layer, then the lobes' layers
         p = np.zeros((T, S, mh_size(K)), np.float32)
         p[..., :MH_HEAD] = layers[0]
         for k in range(K):
-            p[..., mh_ks(k)] = layers[1 + 2 * k, ..., :3]
-            p[..., mh_dir(k)] = layers[2 + 2 * k, ..., :3]
+            p[..., mh_ks(k)] = layers[1 + MH_LAYERS_PER_LOBE * k, ..., :3]
+            p[..., mh_dir(k)] = layers[2 + MH_LAYERS_PER_LOBE * k, ..., :3]
         return p
     if info["model"] == "sh":
         return layers[..., :3].transpose(1, 2, 3, 0).reshape(T, S, 3 * L)
