@@ -137,7 +137,7 @@ def write_viewer(out_dir: str | Path, surface_id: str, maps: dict[str, ParamMap]
     ----------
     maps : model name -> parameter map (all of one surface).
     views : dicts with ``id``, ``holdout``, ``R`` (3x3), ``t`` (3,) for every posed view.
-    gamma : initial tone-mapping gamma.
+    gamma : initial tone-mapping gamma (also the SH payload's error budget).
     """
     from .compact import encode_layers
 
@@ -147,7 +147,7 @@ def write_viewer(out_dir: str | Path, surface_id: str, maps: dict[str, ParamMap]
     models = []
     for name, pm in maps.items():
         layers, info = viewer_layers(pm)
-        entry, payload = encode_layers(layers, info)
+        entry, payload = encode_layers(layers, info, gamma)
         file = f"payload-{name}.js"
         text = (f"(window.PARAMMAP_PAYLOAD = window.PARAMMAP_PAYLOAD || {{}})"
                 f"[{json.dumps(name)}] = \"{base64.b64encode(payload).decode('ascii')}\";\n")

@@ -15,8 +15,10 @@ minimum and maximum after a transfer that spreads the levels where they matter:
   padding, absent lobes) cost nothing.
 
 SH maps are first reduced by PCA across texels (coefficients of neighbouring bands are
-strongly correlated over a surface): the components that leave less than
-:data:`PCA_UNEXPLAINED` of the variance are kept, and their weights quantised linearly.
+strongly correlated over a surface); each component's weights are quantised with the
+step that spends an equal share of :data:`SH_ERROR_LEVELS` (the mean error a render
+may gain at the report's tone mapping), components within one step left out
+(:func:`_weight_steps`); deflate then codes a component of few levels in few bits.
 
 The planes are concatenated (plane after plane, texel row 0 first) and deflated
 (zlib), which the browser inflates natively (``DecompressionStream("deflate")``); the
@@ -35,11 +37,16 @@ import numpy as np
 from ..conventions import MH_HEAD, mh_dir, mh_ks, mh_size
 from . import MH_LAYERS_PER_LOBE  # the viewer's texture layout (viewer_layers)
 
-__all__ = ["PCA_UNEXPLAINED", "decode_layers", "encode_layers", "layers_to_params",
+__all__ = ["SH_ERROR_LEVELS", "decode_layers", "encode_layers", "layers_to_params",
            "quantisation_error"]
 
 LEVELS = 255  # 8 bits per plane
-PCA_UNEXPLAINED = 1e-6  # SH: keep components until this fraction of the variance is left
+# SH: the mean error, in 8-bit levels at the report's tone mapping, that the components
+# left out and the quantisation of those kept may add to a render (_weight_steps;
+# rounding to display levels turns an error e < 1 level into a one-level change with
+# probability |e|); below the viewer's target of half a level, with room for the views
+# that are looked at differing from the directions it is judged on
+SH_ERROR_LEVELS = 0.35
 
 
 def _forward(x: np.ndarray, transfer: str) -> np.ndarray:
@@ -68,6 +75,79 @@ def _dequantise(q: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return lo + q.astype(np.float64) * ((hi - lo) / LEVELS)
 
 
+def _render_directions(count: int = 128, max_zenith_deg: float = 80.0) -> np.ndarray:
+    """(count, 3) view directions spread evenly in solid angle over the upper hemisphere
+    to ``max_zenith_deg`` (a Fibonacci spiral): where the payload's error is judged."""
+    i = np.arange(count) + 0.5
+    z = 1 - i / count * (1 - np.cos(np.radians(max_zenith_deg)))
+    phi = np.pi * (1 + 5 ** 0.5) * i
+    r = np.sqrt(1 - z * z)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], -1)
+
+
+def _weight_steps(X: np.ndarray, V: np.ndarray, W: np.ndarray, gamma: float,
+                  budget: float = SH_ERROR_LEVELS, sample: int = 4096) -> np.ndarray:
+    """Quantisation step for each principal component's weights (inf: left out), such
+    that renders change by ``budget`` mean 8-bit levels.
+
+    Parameters
+    ----------
+    X : (n, 3 c) the map's SH coefficients per texel (coefficient-major, RGB inside).
+    V : (3 c, k) the PCA basis; W : (n, k) the texels' weights.
+    gamma : the tone curve ``1 - exp(-gamma L)``.
+
+    Notes
+    -----
+    A weight error e of component j moves texel t's radiance in direction w, channel c,
+    by ``e g_j(w, c)`` (``g_j`` the component's radiance function), and its display
+    level by that times the tone curve's slope ``s`` at the texel's own radiance there.
+    Transform coding's reverse water-filling: every component gets the step whose
+    error variance ``step^2 / 12`` is one value theta per unit of its mean ``s^2 g_j^2``;
+    one whose weights all lie within half a step is left out (its error is then its
+    weight; quantisation errors shrink under the renders' bilinear interpolation).
+    The errors of many components add up to a Gaussian of variance
+    ``sigma^2(t, w, c)``, whose mean absolute value ``sqrt(2 / pi) sigma``, averaged over
+    a sample of ``sample`` texels and the directions of :func:`_render_directions`, is
+    brought to ``budget`` by bisection on theta. Deflate's Huffman codes then spend few
+    bits on a component whose weights span few steps (texel noise).
+    """
+    from ..models.sh import sh_basis
+
+    n, k = W.shape
+    nc = X.shape[1] // 3
+    take = np.unique(np.linspace(0, n - 1, min(n, sample)).astype(int))
+    Y = sh_basis(_render_directions(64), int(round(np.sqrt(nc))))  # (M, c)
+    Lr = np.einsum("tic,wi->twc", X[take].reshape(-1, nc, 3), Y)
+    slope2 = ((255.0 * gamma * np.exp(-gamma * np.maximum(Lr, 0.0))) ** 2).reshape(len(take), -1)
+    g2 = (np.einsum("ick,wi->kwc", V.reshape(nc, 3, k), Y) ** 2).reshape(k, -1)
+    h = np.maximum((slope2 @ g2.T).mean(0) / g2.shape[1], 1e-300)  # mean s^2 g_j^2
+    span = np.ptp(W, 0) if n else np.zeros(k)
+    Wt2 = W[take] ** 2
+
+    def steps(theta: float) -> np.ndarray:
+        st = np.sqrt(12 * theta / h)
+        return np.where(span < 0.5 * st, np.inf, st)
+
+    def mean_error(theta: float) -> float:
+        st = steps(theta)
+        # quantisation errors are independent texel to texel, and renders interpolate
+        # four texels bilinearly: their variance shrinks by the mean sum of squared
+        # weights over a texel, (2 / 3)^2
+        var = np.where(np.isfinite(st), np.where(np.isfinite(st), st, 0) ** 2 / 12, 0)
+        e2 = (4 / 9) * var[None, :] + np.where(np.isfinite(st), 0.0, Wt2)  # (t, k)
+        sigma2 = slope2 * (e2 @ g2)  # (t, M 3)
+        return float(np.sqrt(2 / np.pi) * np.sqrt(sigma2).mean())
+
+    # bisection in log theta between no error and every component left out
+    lo, hi = -60.0, np.log(max(float((Wt2 * h).sum(1).mean()), 1e-300)) + 1
+    if mean_error(np.exp(hi)) <= budget:
+        return steps(np.exp(hi))
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if mean_error(np.exp(mid)) <= budget else (lo, mid)
+    return steps(np.exp(lo))
+
+
 def _hemioct(d: np.ndarray) -> np.ndarray:
     """Unit directions (..., 3) of the upper hemisphere (z < 0 is put on the horizon)
     to hemi-octahedral coordinates (..., 2) in [-1, 1]^2."""
@@ -91,21 +171,26 @@ def _mh_role(layer: int, channel: int) -> str:
     return "ks" if (layer - 1) % MH_LAYERS_PER_LOBE == 0 else "dir"
 
 
-def encode_layers(layers: np.ndarray, info: dict[str, Any]) -> tuple[dict, bytes]:
+def encode_layers(layers: np.ndarray, info: dict[str, Any],
+                  gamma: float = 1.0) -> tuple[dict, bytes]:
     """Quantise a map's texture layers.
 
     Parameters
     ----------
     layers : (L, T, S, 4) float32, :func:`parammap.viewer.viewer_layers` (NaN-free).
     info : its model description (``model``: mh, sh or diffuse).
+    gamma : the report's tone-mapping gamma (SH: sets the error budget in radiance).
 
     Returns
     -------
     (manifest entry, payload): the entry lists the planes in payload order (``layer``,
     ``channel``, ``transfer``, ``lo``, ``hi``; or ``const``; or ``derived``) and, for
-    SH, the PCA's ``components`` and ``values``; the payload is the deflated 8-bit
-    planes, then (SH) at the next multiple of 4 bytes the PCA mean and basis as
-    little-endian float32 (``values`` x (1 + ``components``)).
+    SH, the PCA's ``components`` (kept) and ``values``, each kept component's plane
+    with its ``bits`` (8 or 16), ``lo`` and ``step`` (weight = lo + level x step); the
+    payload is the deflated 8-bit planes (a 16-bit weight as its
+    high-byte plane, then its low-byte plane), then (SH) at the next multiple of 4
+    bytes the PCA mean and the kept components' basis rows as little-endian float32
+    (``values`` x (1 + ``components``)).
     """
     L, T, S, _ = layers.shape
     x = np.asarray(layers, np.float64)
@@ -116,19 +201,24 @@ def encode_layers(layers: np.ndarray, info: dict[str, Any]) -> tuple[dict, bytes
         mean = X.mean(0)
         Xc = X - mean
         w, V = np.linalg.eigh(Xc.T @ Xc)
-        w, V = w[::-1].clip(min=0), V[:, ::-1]
-        left = 1.0 - np.cumsum(w) / max(float(w.sum()), 1e-300)
-        k = int(np.argmax(left <= PCA_UNEXPLAINED)) + 1 if (left <= PCA_UNEXPLAINED).any() \
-            else len(w)
-        W = Xc @ V[:, :k]
-        for j in range(k):
-            q, lo, hi = _quantise(W[:, j])
-            data.append(q)
-            planes.append({"component": j, "transfer": "linear", "lo": lo, "hi": hi})
-        entry["pca"] = {"components": k, "values": L * 3}
-        pad = -(k * T * S) % 4
+        V = V[:, ::-1]
+        W = Xc @ V
+        step = _weight_steps(X, V, W, gamma)
+        keep = np.flatnonzero(np.isfinite(step))
+        for j in keep:
+            lo = float(W[:, j].min())
+            q = np.round((W[:, j] - lo) / step[j]).astype(np.int64)
+            bits = 8 if q.max() <= 255 else 16
+            # a 16-bit weight as its high-byte plane, then its low-byte plane (the high
+            # bytes of a smooth map deflate well)
+            data += [(q >> 8).astype(np.uint8), (q & 255).astype(np.uint8)] \
+                if bits == 16 else [q.astype(np.uint8)]
+            planes.append({"component": int(j), "bits": bits, "lo": lo,
+                           "step": float(step[j])})
+        entry["pca"] = {"components": len(keep), "values": L * 3}
+        pad = -sum(len(a) for a in data) % 4
         data += [np.zeros(pad, np.uint8),
-                 np.r_[mean, V[:, :k].T.ravel()].astype("<f4").view(np.uint8)]
+                 np.r_[mean, V[:, keep].T.ravel()].astype("<f4").view(np.uint8)]
     else:
         mh = info["model"] == "mh"
         for layer in range(L):
@@ -165,8 +255,12 @@ def decode_layers(entry: dict, payload: bytes, shape: tuple[int, int, int]) -> n
         k, nv = entry["pca"]["components"], entry["pca"]["values"]
         W = np.empty((n, k))
         for j, p in enumerate(entry["planes"]):
-            W[:, j] = _dequantise(raw[pos:pos + n], p["lo"], p["hi"])
-            pos += n
+            b = p.get("bits", 8)
+            q = raw[pos:pos + n].astype(np.int64)
+            if b == 16:
+                q = q * 256 + raw[pos + n:pos + 2 * n]
+            W[:, j] = p["lo"] + q * p["step"]
+            pos += n * b // 8
         pos += -pos % 4
         f = raw[pos:pos + 4 * nv * (k + 1)].view("<f4").astype(np.float64)
         X = f[:nv] + W @ f[nv:].reshape(k, nv)
@@ -212,7 +306,7 @@ def quantisation_error(pm, layers: np.ndarray, info: dict, intr, poses, gamma: f
 
     from ..render import render, tone_map
 
-    entry, payload = encode_layers(layers, info)
+    entry, payload = encode_layers(layers, info, gamma)
     back = decode_layers(entry, payload, layers.shape[:3])
     q = replace(pm, params=layers_to_params(back, info))
     diffs = []
