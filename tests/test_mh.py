@@ -251,6 +251,51 @@ def test_repair_refits_a_stuck_texel_from_its_neighbours_and_leaves_good_ones():
     np.testing.assert_array_equal(out["params"][keep], before["params"][keep])
 
 
+def test_repair_clears_a_stain_wider_than_the_neighbourhood():
+    """A 7x7 blob of poor minima in a 9x9 neighbourhood hides its own core (the
+    neighbourhood median is itself poor there): rounds repair it from the rim inwards,
+    every texel ends near the truth, and the good texels stay as they were."""
+    from parammap.models.mh import repair_mh_tile, stains
+
+    p, rad, dirs, valid = _one_material_tile(n=15, noise=0.01)
+    fields = fit_mh_tile(rad, dirs, valid, 1)
+    bad = p.copy()
+    bad[7:10] = [0.0, 0.6, 0.8]
+    bad[3] = 300.0
+    blob = (slice(4, 11), slice(4, 11))
+    fields["params"][blob] = bad
+    fields["rmse"][blob] = np.sqrt(((mh_eval(bad, dirs[blob]) - rad[blob]) ** 2).mean(-2))
+    assert list(stains(fields["rmse"], fields["status"]))[0] < 49  # the core hides
+    before = {k: v.copy() for k, v in fields.items()}
+    out = repair_mh_tile(fields, rad, dirs, valid, (0, 0), K=1)
+    assert out["changed"][blob].all() and out["changed"].sum() == 49
+    np.testing.assert_allclose(out["params"][blob][..., :mh_size(1)],
+                               np.broadcast_to(p, (7, 7, mh_size(1))), rtol=0.1, atol=0.03)
+    assert len(stains(out["rmse"], out["status"])) == 0
+    keep = np.ones((15, 15), bool)
+    keep[blob] = False
+    np.testing.assert_array_equal(out["params"][keep], before["params"][keep])
+
+
+def test_repair_starts_from_the_neighbour_that_explains_the_texel():
+    """Neighbours of two materials: the one whose lobe explains the texel's data once
+    its colours are refit ranks first, whatever its distance (a stain beside a material
+    edge must not start from the other side)."""
+    from parammap.models.mh.repair import _rescaled_starts
+
+    p, rad, dirs, _ = _one_material_tile(n=1, noise=0.0)
+    other = p.copy()
+    other[7:10] = [-0.5, 0.3, np.sqrt(1 - 0.34)]
+    other[3] = 8.0
+    same = p.copy()
+    same[:3] *= 2.0  # another colour of the same material
+    same[4:7] *= 0.5
+    Q, rss = _rescaled_starts(np.stack([other, same]), dirs[0, 0].astype(float),
+                              rad[0, 0].astype(float), 1)
+    assert rss[1] < 1e-8 < rss[0]
+    np.testing.assert_allclose(Q[1], p, rtol=1e-5, atol=1e-6)
+
+
 def test_negligible_second_lobe_is_written_as_absent():
     """One real highlight under homoscedastic noise: the second lobe of mh-2 is merged
     into the first or written as absent (BIC), so the map reads like mh-1."""

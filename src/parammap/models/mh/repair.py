@@ -4,8 +4,9 @@ neighbours of the same material are refit from the neighbours' parameters."""
 from __future__ import annotations
 
 import numpy as np
+from scipy.ndimage import maximum_filter
 
-from ...conventions import FitStatus, mh_dir_z, mh_lobes, mh_size
+from ...conventions import MH_KD, MH_M, FitStatus, mh_dir, mh_dir_z, mh_ks, mh_lobes, mh_size
 from ..residuals import mean_percentage_residual
 from .fit import MhFitConfig, fit_texel
 from .model import bic, mh_eval
@@ -16,7 +17,8 @@ from .uncertainty import parameter_sd
 # local minimum shows as a "stain" of high residual among well-fitted neighbours).
 REPAIR_FACTOR = 3.0
 REPAIR_RADIUS = 4  # neighbourhood (2r + 1)^2 = 9x9 texels
-REPAIR_STARTS = 8  # nearest well-fitted neighbours tried as starts
+REPAIR_STARTS = 8  # well-fitted neighbours tried as starts (those that explain it best)
+REPAIR_ROUNDS = 32  # a stain wider than the neighbourhood is repaired from its rim inwards
 
 
 def _neighbourhood_median(e: np.ndarray, radius: int) -> np.ndarray:
@@ -47,6 +49,35 @@ def stains(rmse: np.ndarray, status: np.ndarray, factor: float = REPAIR_FACTOR,
     return np.sort(np.bincount(lab.ravel())[1:])[::-1] if n else np.zeros(0, int)
 
 
+def _rescaled_starts(P: np.ndarray, V: np.ndarray, L: np.ndarray, k: int) -> tuple[
+        np.ndarray, np.ndarray]:
+    """Neighbours' fits as starts for one texel: each keeps its shininess and lobe
+    directions, and takes the Kd and Ks that fit the texel's own data best (linear
+    least squares, clipped at zero; texels of one material differ in colour, not in
+    lobe shape).
+
+    Parameters
+    ----------
+    P : (c, 4 + 6K) candidate parameters (K >= k); V, L : (N, 3) the texel's data.
+
+    Returns
+    -------
+    (c, 4 + 6k) starts and (c,) their residual sums of squares.
+    """
+    c = len(P)
+    A = np.ones((c, len(V), 1 + k))
+    for j in range(k):
+        A[..., 1 + j] = np.clip(np.einsum("nc,ic->in", V, P[:, mh_dir(j)]), 0, None) \
+            ** P[:, MH_M, None]
+    x = np.stack([np.linalg.lstsq(a, L, rcond=None)[0] for a in A]).clip(min=0)  # (c, 1+k, 3)
+    Q = np.array(P[:, : mh_size(k)], float, copy=True)
+    Q[:, MH_KD] = x[:, 0]
+    for j in range(k):
+        Q[:, mh_ks(j)] = x[:, 1 + j]
+    rss = ((np.einsum("inj,ijc->inc", A, x) - L) ** 2).sum((1, 2))
+    return Q, rss
+
+
 def repair_mh_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
                    direction: np.ndarray, valid: np.ndarray, offset: tuple[int, int], *,
                    K: int | str, cfg: MhFitConfig | None = None,
@@ -55,8 +86,10 @@ def repair_mh_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
     """Refit the texels of a tile that stand out from their neighbourhood.
 
     A texel whose RMSE (mean over channels) exceeds ``factor`` times the median over its
-    (2 ``radius`` + 1)^2 neighbourhood is refit with nlopt from the parameters of up to
-    ``starts`` nearest neighbours that do not stand out; the best fit replaces the texel's
+    (2 ``radius`` + 1)^2 neighbourhood is refit with nlopt from the parameters of the
+    ``starts`` neighbours in that window that do not stand out and explain its data best
+    once their colours are refit (:func:`_rescaled_starts`: the nearest texels may be of
+    another material); the best fit replaces the texel's
     only if it is better (lower RSS, or for ``auto`` a BIC lower by ``cfg.bic_margin``),
     so a texel whose own data are good is never changed.
 
@@ -67,71 +100,108 @@ def repair_mh_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
     radiance, direction, valid : the tile's observations.
     offset : (row, col) of the tile in the halo arrays.
 
+    Texels repaired in one round serve as starts in the next, up to
+    :data:`REPAIR_ROUNDS` rounds: a stain larger than the neighbourhood raises the
+    median that should expose it and has no good texel near its core.
+
     Returns
     -------
     None when nothing stands out; else the tile's arrays and ``changed`` (t, u) int8.
     """
     cfg = cfg or MhFitConfig()
-    params, status, kused = fields["params"], fields["status"], fields["k_used"]
-    e = np.where(status == FitStatus.OK, np.nanmean(fields["rmse"], -1), np.nan)
-    med = _neighbourhood_median(e, radius)
-    with np.errstate(invalid="ignore"):
-        outlier = e > factor * med
-        good = (status == FitStatus.OK) & ~outlier
     oy, ox = offset
     t, u = valid.shape[:2]
     sl = (slice(oy, oy + t), slice(ox, ox + u))
-    bad = np.argwhere(outlier[sl])
-    if len(bad) == 0:
-        return None
+    # working copies over the halo: a texel repaired in one round is a start for the
+    # next (a large stain is repaired from its rim inwards, and its shrinking lowers
+    # the neighbourhood medians that hid its core)
+    params = np.array(fields["params"], copy=True)
+    status = np.array(fields["status"], copy=True)
+    kused = np.array(fields["k_used"], copy=True)
+    rmse = np.array(fields["rmse"], copy=True)
     out = {k: np.array(fields[k][sl]) for k in ("params", "rmse", "mpr", "sd", "k_used",
                                                 "evals", "status") if k in fields}
     out["changed"] = np.zeros((t, u), np.int8)
-    gy, gx = np.nonzero(good)
-    Kmax = mh_lobes(params.shape[-1])
-    for i, j in bad:
-        w = valid[i, j] & np.isfinite(radiance[i, j]).all(-1) & np.isfinite(direction[i, j]).all(-1)
-        V, L = direction[i, j][w].astype(float), radiance[i, j][w].astype(float)
-        n = len(V)
-        if n < 4:
-            continue
-        floor = (cfg.bic_floor * float(np.mean(np.abs(L)))) ** 2
-        k0 = int(kused[i + oy, j + ox]) if K == "auto" else int(K)
-        rss0 = float(np.sum(fields["rmse"][i + oy, j + ox] ** 2) * n)
-        crit0 = bic(rss0, L.size, k0, floor) if K == "auto" else rss0
-        d2 = (gy - (i + oy)) ** 2 + (gx - (j + ox)) ** 2
-        near = np.argsort(d2, kind="stable")[:starts]
-        best = None
-        for q in near:
-            a, b = gy[q], gx[q]
-            k = int(kused[a, b]) if K == "auto" else int(K)
-            if k < 1:
+    tried = np.zeros((t, u), bool)
+    fresh = None  # texels changed in the last round: their neighbours are tried again
+    for _ in range(REPAIR_ROUNDS):
+        e = np.where(status == FitStatus.OK, np.nanmean(rmse, -1), np.nan)
+        med = _neighbourhood_median(e, radius)
+        with np.errstate(invalid="ignore"):
+            outlier = e > factor * med
+            good = (status == FitStatus.OK) & ~outlier
+        todo = outlier[sl] & ~out["changed"].astype(bool)
+        if fresh is not None:
+            near_fresh = maximum_filter(fresh, 2 * radius + 1, mode="constant")[sl]
+            todo &= near_fresh | ~tried
+        bad = np.argwhere(todo)
+        if len(bad) == 0:
+            break
+        tried[todo] = True
+        fresh = np.zeros(e.shape, bool)
+        gy, gx = np.nonzero(good)
+        for i, j in bad:
+            r = _refit_from_neighbours(
+                radiance[i, j], direction[i, j], valid[i, j], (i + oy, j + ox), params,
+                kused, rmse, gy, gx, K=K, cfg=cfg, radius=radius, starts=starts)
+            if r is None:
                 continue
-            r = fit_texel(V, L, params[a, b, :mh_size(k)].astype(float), cfg)
-            out["evals"][i, j] += r.evals
+            p, k, evals, V, L = r
+            out["evals"][i, j] += evals
+            if p is None:
+                continue
+            fitted = mh_eval(p, V)
+            out["params"][i, j] = params[i + oy, j + ox] = p
+            out["k_used"][i, j] = kused[i + oy, j + ox] = k
+            out["status"][i, j] = status[i + oy, j + ox] = FitStatus.OK
+            out["rmse"][i, j] = rmse[i + oy, j + ox] = np.sqrt(((fitted - L) ** 2).mean(0))
+            out["mpr"][i, j] = mean_percentage_residual(L, fitted)
+            if "sd" in out:
+                out["sd"][i, j] = parameter_sd(p[None], V[None], L[None],
+                                               np.ones((1, len(V)), bool))[0]
+            out["changed"][i, j] = 1
+            fresh[i + oy, j + ox] = True
+        if not fresh.any():
+            break
+    return out if out["changed"].any() or tried.any() else None
+
+
+def _refit_from_neighbours(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray,
+                           at: tuple[int, int], params: np.ndarray, kused: np.ndarray,
+                           rmse: np.ndarray, gy: np.ndarray, gx: np.ndarray, *,
+                           K: int | str, cfg: MhFitConfig, radius: int, starts: int):
+    """One texel of :func:`repair_mh_tile`: ``None`` when it has too few observations,
+    else (params or None when no start did better, lobes, evaluations, V, L)."""
+    w = valid & np.isfinite(radiance).all(-1) & np.isfinite(direction).all(-1)
+    V, L = direction[w].astype(float), radiance[w].astype(float)
+    n = len(V)
+    if n < 4:
+        return None
+    Kmax = mh_lobes(params.shape[-1])
+    floor = (cfg.bic_floor * float(np.mean(np.abs(L)))) ** 2
+    k0 = int(kused[at]) if K == "auto" else int(K)
+    rss0 = float(np.sum(rmse[at] ** 2) * n)
+    crit0 = bic(rss0, L.size, k0, floor) if K == "auto" else rss0
+    near = np.flatnonzero((np.abs(gy - at[0]) <= radius) & (np.abs(gx - at[1]) <= radius))
+    ks = kused[gy[near], gx[near]].astype(int) if K == "auto" else np.full(len(near), int(K))
+    best, evals = None, 0
+    for k in np.unique(ks[ks >= 1]):
+        sel = near[ks == k]
+        Q, score = _rescaled_starts(params[gy[sel], gx[sel]].astype(float), V, L, int(k))
+        for q in np.argsort(score, kind="stable")[:starts]:
+            r = fit_texel(V, L, Q[q], cfg)
+            evals += r.evals
             if r.status != FitStatus.OK:
                 continue
-            crit = bic(r.rss, L.size, k, floor) if K == "auto" else r.rss
+            crit = bic(r.rss, L.size, int(k), floor) if K == "auto" else r.rss
             if best is None or crit < best[0]:
-                best = (crit, r, k)
-        margin = cfg.bic_margin if K == "auto" else 0.0
-        if best is None or not best[0] < crit0 - margin:
-            continue
-        _, r, k = best
-        p = np.zeros(mh_size(Kmax))
-        p[: mh_size(k)] = r.params
-        for extra in range(k, Kmax):
-            p[mh_dir_z(extra)] = 1.0
-        fitted = mh_eval(p, V)
-        out["params"][i, j] = p
-        out["k_used"][i, j] = k
-        out["status"][i, j] = FitStatus.OK
-        out["rmse"][i, j] = np.sqrt(((fitted - L) ** 2).mean(0))
-        out["mpr"][i, j] = mean_percentage_residual(L, fitted)
-        if "sd" in out:
-            out["sd"][i, j] = parameter_sd(p[None], V[None], L[None],
-                                           np.ones((1, len(V)), bool))[0]
-        out["changed"][i, j] = 1
-    return out
-
-
+                best = (crit, r, int(k))
+    margin = cfg.bic_margin if K == "auto" else 0.0
+    if best is None or not best[0] < crit0 - margin:
+        return None, 0, evals, V, L
+    _, r, k = best
+    p = np.zeros(mh_size(Kmax))
+    p[: mh_size(k)] = r.params
+    for extra in range(k, Kmax):
+        p[mh_dir_z(extra)] = 1.0
+    return p, k, evals, V, L
