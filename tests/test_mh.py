@@ -414,3 +414,5 @@ def test_second_lobe_kept_only_where_it_predicts_unseen_directions_better():
                       lights=((1500, 1500, 2000), (-900, -600, 1800)), intensities=(1, 0.7),
                       noise=0.01, seed=3)
     assert (_fit(case, 2)["k_used"] == 2).all()
+    # auto chooses among the lobe counts it fitted the same way: two where two are real
+    assert (_fit(case, "auto")["k_used"] == 2).mean() > 0.9

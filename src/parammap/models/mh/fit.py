@@ -455,9 +455,11 @@ def fit_mh_tile(
     NZ = None if noise is None else noise.reshape(t * u, N)
     NW = noise_weights(NZ, W)
     nobs = W.sum(1)
-    select = K != "auto" and Kmax >= 2 and cfg.lobe_window > 0
+    # the fits _select_lobes chooses among: every K of ``auto`` (0 .. K_max), or K and
+    # K - 1 lobes for a fixed K >= 2
+    select = cfg.lobe_window > 0 and (K == "auto" or Kmax >= 2)
     Ks = range(1, Kmax + 1) if K == "auto" else ([Kmax - 1, Kmax] if select else [Kmax])
-    fewer = np.full((t * u, mh_size(Kmax - 1) if select else 0), np.nan)
+    alts = {k: np.full((t * u, mh_size(Kmax)), np.nan) for k in Ks} if select else {}
     todo = np.flatnonzero(nobs >= 4)  # 004: at least four observations
     few = np.flatnonzero(nobs < 4)
     flat = {k: v.reshape((t * u,) + v.shape[2:]) for k, v in out.items()}
@@ -488,7 +490,13 @@ def fit_mh_tile(
             rss0 = float(np.sum(wt[:, None] * (y - kd) ** 2))
             best, best_bic = (FitResult(p0, rss0, 0, FitStatus.OK, 0), 0), bic(rss0, y.size, 0,
                                                                             floor)
+        stopped = False
         for k in Ks:
+            if stopped:
+                # past BIC's choice: only the batch fits, for _select_lobes to compare
+                if select and k in polished and polished[k][3][j]:
+                    alts[k][b] = _padded(polished[k][0][j], k, Kmax)
+                continue
             if k in polished and polished[k][3][j]:
                 P, rss, ev, _, code = polished[k]
                 r = FitResult(P[j], float(rss[j]), ev, FitStatus.OK, code)
@@ -500,28 +508,24 @@ def fit_mh_tile(
                     r = FitResult(np.full(mh_size(k), np.nan), math.inf, 0, FitStatus.FAILED,
                                   -1)
             evals += r.evals
-            if select and k == Kmax - 1 and r.status == FitStatus.OK:
-                fewer[b] = r.params
+            if select and r.status == FitStatus.OK:
+                alts[k][b] = _padded(r.params, k, Kmax)
             floor = (cfg.bic_floor * float(np.mean(np.abs(y)))) ** 2
             crit = bic(r.rss, y.size, k, floor) if r.status == FitStatus.OK else math.inf
             if best is None or (K != "auto" and r.status == FitStatus.OK) or \
                     crit < best_bic - cfg.bic_margin:
                 best, best_bic = (r, k), crit
             elif K == "auto":
-                break
+                stopped = True
         r, k = best
-        p = np.zeros(mh_size(Kmax))
-        p[: mh_size(k)] = r.params
-        for extra in range(k, Kmax):
-            p[mh_dir_z(extra)] = 1.0  # unused lobe: Ks = 0, d = +z
-        flat["params"][b] = p
+        flat["params"][b] = _padded(r.params, k, Kmax)
         flat["k_used"][b] = k
         flat["evals"][b] = evals
         flat["status"][b] = r.status
     # residual diagnostics for the whole tile at once
     ok = todo[flat["status"][todo] == FitStatus.OK]
     if select and len(ok):
-        _select_lobes(flat, fewer, ok, (t, u), V, L, W, NW, Kmax, cfg.lobe_window)
+        _select_lobes(flat, alts, ok, (t, u), V, L, W, NW, cfg.lobe_window)
     if len(ok):
         P = flat["params"][ok].astype(float)
         before = _lobes_present(P)
@@ -559,41 +563,74 @@ def fit_mh_tile(
     return out
 
 
-def _select_lobes(flat: dict, fewer: np.ndarray, ok: np.ndarray, shape: tuple[int, int],
-                  V: np.ndarray, L: np.ndarray, W: np.ndarray, NW: np.ndarray, K: int,
-                  window: int) -> None:
-    """Keep a fixed-K fit's last lobe only where it predicts left-out views better.
+def _padded(params: np.ndarray, k: int, K: int) -> np.ndarray:
+    """A k-lobe parameter vector padded to K lobes (unused lobes: Ks = 0, d = +z)."""
+    p = np.zeros(mh_size(K))
+    p[: mh_size(k)] = params[: mh_size(k)]
+    for extra in range(k, K):
+        p[mh_dir_z(extra)] = 1.0
+    return p
+
+
+def _select_lobes(flat: dict, alts: dict[int, np.ndarray], ok: np.ndarray,
+                  shape: tuple[int, int], V: np.ndarray, L: np.ndarray, W: np.ndarray,
+                  NW: np.ndarray, window: int) -> None:
+    """Choose each texel's number of lobes by how well the fit predicts left-out views.
 
     A lobe that lowers the residual of the views it was fitted to can still predict
     worse between them: with sparse views and a lobe shape unlike the model's (a
-    microfacet tail), a second lobe narrows the highlight onto the observed views. The
-    leave-one-view-out error (:func:`~.uncertainty.loo_error`) of the K- and the
-    (K - 1)-lobe fit is compared, summed over ``window`` x ``window`` texels of the tile
-    (neighbours share their material; one texel's error is noisy), and texels where
-    K - 1 lobes predict better take that fit. Changes ``flat`` in place.
+    microfacet tail), a second lobe narrows the highlight onto the observed views, and
+    BIC (``auto``), which counts parameters but not where the views lie, keeps it (or
+    drops a lobe seen in few views that does predict them). The leave-one-view-out
+    error (:func:`~.uncertainty.loo_error`) of each alternative fit (``alts``: lobes ->
+    (n, 4 + 6K) padded parameters, NaN where that fit failed) is summed over ``window``
+    x ``window`` texels of the tile (neighbours share their material; one texel's error
+    is noisy), and each texel takes the number of lobes with the lowest sum (the fewer
+    lobes on a tie). Changes ``flat`` in place.
     """
     from scipy.ndimage import uniform_filter
 
-    cand = ok[np.isfinite(fewer[ok]).all(1)]
-    if len(cand) == 0:
+    ks = sorted(alts)
+    # whether a texel has a lobe at all stays BIC's choice (and drop_negligible_lobes'):
+    # a lobe that one view alone saw has no leave-one-out support, yet may be real
+    ok = ok[np.isin(flat["k_used"][ok], ks)]
+    if len(ok) == 0:
         return
-    e_k = loo_error(flat["params"][cand].astype(float), V[cand], L[cand], W[cand], NW[cand])
-    e_f = loo_error(fewer[cand], V[cand], L[cand], W[cand], NW[cand])
-    both = np.r_[e_k, e_f]
-    worst = float(np.max(both[np.isfinite(both)], initial=0.0))
-    grids = []
-    for e in (e_k, e_f):
+    errs = np.full((len(ks), len(ok)), np.inf)
+    for i, k in enumerate(ks):
+        has = np.isfinite(alts[k][ok]).all(1)
+        sel = ok[has]
+        if len(sel):
+            errs[i, has] = loo_error(alts[k][sel], V[sel], L[sel], W[sel], NW[sel])
+    finite = np.isfinite(errs)
+    if not finite.any():
+        return
+    # a view that alone determines a lobe (singular leave-one-out) is, once left out,
+    # predicted as by the fit without that lobe: the error of one lobe fewer (a tie,
+    # which goes to fewer lobes, so the neighbours decide); a failed fit, or the fewest
+    # lobes: the worst prediction of the tile
+    worst = errs[finite].max()
+    for i in range(len(ks)):
+        prev = errs[i - 1] if i else np.full(len(ok), worst)
+        errs[i] = np.where(np.isfinite(errs[i]), errs[i], prev)
+    errs = np.where(np.isfinite(errs), errs, worst)
+    pooled = []
+    for e in errs:
         g = np.zeros(shape[0] * shape[1])
-        # a view that alone determines the fit (singular leave-one-out): the worst
-        # prediction of the tile
-        g[cand] = np.where(np.isfinite(e), e, worst)
-        grids.append(uniform_filter(g.reshape(shape), window, mode="nearest").ravel())
-    back = cand[grids[1][cand] < grids[0][cand]]
-    p = np.zeros((len(back), mh_size(K)))
-    p[:, : mh_size(K - 1)] = fewer[back]
-    p[:, mh_dir_z(K - 1)] = 1.0  # unused lobe: Ks = 0, d = +z
-    flat["params"][back] = p
-    flat["k_used"][back] = K - 1
+        g[ok] = e
+        pooled.append(uniform_filter(g.reshape(shape), window, mode="nearest").ravel()[ok])
+    pooled = np.array(pooled)
+    # a texel keeps its fit unless another is available and predicts better
+    cur = np.searchsorted(ks, flat["k_used"][ok])
+    avail = np.array([np.isfinite(alts[k][ok]).all(1) for k in ks])
+    pooled = np.where(avail, pooled, np.inf)
+    choice = np.argmin(pooled, 0)  # argmin takes the first: fewer lobes on a tie
+    change = (choice != cur) & (pooled[choice, np.arange(len(ok))]
+                                < pooled[cur, np.arange(len(ok))])
+    for i, k in enumerate(ks):
+        b = ok[change & (choice == i)]
+        flat["params"][b] = alts[k][b]
+        flat["k_used"][b] = k
 
 
 # Observations that must see a lobe above twice the texel's noise for it to count as
