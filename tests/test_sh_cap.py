@@ -129,3 +129,40 @@ def test_bands_follow_the_view_spacing():
     assert resolvable_bands(spiral(81, 72), 6) == 6  # the demo keeps 36
     assert resolvable_bands(spiral(305, 88), 10) == 10  # 004's set-ups keep 100
     assert resolvable_bands(spiral(300, 88), 20) < 20
+
+
+def test_coefficient_sd_matches_the_spread_over_noise_realisations(tmp_path):
+    """The SH coefficients' standard deviations (issue 20, the sandwich of the linear
+    projection) against their spread over 81 noise realisations of one glossy texel
+    (2 % noise, 60 views to 75 deg, the noise model given as the HDR merge records
+    it): within a factor 1.6 on average over the fitted coefficients, 3 for each; NaN
+    above the bands the views resolve; written to the EXR as ``sd.sh.*`` channels."""
+    from parammap.models.mh import mh_eval
+    from parammap.models.sh import fit_sh_tile
+    from parammap.params import ParamMap, read_param_map, write_param_map
+    from parammap.synth.sampling import sample_directions
+
+    V = sample_directions("stratified", 75.0, n_side=8, seed=3)[:60]
+    d = np.array([0.2, -0.1, 0.97]) / np.linalg.norm([0.2, -0.1, 0.97])
+    p = np.r_[[0.3, 0.25, 0.2], 6.0, [0.6, 0.5, 0.4], d]
+    L = mh_eval(p, V)
+    rng = np.random.default_rng(7)
+    n = 9
+    rad = (L * (1 + 0.02 * rng.standard_normal((n, n) + L.shape))).astype(np.float32)
+    dirs = np.broadcast_to(V, (n, n) + V.shape).astype(np.float32)
+    o = fit_sh_tile(rad, dirs, np.ones((n, n, len(V)), bool), 4, "wls",
+                    noise=np.full((n, n, len(V)), 0.02, np.float32))
+    c = o["coeffs"].reshape(n * n, -1).astype(float)
+    sd = o["sd"].reshape(n * n, -1).astype(float)
+    bands = int(o["bands"].flat[0])
+    fitted = np.zeros(16, bool)
+    fitted[: bands * bands] = True
+    fitted = np.tile(fitted, 3)
+    assert np.isnan(sd[:, ~fitted]).all() and np.isfinite(sd[:, fitted]).all()
+    ratio = c[:, fitted].std(0) / sd[:, fitted].mean(0)
+    assert 1 / 1.6 < np.exp(np.mean(np.log(ratio))) < 1.6, ratio
+    assert ((ratio > 1 / 3) & (ratio < 3)).all(), ratio
+    pm = ParamMap("sh", o["coeffs"], 10.0, 10.0, "wls", sd=o["sd"])
+    write_param_map(tmp_path / "s.exr", pm)
+    back = read_param_map(tmp_path / "s.exr")
+    np.testing.assert_array_equal(back.sd, o["sd"])

@@ -17,7 +17,8 @@ __all__ = [
     "MH_KD", "MH_LOBE", "MH_M", "MH_SD_LOBE", "NOISE_CHANNEL", "SH_CAP_AWARE", "SH_HEMISPHERES",
     "FitStatus", "mh_channels", "mh_dir", "mh_dir_z", "mh_ks", "mh_lobe", "mh_lobes",
     "mh_sd_channels", "mh_sd_dir", "mh_sd_size", "mh_size", "mhx_ks", "mhx_lobes", "mhx_phi",
-    "mhx_size", "mhx_theta", "sh_bands", "sh_channels", "sh_degree_order", "sh_norms",
+    "mhx_size", "mhx_theta", "sd_channels", "sh_bands", "sh_channels", "sh_degree_order",
+    "sh_norms",
 ]
 
 #: Rec. 709 / sRGB luminance weights of linear R, G, B.
@@ -196,6 +197,17 @@ def sh_norms(n: int) -> np.ndarray:
                                 / (4 * math.pi * math.factorial(l + m)))
     K.setflags(write=False)
     return K
+
+
+def sd_channels(model: str, n_params: int) -> list[str]:
+    """Names of the standard-deviation channels of a map with ``n_params`` values per
+    texel: MH :func:`mh_sd_channels`; SH ``sd.`` + each coefficient's channel (NaN
+    above the bands a texel's views resolve); none for other models."""
+    if model == "mh":
+        return mh_sd_channels(mh_lobes(n_params))
+    if model == "sh":
+        return [f"sd.{c}" for c in sh_channels(sh_bands(n_params // 3))]
+    raise ValueError(f"{model} maps carry no standard deviations")
 
 
 def sh_channels(n: int) -> list[str]:

@@ -298,8 +298,14 @@ def sh_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path, 
             for i, (l, m) in enumerate(zip(l_, m_, strict=True)) if l < 3}
     paths = [plot_maps(maps, out_dir / f"{name}_params.png",
                        f"{name}: coefficients of bands 0-2", cols=5, symmetric=True)]
+    extra = {}
+    if "sd" in g:  # how far each texel can be trusted (models.sh.coefficient_sd)
+        sd = g["sd"][:].astype(float).reshape(c.shape).transpose(0, 1, 3, 2) @ LUMINANCE
+        with np.errstate(invalid="ignore", divide="ignore"):
+            extra["sd of y[0,0] / y[0,0]"] = sd[..., 0] / np.abs(lum[..., 0])
+        extra["sd of y[1,0] (luminance)"] = sd[..., 2]
     return paths + fit_figures(g, obs, out_dir, name,
-                               lambda r, col, d: sh_eval(c[r, col], d), texels)
+                               lambda r, col, d: sh_eval(c[r, col], d), texels, extra)
 
 
 def _robust_outliers(values: np.ndarray, k: float = 3.0) -> np.ndarray:

@@ -67,8 +67,8 @@ FIT_UNITS = {
     "chi2": "1 (reduced chi-square)", "k_used": "lobes", "evals": "objective evaluations",
     "status": "parammap.conventions.FitStatus code", "reg": "1 (relative prior weight)",
     "guard": "prior escalations", "bands": "SH bands",
-    "sd": "standard deviations in the parameters' units, direction in degrees "
-          "(conventions.mh_sd_channels)",
+    "sd": "standard deviations in the parameters' units, MH lobe direction in degrees "
+          "(conventions.sd_channels)",
 }
 
 # (radiance, direction, valid of a tile; keyword noise: its relative sd per observation)

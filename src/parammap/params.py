@@ -11,10 +11,10 @@ Rows as in the texel convention (row 0 at the top edge), float32 by default (hal
 request), ZIP compression. Header: ``parammap_model`` (mh, sh or diffuse),
 ``parammap_model_version``, ``parammap_layout`` (the channel names, space separated),
 ``parammap_hemisphere`` (SH), ``parammap_radiance_scale`` (a normalisation already
-undone: 1), ``width_mm``, ``height_mm``, ``S``, ``T`` and ``software``. An MH map may
-carry the per-texel standard deviations of its fit as extra channels ``sd.Kd.R ...
-sd.m sd.lobek.Ks.R ... sd.lobek.d_deg`` (``parammap_sd_layout`` names them;
-:func:`parammap.conventions.mh_sd_channels`).
+undone: 1), ``width_mm``, ``height_mm``, ``S``, ``T`` and ``software``. An MH or SH map
+may carry the per-texel standard deviations of its fit as extra channels (MH ``sd.Kd.R
+... sd.m sd.lobek.Ks.R ... sd.lobek.d_deg``, SH ``sd.sh.R.00 ...``;
+``parammap_sd_layout`` names them, :func:`parammap.conventions.sd_channels`).
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from .conventions import (
     DIFFUSE_CHANNELS,
     mh_channels,
     mh_lobes,
-    mh_sd_channels,
+    sd_channels,
     sh_bands,
     sh_channels,
 )
@@ -82,7 +82,7 @@ class ParamMap:
     height_mm: float
     hemisphere: str | None = None
     attrs: dict[str, Any] = field(default_factory=dict)
-    sd: np.ndarray | None = None  # (T, S, 4 + 4K) MH standard deviations, or None
+    sd: np.ndarray | None = None  # (T, S, ...) standard deviations (sd_channels), or None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -103,7 +103,7 @@ def write_param_map(path: str | Path, pm: ParamMap, half: bool = False) -> Path:
         attrs[f"parammap_{k}"] = v
     chans = {n: pm.params[..., i] for i, n in enumerate(names)}
     if pm.sd is not None:
-        sd_names = mh_sd_channels(mh_lobes(pm.params.shape[-1]))
+        sd_names = sd_channels(pm.model, pm.params.shape[-1])
         attrs["parammap_sd_layout"] = " ".join(sd_names)
         chans |= {n: pm.sd[..., i] for i, n in enumerate(sd_names)}
     return write_exr(path, chans, attrs, half)
@@ -132,8 +132,8 @@ def read_param_map(path: str | Path) -> ParamMap:
     except ParamMapError as exc:
         raise ParamMapError(f"{path}: {exc}") from None
     sd_layout = str(h.get("parammap_sd_layout", "")).split()
-    if sd_layout and (model != "mh" or sd_layout != mh_sd_channels(mh_lobes(len(layout)))):
-        raise ParamMapError(f"{path}: standard deviations do not follow the MH layout")
+    if sd_layout and (model not in ("mh", "sh") or sd_layout != sd_channels(model, len(layout))):
+        raise ParamMapError(f"{path}: standard deviations do not follow the {model} layout")
     if layout != expected or set(chans) != set(layout) | set(sd_layout):
         raise ParamMapError(f"{path}: channels do not follow the {model} layout "
                             f"(expected {expected[:6]}...)")

@@ -218,15 +218,18 @@ def default_lobe_texels(S: int, T: int) -> list[tuple[int, int]]:
 
 
 def fit_figures(g, obs, out_dir: str | Path, name: str, predict,
-                texels: list[tuple[int, int]] | None = None) -> list[Path]:
+                texels: list[tuple[int, int]] | None = None,
+                extra: dict[str, np.ndarray] | None = None) -> list[Path]:
     """Residual maps and lobe plots of a fit store ``g`` (zarr group with ``mpr``,
     ``rmse``, ``status``) against its observation map ``obs``; ``predict(row, col,
-    directions)`` evaluates the fitted model of one texel."""
+    directions)`` evaluates the fitted model of one texel; ``extra`` maps join the
+    residual maps."""
     out_dir = Path(out_dir)
     mpr = g["mpr"][:].astype(float)
     maps = {f"mean % residual {c}": mpr[..., i] for i, c in enumerate("RGB")}
     maps["RMSE (mean of RGB)"] = g["rmse"][:].astype(float).mean(-1)
     maps["status (1 ok, 2 too few obs., 3 failed)"] = g["status"][:].astype(float)
+    maps |= extra or {}
     paths = [plot_maps(maps, out_dir / f"{name}_residuals.png", f"{name}: residuals", cols=3)]
     entries = []
     for r, c in texels or default_lobe_texels(g.attrs["S"], g.attrs["T"]):

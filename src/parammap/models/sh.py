@@ -45,6 +45,7 @@ from .residuals import mean_percentage_residual
 from .weights import noise_weights, reduced_chi2
 
 __all__ = [
+    "coefficient_sd",
     "fit_sh_tile",
     "guarded_project",
     "hemisphere_gram",
@@ -381,7 +382,8 @@ def project_cap(
     radiance: np.ndarray, directions: np.ndarray, weights: np.ndarray, n: int,
     hemisphere: str, cap: SampledCap, reg: float | str | np.ndarray = "auto",
     basis: np.ndarray | None = None, prior_scale: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
+    system: bool = False,
+) -> tuple[np.ndarray, ...]:
     """Projections that know which directions were observed (lsop, rlsop, wls).
 
     Least squares over the sampled cap, ``(A + P + lambda D) c = b``, with b
@@ -408,9 +410,12 @@ def project_cap(
     cap : the batch's :class:`SampledCap`; basis : ``sh_basis(directions, n)``.
     prior_scale : (B,) factor on the prior per texel (the guard's escalation).
 
+    system : also return the (B, n^2, n^2) matrix M of the normal equations solved,
+        ``c = M^-1 Y^T diag(omega) y`` (for the coefficients' covariance).
+
     Returns
     -------
-    (B, 3, n^2) coefficients and (B,) the relative lambda used.
+    (B, 3, n^2) coefficients and (B,) the relative lambda used (and M).
     """
     Y = sh_basis(directions, n) if basis is None else basis
     omega = weights * cap.fraction
@@ -425,8 +430,9 @@ def project_cap(
     if hemisphere != "rlsop" or not isinstance(reg, str):
         lam = np.broadcast_to(np.asarray(0.0 if hemisphere != "rlsop" else reg, float),
                               (B,)).copy()
-        c = np.linalg.solve(A + (lam[:, None, None] * scale) * D, rhs)
-        return np.swapaxes(c, 1, 2), lam
+        M = A + (lam[:, None, None] * scale) * D
+        c = np.linalg.solve(M, rhs)
+        return (np.swapaxes(c, 1, 2), lam) + ((M,) if system else ())
     if reg != "auto":
         raise InputError(f"regularisation must be a number or 'auto' (got {reg!r})")
     best_score = np.full(B, np.inf)
@@ -436,7 +442,8 @@ def project_cap(
         c, score = _loo_score(Y, radiance, omega, A + g * scale * D, rhs)
         better = score < best_score
         best_score[better], best_c[better], lam[better] = score[better], c[better], g
-    return np.swapaxes(best_c, 1, 2), lam
+    out = (np.swapaxes(best_c, 1, 2), lam)
+    return out + ((A + (lam[:, None, None] * scale) * D,) if system else ())
 
 
 def resolvable_bands(directions: np.ndarray, n: int) -> int:
@@ -482,7 +489,8 @@ GUARD_TOLERANCE = 0.1  # of the texel's observed range
 def guarded_project(
     radiance: np.ndarray, directions: np.ndarray, weights: np.ndarray, n: int,
     hemisphere: str, reg: float | str = "auto", basis: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    system: bool = False,
+) -> tuple:
     """:func:`project_cap` with the batch's :class:`SampledCap`, and a guard: a texel
     whose reconstruction at any unsampled direction leaves the range of its own
     observations (widened by ``GUARD_TOLERANCE`` of that range; checked up to one view
@@ -496,7 +504,9 @@ def guarded_project(
     Returns
     -------
     (B, 3, n^2) coefficients, (B,) the relative lambda, (B,) int8 escalations per texel
-    (``GUARD_STEPS + 1``: still outside after the last one), and the bands fitted.
+    (``GUARD_STEPS + 1``: still outside after the last one), and the bands fitted; with
+    ``system``, also the final normal-equation matrices (B, k^2, k^2) of the k fitted
+    bands (:func:`project_cap`).
     """
     ref = directions.mean(0)
     full = n
@@ -506,14 +516,14 @@ def guarded_project(
     mu = prior_strength(radiance, Y, weights * cap.fraction,
                         project_cap(radiance, directions, weights, n, hemisphere, cap, 0.0,
                                     Y, prior_scale=np.full(len(Y), PRIOR_FLOOR))[0])
-    c, lam = project_cap(radiance, directions, weights, n, hemisphere, cap, reg, Y,
-                         prior_scale=mu)
+    c, lam, M = project_cap(radiance, directions, weights, n, hemisphere, cap, reg, Y,
+                            prior_scale=mu, system=True)
     esc = np.zeros(len(c), np.int8)
     # renders look from within the zenith range the views covered, not beyond it
     reach = np.arccos(np.clip(directions[..., 2].min(), -1, 1)) + cap.rho
     Yu = cap.basis_u[cap.zenith_u <= reach]
     if not len(Yu):
-        return _pad_bands(c, full), lam, esc, n
+        return (_pad_bands(c, full), lam, esc, n) + ((M,) if system else ())
     lo, hi = radiance.min(1), radiance.max(1)  # (B, 3)
     tol = GUARD_TOLERANCE * (hi - lo) + 1e-12
     for step in range(GUARD_STEPS + 1):
@@ -526,15 +536,49 @@ def guarded_project(
             break
         esc[bad] += 1
         sel = np.flatnonzero(bad)
-        c[sel], _ = project_cap(radiance[sel], directions[sel], weights[sel], n,
-                                hemisphere, cap, lam[sel], Y[sel],
-                                prior_scale=mu[sel] * 10.0 ** esc[sel])
-    return _pad_bands(c, full), lam, esc, n
+        c[sel], _, M[sel] = project_cap(radiance[sel], directions[sel], weights[sel], n,
+                                        hemisphere, cap, lam[sel], Y[sel],
+                                        prior_scale=mu[sel] * 10.0 ** esc[sel], system=True)
+    return (_pad_bands(c, full), lam, esc, n) + ((M,) if system else ())
 
 
-def _pad_bands(c: np.ndarray, n: int) -> np.ndarray:
-    """(B, 3, k^2) coefficients -> (B, 3, n^2), the bands above k zero."""
-    out = np.zeros(c.shape[:2] + (n * n,))
+def coefficient_sd(M: np.ndarray, Y: np.ndarray, omega: np.ndarray, r: np.ndarray,
+                   n: int, sigma: np.ndarray | None = None) -> np.ndarray:
+    """Standard deviations of projected coefficients ``c = M^-1 Y^T diag(omega) y``.
+
+    A linear smoother ``S = M^-1 Y^T diag(omega)`` propagates the observations'
+    covariance: channel c's is ``S diag(s_c^2) S^T``. With the capture's noise model
+    (``sigma``, the sd of each observation the HDR merge recorded) that is the spread
+    over noise realisations. Without it, ``s = r`` (the sandwich, heteroscedasticity-
+    robust as the MH uncertainties) scaled by ``N / (N - tr H)`` for the degrees of
+    freedom the fit used (H = Y S); the residuals then also carry what the bands cannot
+    represent (a sharp highlight), so the sd says how far the fit can be trusted
+    rather than how it would vary with the noise.
+
+    Parameters
+    ----------
+    M : (B, k^2, k^2) normal-equation matrices; Y : (B, N, k^2) basis at the views;
+    omega : (B, N) weights; r : (B, N, 3) residuals; n : bands of the output;
+    sigma : (B, N, 3) noise sd of each observation (radiance units), or None.
+
+    Returns
+    -------
+    (B, 3, n^2): NaN for the bands above k (not fitted: zero by construction).
+    """
+    S = np.linalg.solve(M, np.swapaxes(Y, 1, 2) * omega[:, None, :])  # (B, k2, N)
+    if sigma is not None:
+        var = np.einsum("bkn,bnc->bck", S * S, sigma * sigma)
+    else:
+        N = Y.shape[1]
+        edf = np.einsum("bnk,bkn->b", Y, S)
+        scale = N / np.maximum(N - edf, 1.0)
+        var = np.einsum("bkn,bnc->bck", S * S, r * r) * scale[:, None, None]
+    return _pad_bands(np.sqrt(var), n, fill=np.nan)
+
+
+def _pad_bands(c: np.ndarray, n: int, fill: float = 0.0) -> np.ndarray:
+    """(B, 3, k^2) coefficients -> (B, 3, n^2), the bands above k ``fill`` (zero)."""
+    out = np.full(c.shape[:2] + (n * n,), fill)
     out[..., : c.shape[-1]] = c
     return out
 
@@ -547,6 +591,7 @@ def sh_outputs(n: int) -> dict[str, tuple[tuple[int, ...], str, float]]:
     """Arrays of an SH fit store: name -> (trailing shape, dtype, fill value)."""
     return {
         "coeffs": ((3 * n * n,), "float32", float("nan")),
+        "sd": ((3 * n * n,), "float32", float("nan")),
         "rmse": ((3,), "float32", float("nan")),
         "mpr": ((3,), "float32", float("nan")),
         "chi2": ((), "float32", float("nan")),
@@ -600,9 +645,14 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
                     * NW[sel][:, w]
                 Y = sh_basis(v, n)
                 if sampled_cap and hemisphere in SH_CAP_AWARE:
-                    c, lam, esc, bands = guarded_project(y, v, omega, n, hemisphere, reg, Y)
+                    c, lam, esc, bands, M = guarded_project(y, v, omega, n, hemisphere, reg,
+                                                            Y, system=True)
                     flat["reg"][sel], flat["guard"][sel] = lam, esc
                     flat["bands"][sel] = bands
+                    sigma = None if NZ is None else NZ[sel][:, w][..., None] * np.abs(y)
+                    flat["sd"][sel] = coefficient_sd(M, Y[..., : bands * bands], omega,
+                                                     y - np.matmul(Y, c.transpose(0, 2, 1)),
+                                                     n, sigma).reshape(len(sel), -1)
                 else:
                     c = project(y, v, omega, n, hemisphere,
                                 1e-4 if reg == "auto" else float(reg), basis=Y)
