@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -53,3 +54,80 @@ def test_workflow_through_a_fake_sbatch(tiny_capture, tmp_path):
     assert set(by_name) == {"smk-validate_capture", "smk-response", "smk-GROUP"}, calls
     assert "--mem=4000" in by_name["smk-response"] and "--time=60" in by_name["smk-response"]
     assert "snakejob.hdr_hdr_view" in by_name["smk-GROUP"]  # three merges, one submission
+
+
+# fake SLURM for dask-jobqueue: sbatch keeps a copy of the job script (dask-jobqueue
+# deletes its own once submitted), starts it in its own session and prints a job id;
+# scancel ends that session
+FAKE_JQ_SBATCH = """#!/bin/sh
+for last; do :; done
+id=$(date +%s%N | cut -c10-18)
+cp "$last" "{jobs}/$id.sh"
+setsid sh "{jobs}/$id.sh" > "{jobs}/$id.log" 2>&1 &
+echo $! > "{jobs}/$id.pid"
+echo "Submitted batch job $id"
+"""
+FAKE_JQ_SCANCEL = """#!/bin/sh
+for id; do
+  [ -f "{jobs}/$id.pid" ] && kill -TERM -- -"$(cat "{jobs}/$id.pid")" 2>/dev/null
+done
+exit 0
+"""
+
+
+def test_fit_through_dask_jobqueue_on_a_fake_slurm(tiny_processed, tmp_path, monkeypatch):
+    """The README's SLURM + dask-jobqueue recipe: a SLURMCluster whose workers are
+    sbatch jobs (here a fake sbatch that runs them on this machine), its scheduler's
+    address given to ``fit-mh`` as ``fit.scheduler``: the maps equal a local fit's, and
+    no worker outlives the cluster."""
+    import os
+    import signal
+    import time
+
+    import zarr
+
+    jq = pytest.importorskip("dask_jobqueue", reason="dask-jobqueue not installed")
+    from parammap.cli import main
+
+    cap, _, proc = tiny_processed
+    work = tmp_path / "proc"
+    work.mkdir()
+    for name in ("camera", "observation.zarr", "metrics"):
+        shutil.copytree(proc / name, work / name)
+    jobs = tmp_path / "jobs"
+    jobs.mkdir()
+    bin_ = tmp_path / "bin"
+    bin_.mkdir()
+    for cmd, text in (("sbatch", FAKE_JQ_SBATCH), ("scancel", FAKE_JQ_SCANCEL)):
+        (bin_ / cmd).write_text(text.format(jobs=jobs))
+        (bin_ / cmd).chmod(0o755)
+    monkeypatch.setenv("PATH", f"{bin_}:{os.environ['PATH']}")
+    assert main(["fit-mh", str(cap), "--out", str(work), "--workers", "1",
+                 "--set", "fit.scheduler=synchronous"]) == 0
+    shutil.move(work / "fit" / "mh-1.zarr", tmp_path / "local.zarr")
+    with jq.SLURMCluster(cores=1, processes=1, memory="2GB", walltime="00:10:00",
+                         scheduler_options={"dashboard_address": None}) as cluster:
+        cluster.scale(jobs=2)
+        assert main(["fit-mh", str(cap), "--out", str(work),
+                     "--set", f"fit.scheduler={cluster.scheduler_address}"]) == 0
+        submitted = sorted(jobs.glob("*.sh"))
+    assert len(submitted) == 2 and "#SBATCH" in submitted[0].read_text()
+    a, b = zarr.open_group(tmp_path / "local.zarr"), zarr.open_group(work / "fit" / "mh-1.zarr")
+    for name in ("params", "rmse", "status"):
+        np.testing.assert_array_equal(a[name][:], b[name][:])
+    deadline = time.time() + 30
+    pids = [int(p.read_text()) for p in jobs.glob("*.pid")]
+
+    def alive(pid):
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        return True
+
+    while time.time() < deadline and any(alive(p) for p in pids):
+        time.sleep(0.5)
+    left = [p for p in pids if alive(p)]
+    for p in left:
+        os.killpg(p, signal.SIGKILL)
+    assert not left
