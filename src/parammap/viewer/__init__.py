@@ -2,15 +2,17 @@
 
 ``write_viewer`` writes ``index.html`` (the shaders and controls, from this package),
 ``data.js`` (surface size, camera intrinsics, the pose of every captured and held-out
-view, and the manifest of the models), ``manifest.json`` (the same manifest) and one
-``payload-<model>.js`` per model, which the page loads when the model is first shown.
+view, and the manifest of the models), ``manifest.json`` (the same manifest), one
+``payload-<model>.js`` per model, which the page loads when the model is first shown,
+and ``inspect.js`` (:mod:`parammap.viewer.inspect`), loaded at the first click on a
+texel.
 All are plain scripts (not fetched), so the page opens from the file system with no
 server and works offline.
 
 A payload holds the model's texture layers quantised to 8 bits per plane and deflated
-(:mod:`parammap.viewer.compact`: about 7 bytes per texel for MH-2, against 80 as
-float32); the page inflates and dequantises them into float RGBA layers of a 2-D
-texture array (texel row 0 = texture row 0):
+(:mod:`parammap.viewer.compact`: about 9 bytes per texel for MH-2, against 80 as
+float32); the page inflates them into RGBA layers of a 2-D texture array (texel row 0
+= texture row 0), 8-bit for MH (dequantised in the shader), float for SH and diffuse:
 
 - MH: layer 0 = (Kd.R, Kd.G, Kd.B, m), then per lobe k (Ks.R, Ks.G, Ks.B, 0) at layer
   ``1 + 2k`` and (d.X, d.Y, d.Z, 0) at ``2 + 2k``;
@@ -122,7 +124,8 @@ def viewer_layers(pm: ParamMap) -> tuple[np.ndarray, dict]:
 
 def write_viewer(out_dir: str | Path, surface_id: str, maps: dict[str, ParamMap],
                  intr: Intrinsics, views: list[dict], gamma: float,
-                 quantisation: dict[str, float] | None = None) -> Path:
+                 quantisation: dict[str, float] | None = None,
+                 inspector: tuple[dict, bytes] | None = None) -> Path:
     """Write ``index.html``, ``data.js``, ``manifest.json`` and one payload script per
     model into ``out_dir``.
 
@@ -138,6 +141,8 @@ def write_viewer(out_dir: str | Path, surface_id: str, maps: dict[str, ParamMap]
     maps : model name -> parameter map (all of one surface).
     views : dicts with ``id``, ``holdout``, ``R`` (3x3), ``t`` (3,) for every posed view.
     gamma : initial tone-mapping gamma (also the SH payload's error budget).
+    inspector : the texel inspector's entry and payload
+        (:func:`parammap.viewer.inspect.inspector_payload`), written as ``inspect.js``.
     """
     from .compact import encode_layers
 
@@ -160,6 +165,12 @@ def write_viewer(out_dir: str | Path, surface_id: str, maps: dict[str, ParamMap]
     manifest = {"surface": {"id": surface_id, "width_mm": any_map.width_mm,
                             "height_mm": any_map.height_mm},
                 "models": models}
+    if inspector is not None:
+        entry, payload = inspector
+        text = ("window.PARAMMAP_INSPECT = "
+                f"\"{base64.b64encode(payload).decode('ascii')}\";\n")
+        _write_atomic(out_dir / "inspect.js", text)
+        manifest["inspector"] = {**entry, "file": "inspect.js", "bytes": len(text)}
     data = {**manifest,
             "camera": {"K": np.asarray(intr.K).tolist(), "dist": np.asarray(intr.dist).tolist(),
                        "image_size": list(intr.image_size),
@@ -209,6 +220,13 @@ def write_surface_viewer(cap: Capture, processed: str | Path, models: list[str],
         layers, info = viewer_layers(pm)
         quant[name] = quantisation_error(pm, layers, info, intr, poses, gamma)
         logger.info(f"viewer: {name} payload quantisation error {quant[name]:.3f} 8-bit levels")
-    path = write_viewer(out_dir, cap.surface_id, maps, intr, views, gamma, quant)
+    from ..observation import open_observation_map
+    from .inspect import inspector_payload
+
+    g = open_observation_map(proc.observation)
+    inspector = inspector_payload(maps, g["radiance"], g["direction"], g["valid"])
+    logger.info(f"viewer: inspector every {inspector[0]['step']} texel(s), "
+                f"{len(inspector[1]) / 1e6:.1f} MB")
+    path = write_viewer(out_dir, cap.surface_id, maps, intr, views, gamma, quant, inspector)
     logger.info(f"viewer: open {path}")
     return path
