@@ -273,6 +273,7 @@ rule viewer:
         poses=f"{PROC}/{{sid}}/camera/poses.yaml",
         holdout=f"{PROC}/{{sid}}/metrics/holdout.json",
         params=lambda wc: expand(f"{PROC}/{wc.sid}/params/{{m}}.exr", m=models() + ["diffuse"]),
+        obs=f"{PROC}/{{sid}}/observation.zarr",  # the texel inspector's observations
     output:
         directory(f"{REPORTS}/{{sid}}/viewer"),
     params:
