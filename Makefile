@@ -38,12 +38,15 @@ report: setup
 	$(BIN)/snakemake --cores $(CORES) --profile profiles/default
 	$(BIN)/snakemake --cores 1 --profile profiles/default --report reports/report.html
 
-# The viewer test drives the system Chromium (Debian package); without it (no root, no
-# apt) that test is skipped and says so.
+# The viewer test drives the system Chromium (Debian package). Without it (no root, no
+# apt) the viewer tests are skipped and say so, except under CI (CI set), where a
+# browser that cannot be installed fails the run instead of skipping the tests.
 browser:
 	@command -v chromium >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null \
 	  && (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium) \
-	  >/dev/null 2>&1 || echo "note: chromium not installed; viewer tests will be skipped"; }
+	  >/dev/null 2>&1 || { if [ -n "$$CI" ] && [ "$$CI" != false ]; then \
+	  echo "error: CI is set and chromium could not be installed (apt-get install chromium)"; \
+	  exit 1; else echo "note: chromium not installed; viewer tests will be skipped"; fi; }; }
 
 test: setup setup-pbr browser
 	$(BIN)/ruff check src tests workflow/scripts benchmarks
