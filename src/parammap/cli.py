@@ -184,6 +184,14 @@ def _fit_sh(a: argparse.Namespace) -> int:
     return 0
 
 
+@_command("materials")
+def _materials(a: argparse.Namespace) -> int:
+    from .materials import run_materials
+
+    run_materials(a.out, _stage_config(a), a.figures)
+    return 0
+
+
 @_command("export")
 def _export(a: argparse.Namespace) -> int:
     from .params import export_maps
@@ -279,6 +287,7 @@ def _parser() -> argparse.ArgumentParser:
                            ("observe", "build the observation map (zarr)"),
                            ("fit-mh", "fit the Multiple Highlight model to every texel"),
                            ("fit-sh", "project every texel onto spherical harmonics"),
+                           ("materials", "basis materials (003) from an MH fit, as mh-materials"),
                            ("export", "write parameter-map EXRs from fit stores"),
                            ("holdout", "compare renders with the held-out photos")):
         s = add(name, help=helptext)
@@ -296,7 +305,7 @@ def _parser() -> argparse.ArgumentParser:
         if name == "hdr":
             s.add_argument("--response", help="response CSV (default <out>/camera/response.csv)")
             s.add_argument("--view", action="append", help="only this view (repeatable)")
-        if name in ("poses", "observe", "fit-mh", "fit-sh"):
+        if name in ("poses", "observe", "fit-mh", "fit-sh", "materials"):
             s.add_argument("--figures", help="report folder for the figures")
         if name in ("observe", "fit-mh", "fit-sh"):
             s.add_argument("--workers", type=int, help="processes (default: config workers)")

@@ -269,6 +269,10 @@ def mh_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path, 
                                                                           -1, 1)))
     if g.attrs.get("lobes") == "auto":
         maps["lobes used"] = g["k_used"][:].astype(float)
+    if "label" in g:  # the basis materials (parammap.materials)
+        lab = g["label"][:].astype(float)
+        maps["basis material (0: diffuse only)"] = np.where(lab < 0, np.nan, lab)
+        maps["weight of the chosen material"] = np.nanmax(g["weights"][:], axis=-1)
     if "sd" in g:  # how far each texel can be trusted (parammap.models.mh.uncertainty)
         sd = g["sd"][:].astype(float)
         with np.errstate(invalid="ignore", divide="ignore"):

@@ -53,8 +53,10 @@ def mh_models():
 
 
 def models():
-    """Every fitted model name (outputs.md): mh-<K> and sh-<hemisphere>-<n^2>."""
-    return mh_models() + list(config["fit"]["sh"]["models"])
+    """Every fitted model name (outputs.md): mh-<K>, sh-<hemisphere>-<n^2> and, where
+    enabled, the basis materials mh-materials."""
+    extra = ["mh-materials"] if config["materials"]["enabled"] else []
+    return mh_models() + list(config["fit"]["sh"]["models"]) + extra
 
 
 def benchmark_files(sid):

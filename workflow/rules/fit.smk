@@ -1,6 +1,7 @@
 # Model fits: one job per model writes fit/<model>.zarr (dask over texel tiles inside
 # the job; scheduler from config.fit.scheduler) and its metrics; then the parameter-map
-# EXR. Model names follow outputs.md: mh-<K> and sh-<hemisphere>-<coefficients>.
+# EXR. Model names follow outputs.md: mh-<K> and sh-<hemisphere>-<coefficients>; the
+# basis materials (003) are the MH map mh-materials, refitted from another MH fit.
 
 
 rule fit_mh:
@@ -52,6 +53,28 @@ rule fit_sh:
     shell:
         "{params.cli} fit-sh {input.capture} --out {params.out}"
         " --model sh-{wildcards.hemi}-{wildcards.nc} {params.cfg} --workers {threads} 2> {log}"
+
+
+rule materials:
+    input:
+        capture=capture_dir,
+        obs=f"{PROC}/{{sid}}/observation.zarr",
+        source=lambda wc: f"{PROC}/{wc.sid}/fit/{config['materials']['source']}.zarr",
+    output:
+        store=directory(f"{PROC}/{{sid}}/fit/mh-materials.zarr"),
+        metrics=f"{PROC}/{{sid}}/metrics/fit-mh-materials.json",
+    params:
+        cli=PARAMMAP,
+        cfg=config_arg("materials"),
+        out=lambda wc: f"{PROC}/{wc.sid}",
+    log:
+        "logs/fit/{sid}/mh-materials.log",
+    benchmark:
+        "logs/benchmarks/{sid}/fit-mh-materials.tsv"
+    conda:
+        "../envs/parammap.yaml"
+    shell:
+        "{params.cli} materials {input.capture} --out {params.out} {params.cfg} 2> {log}"
 
 
 rule export_params:

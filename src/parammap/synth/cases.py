@@ -16,9 +16,9 @@ import numpy as np
 
 from ..geometry import texel_centres, unit
 from .sampling import icosahedron
-from .scene import PHONG, Scene, mh_truth, true_radiance
+from .scene import DIFFUSE, PHONG, Scene, mh_truth, true_radiance
 
-__all__ = ["Case", "phong_case"]
+__all__ = ["Case", "patches_case", "phong_case"]
 
 SIZE_MM = 1000.0
 CENTRE = np.array([500.0, 500.0, 0.0])
@@ -69,9 +69,14 @@ def phong_case(
         np.asarray(lights, float) + CENTRE, np.asarray(intensities, float), 0.0)
     cams = CENTRE + camera_distance_mm * (
         icosahedron(level, max_zenith_deg) if directions is None else np.asarray(directions))
-    ctr = texel_centres(texels, texels, SIZE_MM, SIZE_MM)
+    return _observe(scene, cams, noise, rng)
+
+
+def _observe(scene: Scene, cams: np.ndarray, noise: float, rng: np.random.Generator) -> Case:
+    """Radiance of every texel of ``scene`` seen from camera positions ``cams`` (N, 3)."""
+    T, S = scene.kind.shape
+    ctr = texel_centres(S, T, scene.width_mm, scene.height_mm)
     d = unit(cams[None, None] - ctr[:, :, None, :])
-    T = S = texels
     N = len(cams)
     rows = np.repeat(np.arange(T), S * N)
     cols = np.tile(np.repeat(np.arange(S), N), T)
@@ -81,3 +86,37 @@ def phong_case(
     truth, _ = mh_truth(scene)
     return Case(L.astype(np.float32), d.astype(np.float32), np.ones((T, S, N), bool),
                 truth, scene)
+
+
+def patches_case(
+    materials=((1.0, 1.0, 1.0, 12.0), (1.2, 0.9, 0.5, 60.0), (0.8, 0.8, 0.8, 300.0)),
+    texels: int = 12,
+    level: int = 2,
+    max_zenith_deg: float = 75.0,
+    noise: float = 0.0,
+    seed: int = 0,
+) -> tuple[Case, np.ndarray]:
+    """Vertical bands of Phong materials (Ks.R, Ks.G, Ks.B, m each) and one diffuse
+    band, over a printed albedo (Kd varies texel to texel), one point light: a test of
+    basis materials.
+
+    Returns
+    -------
+    the case, and (T, S) int: the material of each texel (0 the diffuse band, j + 1
+    ``materials[j]``).
+    """
+    rng = np.random.default_rng(seed)
+    T = S = texels
+    band = np.minimum(np.arange(S) * (len(materials) + 1) // S, len(materials))
+    label = np.broadcast_to(band, (T, S)).copy()
+    kind = np.where(label == 0, DIFFUSE, PHONG)
+    ks = np.zeros((T, S, 3))
+    m = np.ones((T, S))
+    for j, (r, g, b, mj) in enumerate(materials):
+        ks[label == j + 1] = (r, g, b)
+        m[label == j + 1] = mj
+    kd = rng.uniform(0.05, 0.8, (T, S, 3))  # the print: no two texels alike
+    scene = Scene(SIZE_MM, SIZE_MM, kind, kd, ks, m,
+                  np.array([[1500.0, 1500.0, 2000.0]]) + CENTRE, np.ones(1), 0.0)
+    cams = CENTRE + 3000.0 * icosahedron(level, max_zenith_deg)
+    return _observe(scene, cams, noise, rng), label
