@@ -192,6 +192,14 @@ def _materials(a: argparse.Namespace) -> int:
     return 0
 
 
+@_command("advise")
+def _advise(a: argparse.Namespace) -> int:
+    from .advisor import run_advisor
+
+    run_advisor(a.out, _stage_config(a), a.figures)
+    return 0
+
+
 @_command("export")
 def _export(a: argparse.Namespace) -> int:
     from .params import export_maps
@@ -288,6 +296,7 @@ def _parser() -> argparse.ArgumentParser:
                            ("fit-mh", "fit the Multiple Highlight model to every texel"),
                            ("fit-sh", "project every texel onto spherical harmonics"),
                            ("materials", "basis materials (003) from an MH fit, as mh-materials"),
+                           ("advise", "the next camera directions to shoot (from an MH fit)"),
                            ("export", "write parameter-map EXRs from fit stores"),
                            ("holdout", "compare renders with the held-out photos")):
         s = add(name, help=helptext)
@@ -305,7 +314,7 @@ def _parser() -> argparse.ArgumentParser:
         if name == "hdr":
             s.add_argument("--response", help="response CSV (default <out>/camera/response.csv)")
             s.add_argument("--view", action="append", help="only this view (repeatable)")
-        if name in ("poses", "observe", "fit-mh", "fit-sh", "materials"):
+        if name in ("poses", "observe", "fit-mh", "fit-sh", "materials", "advise"):
             s.add_argument("--figures", help="report folder for the figures")
         if name in ("observe", "fit-mh", "fit-sh"):
             s.add_argument("--workers", type=int, help="processes (default: config workers)")

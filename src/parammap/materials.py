@@ -41,8 +41,7 @@ from .models.materials import (
 )
 from .models.mh.model import mh_eval
 from .models.residuals import mean_percentage_residual
-from .models.weights import noise_weights
-from .observation import open_observation_map
+from .observation import open_observation_map, sample_texel_observations, tile_observations
 from .paths import Processed
 from .stores import COMPLETE_ATTR
 
@@ -58,41 +57,6 @@ def _tiles(T: int, S: int, tile: int):
     for r0 in range(0, T, tile):
         for c0 in range(0, S, tile):
             yield slice(r0, min(r0 + tile, T)), slice(c0, min(c0 + tile, S))
-
-
-def _observations(g: zarr.Group, rows: slice, cols: slice) -> tuple[np.ndarray, ...]:
-    """V, L (n, N, 3), W (n, N), weights (n, N) of the texels of a tile."""
-    N = g["valid"].shape[2]
-    L = np.asarray(g["radiance"][rows, cols], float).reshape(-1, N, 3)
-    V = np.asarray(g["direction"][rows, cols], float).reshape(-1, N, 3)
-    W = np.asarray(g["valid"][rows, cols], bool).reshape(-1, N) & np.isfinite(L).all(-1) \
-        & np.isfinite(V).all(-1)
-    L = np.where(W[..., None], L, 0.0)
-    V = np.where(W[..., None], V, [0.0, 0.0, 1.0])
-    noise = g["noise"][rows, cols].reshape(-1, N) if "noise" in g else None
-    return V, L, W, noise_weights(noise, W)
-
-
-def _sample_observations(g: zarr.Group, members: np.ndarray, S: int, tile: int,
-                         size: int, rng: np.random.Generator):
-    """Texel indices and observations (V, L, W, weights) of up to ``size`` of the flat
-    texel indices ``members``: whole tiles in random order, every member of a tile
-    read, until the sample is full (reads a few tiles, not the map)."""
-    T_tiles = -(-S // tile)
-    key = (members // S // tile) * T_tiles + (members % S) // tile
-    picked, parts = [], []
-    for kt in rng.permutation(np.unique(key)):
-        r0, c0 = (kt // T_tiles) * tile, (kt % T_tiles) * tile
-        rows, cols = slice(r0, r0 + tile), slice(c0, c0 + tile)
-        here = members[key == kt]
-        obs = _observations(g, rows, cols)
-        width = min(c0 + tile, S) - c0
-        local = (here // S - r0) * width + (here % S - c0)
-        parts.append([a[local] for a in obs])
-        picked.append(here)
-        if sum(len(p) for p in picked) >= size:
-            break
-    return np.concatenate(picked), *(np.concatenate(a) for a in zip(*parts, strict=True))
 
 
 def _lobes(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -154,7 +118,7 @@ def _fit_bases(obs: zarr.Group, P: np.ndarray, label: np.ndarray, count: int, S:
         if len(members) == 0:
             basis.append((m0[j], np.ones(3)))
             continue
-        idx, V, L, _, w = _sample_observations(obs, members, S, tile, sample, rng)
+        idx, V, L, _, w = sample_texel_observations(obs, members, S, tile, sample, rng)
         dirs, present = _lobes(P[idx])
         m, kappa, _ = fit_basis(dirs, present, V, L, w, m0[j])
         basis.append((m, kappa))
@@ -169,7 +133,7 @@ def _merge_materials(obs: zarr.Group, P: np.ndarray, label: np.ndarray,
     BIC (three parameters fewer; a sample of each), and so on."""
     def sample_of(j):
         members = np.flatnonzero(label == j + 1)
-        idx, V, L, _, w = _sample_observations(obs, members, S, tile, sample // 2, rng)
+        idx, V, L, _, w = sample_texel_observations(obs, members, S, tile, sample // 2, rng)
         return (*_lobes(P[idx]), V, L, w)
 
     while len(basis) > 1:
@@ -248,7 +212,7 @@ def run_materials(processed: str | Path, config: dict[str, Any],
         B = np.zeros((T * S, count + 1))
         for rows, cols in _tiles(T, S, tile):
             flat = flat_of[rows, cols].ravel()
-            V, L, W, w = _observations(obs, rows, cols)
+            V, L, W, w = tile_observations(obs, rows, cols)
             B[flat] = assign_materials(*_lobes(Pb[flat]), V, L, W, w, basis)["bic"]
         own = np.where(ok, np.argmin(B, 1), -1)
         votes = np.stack([uniform_filter((own == j).reshape(T, S).astype(float), pool,
@@ -270,7 +234,7 @@ def run_materials(processed: str | Path, config: dict[str, Any],
                "params": np.full((T * S, mh_size(K)), np.nan)}
         for rows, cols in _tiles(T, S, tile):
             flat = flat_of[rows, cols].ravel()
-            V, L, W, w = _observations(obs, rows, cols)
+            V, L, W, w = tile_observations(obs, rows, cols)
             dirs, present = _lobes(Pb[flat])
             a = assign_materials(dirs, present, V, L, W, w, basis, label[flat])
             out["weights"][flat] = a["weights"]
@@ -305,7 +269,7 @@ def _write_store(path: Path, obs: zarr.Group, out: dict, ok: np.ndarray, basis: 
     mpr = np.full((T * S, 3), np.nan)
     for rows, cols in _tiles(T, S, tile):
         flat = (np.arange(T * S).reshape(T, S)[rows, cols]).ravel()
-        V, L, W, _ = _observations(obs, rows, cols)
+        V, L, W, _ = tile_observations(obs, rows, cols)
         pred = mh_eval(out["params"][flat], V)
         n = np.maximum(W.sum(1), 1)[:, None]
         rmse[flat] = np.sqrt((np.where(W[..., None], pred - L, 0) ** 2).sum(1) / n)

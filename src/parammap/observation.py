@@ -50,6 +50,7 @@ from .errors import InputError
 from .geometry import sample_image, texel_centres, unit
 from .hdr import read_hdr_noise
 from .metrics import digest
+from .models.weights import noise_weights
 from .paths import PosesError, Processed, read_poses
 from .stores import COMPLETE_ATTR, executor, mtime_ns, open_complete, store_bytes
 
@@ -64,6 +65,8 @@ __all__ = [
     "run_observation",
     "marker_texel_mask",
     "open_observation_map",
+    "sample_texel_observations",
+    "tile_observations",
     "sample_view",
     "texel_grid",
 ]
@@ -542,3 +545,40 @@ def write_observation_arrays(
         shutil.rmtree(path)
     tmp.rename(path)
     return path
+
+
+def tile_observations(g: zarr.Group, rows: slice, cols: slice) -> tuple[np.ndarray, ...]:
+    """Observations of the texels of a tile, flattened, for a model: V, L (n, N, 3)
+    (invalid ones: +z and 0), W (n, N) valid, and the noise weights (n, N)
+    (:func:`parammap.models.weights.noise_weights`)."""
+    N = g["valid"].shape[2]
+    L = np.asarray(g["radiance"][rows, cols], float).reshape(-1, N, 3)
+    V = np.asarray(g["direction"][rows, cols], float).reshape(-1, N, 3)
+    W = np.asarray(g["valid"][rows, cols], bool).reshape(-1, N) & np.isfinite(L).all(-1) \
+        & np.isfinite(V).all(-1)
+    L = np.where(W[..., None], L, 0.0)
+    V = np.where(W[..., None], V, [0.0, 0.0, 1.0])
+    noise = g["noise"][rows, cols].reshape(-1, N) if "noise" in g else None
+    return V, L, W, noise_weights(noise, W)
+
+
+def sample_texel_observations(g: zarr.Group, members: np.ndarray, S: int, tile: int,
+                         size: int, rng: np.random.Generator):
+    """Texel indices and observations (V, L, W, weights) of up to ``size`` of the flat
+    texel indices ``members``: whole tiles in random order, every member of a tile
+    read, until the sample is full (reads a few tiles, not the map)."""
+    T_tiles = -(-S // tile)
+    key = (members // S // tile) * T_tiles + (members % S) // tile
+    picked, parts = [], []
+    for kt in rng.permutation(np.unique(key)):
+        r0, c0 = (kt // T_tiles) * tile, (kt % T_tiles) * tile
+        rows, cols = slice(r0, r0 + tile), slice(c0, c0 + tile)
+        here = members[key == kt]
+        obs = tile_observations(g, rows, cols)
+        width = min(c0 + tile, S) - c0
+        local = (here // S - r0) * width + (here % S - c0)
+        parts.append([a[local] for a in obs])
+        picked.append(here)
+        if sum(len(p) for p in picked) >= size:
+            break
+    return np.concatenate(picked), *(np.concatenate(a) for a in zip(*parts, strict=True))

@@ -187,6 +187,34 @@ rule fig_model:
         " --figures {params.figures} {params.cfg} 2> {log}"
 
 
+rule advise:
+    input:
+        capture=capture_dir,
+        obs=f"{PROC}/{{sid}}/observation.zarr",
+        poses=f"{PROC}/{{sid}}/camera/poses.yaml",
+        source=lambda wc: f"{PROC}/{wc.sid}/fit/{config['advisor']['source']}.zarr",
+    output:
+        metrics=f"{PROC}/{{sid}}/metrics/advice.json",
+        figure=report(
+            f"{REPORTS}/{{sid}}/advice.png",
+            caption="../report/advice.rst",
+            category="5 Next capture",
+            subcategory="{sid}",
+        ),
+    params:
+        cli=PARAMMAP,
+        cfg=config_arg("advisor", "observation"),
+        out=lambda wc: f"{PROC}/{wc.sid}",
+        figures=lambda wc: f"{REPORTS}/{wc.sid}",
+    log:
+        "logs/figures/{sid}/advice.log",
+    conda:
+        "../envs/parammap.yaml"
+    shell:
+        "{params.cli} advise {input.capture} --out {params.out} --figures {params.figures}"
+        " {params.cfg} 2> {log}"
+
+
 rule fig_holdout:
     input:
         capture=capture_dir,
