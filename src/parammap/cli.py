@@ -200,6 +200,14 @@ def _advise(a: argparse.Namespace) -> int:
     return 0
 
 
+@_command("best")
+def _best(a: argparse.Namespace) -> int:
+    from .best import run_best
+
+    run_best(a.out, a.model, _stage_config(a), a.figures)
+    return 0
+
+
 @_command("export")
 def _export(a: argparse.Namespace) -> int:
     from .params import export_maps
@@ -297,6 +305,7 @@ def _parser() -> argparse.ArgumentParser:
                            ("fit-sh", "project every texel onto spherical harmonics"),
                            ("materials", "basis materials (003) from an MH fit, as mh-materials"),
                            ("advise", "the next camera directions to shoot (from an MH fit)"),
+                           ("best", "the best model per texel among exported maps"),
                            ("export", "write parameter-map EXRs from fit stores"),
                            ("holdout", "compare renders with the held-out photos")):
         s = add(name, help=helptext)
@@ -311,10 +320,13 @@ def _parser() -> argparse.ArgumentParser:
             s.add_argument("--reference", help="reference curve drawn beside it: colour-hdri "
                                                "CRF .npy, truth response.npz or a CSV")
             s.add_argument("--reference-label", default="reference")
+        if name == "best":
+            s.add_argument("--model", action="append", required=True,
+                           help="candidate model (exported map), repeatable")
         if name == "hdr":
             s.add_argument("--response", help="response CSV (default <out>/camera/response.csv)")
             s.add_argument("--view", action="append", help="only this view (repeatable)")
-        if name in ("poses", "observe", "fit-mh", "fit-sh", "materials", "advise"):
+        if name in ("poses", "observe", "fit-mh", "fit-sh", "materials", "advise", "best"):
             s.add_argument("--figures", help="report folder for the figures")
         if name in ("observe", "fit-mh", "fit-sh"):
             s.add_argument("--workers", type=int, help="processes (default: config workers)")

@@ -13,7 +13,8 @@ from functools import lru_cache
 import numpy as np
 
 __all__ = [
-    "DIFFUSE_CHANNELS", "HDR_CHANNELS", "LUMINANCE", "MHX_KD", "MHX_LNM", "MHX_LOBE", "MH_HEAD",
+    "BEST_CHANNELS", "DIFFUSE_CHANNELS", "HDR_CHANNELS", "LUMINANCE", "MHX_KD", "MHX_LNM",
+    "MHX_LOBE", "MH_HEAD",
     "MH_KD", "MH_LOBE", "MH_M", "MH_SD_LOBE", "NOISE_CHANNEL", "SH_CAP_AWARE", "SH_HEMISPHERES",
     "FitStatus", "mh_channels", "mh_dir", "mh_dir_z", "mh_ks", "mh_lobe", "mh_lobes",
     "mh_sd_channels", "mh_sd_dir", "mh_sd_size", "mh_size", "mhx_ks", "mhx_lobes", "mhx_phi",
@@ -156,6 +157,9 @@ def mhx_phi(k: int) -> int:
 
 #: A diffuse-only map (the baseline): Kd alone.
 DIFFUSE_CHANNELS = ("Kd.R", "Kd.G", "Kd.B")
+# the best-model-per-texel map (parammap.best): one channel, the index of each texel's
+# model in the header's space-separated "parammap_candidates" (their own EXRs beside it)
+BEST_CHANNELS = ("choice",)
 
 
 # --- Spherical harmonics (conventions.md, 004 eqs. 12.1-12.5) -------------------------

@@ -28,6 +28,7 @@ import numpy as np
 
 from . import __version__
 from .conventions import (
+    BEST_CHANNELS,
     DIFFUSE_CHANNELS,
     mh_channels,
     mh_lobes,
@@ -42,7 +43,7 @@ __all__ = ["MODELS", "ParamMap", "channel_names", "export_maps", "param_map_from
 
 logger = logging.getLogger(__name__)
 
-MODELS = {"mh": 1, "sh": 1, "diffuse": 1}
+MODELS = {"mh": 1, "sh": 1, "diffuse": 1, "best": 1}
 
 
 class ParamMapError(ExrError):
@@ -55,6 +56,10 @@ def channel_names(model: str, n_params: int) -> list[str]:
         if n_params != len(DIFFUSE_CHANNELS):
             raise ParamMapError(f"diffuse maps have 3 parameters (got {n_params})")
         return list(DIFFUSE_CHANNELS)
+    if model == "best":
+        if n_params != len(BEST_CHANNELS):
+            raise ParamMapError(f"best maps have one channel, choice (got {n_params})")
+        return list(BEST_CHANNELS)
     if model == "mh":
         try:
             K = mh_lobes(n_params)
@@ -83,6 +88,8 @@ class ParamMap:
     hemisphere: str | None = None
     attrs: dict[str, Any] = field(default_factory=dict)
     sd: np.ndarray | None = None  # (T, S, ...) standard deviations (sd_channels), or None
+    # model "best": the candidate maps, by name, that ``params[..., 0]`` indexes
+    parts: dict[str, ParamMap] | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -144,8 +151,14 @@ def read_param_map(path: str | Path) -> ParamMap:
              and k not in ("parammap_model", "parammap_model_version", "parammap_layout",
                            "parammap_hemisphere", "parammap_sd_layout")}
     sd = np.stack([chans[n] for n in sd_layout], -1).astype(np.float32) if sd_layout else None
+    parts = None
+    if model == "best":  # the candidates' own maps, beside this one
+        names = str(extra.get("candidates", "")).split()
+        if not names:
+            raise ParamMapError(f"{path}: a best map names no candidates")
+        parts = {n: read_param_map(Path(path).parent / f"{n}.exr") for n in names}
     return ParamMap(model, params, float(h["width_mm"]), float(h["height_mm"]),
-                    h.get("parammap_hemisphere"), extra, sd)
+                    h.get("parammap_hemisphere"), extra, sd, parts)
 
 
 def param_map_from_fit(fit_path: str | Path) -> ParamMap:

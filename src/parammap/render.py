@@ -130,6 +130,18 @@ def render(pm: ParamMap, intr: Intrinsics, R: np.ndarray, t: np.ndarray,
     out = np.full(P.shape[:2] + (3,), np.nan, np.float32)
     Pi = P[inside]
     row, col = plane_to_texel(Pi[:, 0], Pi[:, 1], S, T, pm.width_mm, pm.height_mm)
+    if pm.model == "best":  # each candidate where it was chosen, blended like texels
+        choice = np.rint(pm.params[..., 0]).astype(int)
+        acc = np.zeros((len(Pi), 3))
+        for j, part in enumerate((pm.parts or {}).values()):
+            share = (choice == j).astype(float)[..., None]
+            w = (share[np.clip(row.astype(int), 0, T - 1), np.clip(col.astype(int), 0, S - 1)]
+                 if interpolation == "nearest" else lookup_bilinear(share, row, col))[:, 0]
+            if (w > 0).any():
+                img, _ = render(part, intr, R, t, size, interpolation)
+                acc += w[:, None] * np.nan_to_num(img[inside])
+        out[inside] = acc
+        return out, inside
     d = unit(camera_centre(R, t)[None] - Pi)
     if interpolation == "nearest":
         prm = pm.params[np.clip(row.astype(int), 0, T - 1), np.clip(col.astype(int), 0, S - 1)]

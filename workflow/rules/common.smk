@@ -59,6 +59,12 @@ def models():
     return mh_models() + list(config["fit"]["sh"]["models"]) + extra
 
 
+def compared_models():
+    """The maps the held-out comparison scores: every model, the best-per-texel map
+    where enabled, and the diffuse baseline."""
+    return models() + (["best"] if config["best"]["enabled"] else []) + ["diffuse"]
+
+
 def benchmark_files(sid):
     """Snakemake benchmark files of a surface's main steps."""
     steps = ["response", "calibrate", "poses", "observation", "holdout"]
@@ -76,6 +82,8 @@ def surface_targets(sid):
     figs += [f"{R}/{m}_{k}.png" for m in models() for k in ("params", "residuals", "lobes")]
     figs += [f"{R}/holdout.csv", f"{R}/holdout_regions.csv", f"{R}/holdout",
              f"{R}/sizes.csv", f"{R}/viewer", f"{R}/advice.png"]
+    if config["best"]["enabled"]:
+        figs.append(f"{R}/best_choice.png")
     data = [f"{PROC}/{sid}/params/{m}.exr" for m in models() + ["diffuse"]]
     data += [f"{PROC}/{sid}/metrics/{m}.json" for m in ("hdr", "poses", "observation",
                                                         "holdout")]

@@ -114,18 +114,47 @@ rule export_diffuse:
         "{params.cli} export {input.capture} --out {params.out} --model diffuse 2> {log}"
 
 
+rule best:
+    input:
+        capture=capture_dir,
+        obs=f"{PROC}/{{sid}}/observation.zarr",
+        params=lambda wc: expand(f"{PROC}/{wc.sid}/params/{{m}}.exr", m=models() + ["diffuse"]),
+    output:
+        params=f"{PROC}/{{sid}}/params/best.exr",
+        metrics=f"{PROC}/{{sid}}/metrics/best.json",
+        figure=report(
+            f"{REPORTS}/{{sid}}/best_choice.png",
+            caption="../report/best_choice.rst",
+            category="3 Models",
+            subcategory="{sid}",
+        ),
+    params:
+        cli=PARAMMAP,
+        cfg=config_arg("best"),
+        out=lambda wc: f"{PROC}/{wc.sid}",
+        figures=lambda wc: f"{REPORTS}/{wc.sid}",
+        models=" ".join(f"--model {m}" for m in models() + ["diffuse"]),
+    log:
+        "logs/fit/{sid}/best.log",
+    conda:
+        "../envs/parammap.yaml"
+    shell:
+        "{params.cli} best {input.capture} --out {params.out} {params.models}"
+        " --figures {params.figures} {params.cfg} 2> {log}"
+
+
 rule holdout:
     input:
         capture=capture_dir,
         poses=f"{PROC}/{{sid}}/camera/poses.yaml",
-        params=lambda wc: expand(f"{PROC}/{wc.sid}/params/{{m}}.exr", m=models() + ["diffuse"]),
+        params=lambda wc: expand(f"{PROC}/{wc.sid}/params/{{m}}.exr", m=compared_models()),
     output:
         metrics=f"{PROC}/{{sid}}/metrics/holdout.json",
         images=directory(f"{PROC}/{{sid}}/holdout"),
     params:
         cli=PARAMMAP,
         out=lambda wc: f"{PROC}/{wc.sid}",
-        models=" ".join(f"--model {m}" for m in models() + ["diffuse"]),
+        models=" ".join(f"--model {m}" for m in compared_models()),
     log:
         "logs/holdout/{sid}.log",
     benchmark:
