@@ -44,6 +44,7 @@ import math
 import numpy as np
 
 from ..conventions import MH_KD, MH_M, mh_dir, mh_ks, mh_lobes, mh_size
+from .mh.fit import KS_CAP
 from .mh.model import M_MAX, M_MIN, mh_eval
 
 __all__ = [
@@ -199,7 +200,8 @@ def _linear_fit(L: np.ndarray, w: np.ndarray, G: np.ndarray, kappa: np.ndarray |
                             np.einsum("nvk,nvc->nkc", wG, L)], 1)  # (n, K+1, 3)
         A += np.eye(K + 1) * 1e-12 * np.maximum(A.trace(axis1=1, axis2=2), 1e-30)[:, None, None]
         x = np.linalg.solve(A, b)
-        kd, ks = x[:, 0], np.clip(x[:, 1:], 0, None)
+        cap = KS_CAP * ((w[..., None] > 0) * L).max((1, 2))
+        kd, ks = x[:, 0], np.clip(x[:, 1:], 0, cap[:, None, None])
         kd = ((w[..., None] * (L - np.einsum("nvk,nkc->nvc", G, ks))).sum(1)
               / np.maximum(sw, 1e-30)[:, None])
         pred = kd[:, None] + np.einsum("nvk,nkc->nvc", G, ks)
@@ -216,7 +218,9 @@ def _linear_fit(L: np.ndarray, w: np.ndarray, G: np.ndarray, kappa: np.ndarray |
                         np.einsum("nvk,nvc,nc->nk", wG, L, kappa)], 1)
     A += np.eye(3 + K) * 1e-12 * np.maximum(A.trace(axis1=1, axis2=2), 1e-30)[:, None, None]
     x = np.linalg.solve(A, b[..., None])[..., 0]
-    s = np.clip(x[:, 3:], 0, None)
+    # as the MH fitter: a lobe whose peak no view saw cannot grow without limit
+    cap = KS_CAP * ((w[..., None] > 0) * L).max((1, 2)) / np.maximum(kappa.max(1), 1e-12)
+    s = np.clip(x[:, 3:], 0, cap[:, None])
     spec = np.einsum("nvk,nk,nc->nvc", G, s, kappa)
     kd = np.clip((w[..., None] * (L - spec)).sum(1) / np.maximum(sw, 1e-30)[:, None], 0, None)
     return kd, s, (w[..., None] * (L - kd[:, None] - spec) ** 2).sum((1, 2))
