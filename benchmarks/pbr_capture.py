@@ -1,7 +1,8 @@
 """The whole pipeline on a physically based capture (Mitsuba 3), measured against its
 ground truth: HDR against an oracle merge, intrinsics, views kept and pose accuracy,
 the map resolution chosen, observation directions, and held-out errors of every model
-against the clean renders.
+against the clean renders; with ``--materials``, the basis materials (their adjusted
+Rand index against the true patches) and the best-per-texel map as well.
 
     python benchmarks/pbr_capture.py --preset pbr-bench --root data/bench [--models ...]
 
@@ -22,7 +23,8 @@ from parammap.cli import main
 from parammap.synth import evaluate as ev
 
 
-def run(preset: str, root: Path, models: list[str], seed: int, reuse_hdr: bool = False) -> dict:
+def run(preset: str, root: Path, models: list[str], seed: int, reuse_hdr: bool = False,
+        materials: bool = False) -> dict:
     cap = root / preset
     truth = root / f"{preset}.truth"
     out = root / f"{preset}.proc"
@@ -34,11 +36,16 @@ def run(preset: str, root: Path, models: list[str], seed: int, reuse_hdr: bool =
         times["synth"] = time.perf_counter() - t0
     fits = [["fit-mh", "--lobes", m.split("-")[1]] if m.startswith("mh-") else
             ["fit-sh", "--model", m] for m in models]
-    named = [x for m in models + ["diffuse"] for x in ("--model", m)]
+    extra = ["mh-materials"] if materials else []
+    named = [x for m in models + extra + ["diffuse"] for x in ("--model", m)]
     merged = reuse_hdr and any((out / "hdr").glob("*.exr"))
     stages = [] if merged else [["response"], ["hdr"]]
-    stages += [["calibrate"], ["poses"], ["observe"], *fits, ["export", *named],
-               ["holdout", *named]]
+    source = "mh-auto" if "mh-auto" in models else next(m for m in models if m.startswith("mh-"))
+    fits += [["materials", "--set", f"materials.source={source}"]] if materials else []
+    best = [["best", *named]] if materials else []
+    compared = named + (["--model", "best"] if materials else [])
+    stages += [["calibrate"], ["poses"], ["observe"], *fits, ["export", *named], *best,
+               ["holdout", *compared]]
     for stage in stages:
         t0 = time.perf_counter()
         assert main([stage[0], str(cap), "--out", str(out), *stage[1:]]) == 0, stage
@@ -73,7 +80,18 @@ def run(preset: str, root: Path, models: list[str], seed: int, reuse_hdr: bool =
                             g.attrs["height_mm"])
     ang = np.degrees(np.arccos(np.clip((g["direction"][:] * dt).sum(-1), -1, 1)))[g["valid"][:]]
     res["directions_deg"] = {"median": float(np.median(ang)), "max": float(ang.max())}
-    res["holdout_vs_clean"] = ev.holdout_against_truth(cap, truth, out, models + ["diffuse"])
+    res["holdout_vs_clean"] = ev.holdout_against_truth(
+        cap, truth, out, models + extra + (["best"] if materials else []) + ["diffuse"])
+    if materials:
+        from parammap.fitting import open_fit
+        from parammap.models.materials import adjusted_rand_index
+        from parammap.synth.pbr import patch_labels
+
+        lab = open_fit(out / "fit" / "mh-materials.zarr")["label"][:]
+        true = patch_labels(truth, lab.shape[1], lab.shape[0], c.width_mm, c.height_mm)
+        res["materials"] = {
+            "count": int(lab.max()), "adjusted_rand_index": adjusted_rand_index(lab, true),
+            "best": json.loads((out / "metrics" / "best.json").read_text())}
     return res
 
 
@@ -92,6 +110,9 @@ def _print(res: dict) -> None:
           f"{res['directions_deg']['median']:.4f} deg, max {res['directions_deg']['max']:.4f}")
     for vid, row in res["holdout_vs_clean"].items():
         print(f"  held out {vid}: " + ", ".join(f"{m} {v:.2f}" for m, v in row.items()))
+    if "materials" in res:
+        print(f"  basis materials: {res['materials']['count']}, adjusted Rand index against "
+              f"the true patches {res['materials']['adjusted_rand_index']:.3f}")
     print("  seconds: " + ", ".join(f"{k} {v:.0f}" for k, v in res["seconds"].items()))
 
 
@@ -101,11 +122,13 @@ if __name__ == "__main__":
     ap.add_argument("--root", default="data/bench")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--models", nargs="*", default=["mh-1", "mh-2"])
+    ap.add_argument("--materials", action="store_true",
+                    help="also the basis materials (ARI against the true patches) and best map")
     ap.add_argument("--reuse-hdr", action="store_true",
                     help="keep the HDR frames of an earlier run (the merge is the slow part)")
     a = ap.parse_args()
     root = Path(a.root)
     root.mkdir(parents=True, exist_ok=True)
-    r = run(a.preset, root, a.models, a.seed, a.reuse_hdr)
+    r = run(a.preset, root, a.models, a.seed, a.reuse_hdr, a.materials)
     (root / f"{a.preset}.json").write_text(json.dumps(r, indent=1))
     _print(r)
