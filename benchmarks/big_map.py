@@ -27,6 +27,7 @@ from pathlib import Path
 
 import psutil
 import yaml
+from _scratch import scratch_processed
 
 
 def _watch(cmd: list[str], log: Path) -> dict:
@@ -90,13 +91,7 @@ def main() -> int:
     rows = []
     py = [sys.executable, "-m", "parammap"]
     for S in a.sizes:
-        proc = work / f"S{S}"
-        if proc.exists():
-            shutil.rmtree(proc)
-        (proc / "camera").mkdir(parents=True)
-        for f in (src / "camera").iterdir():
-            shutil.copy(f, proc / "camera" / f.name)
-        (proc / "hdr").symlink_to((src / "hdr").resolve())
+        proc = scratch_processed(src, work / f"S{S}", ("hdr",))
         if a.views_every > 1:
             _thin_views(proc / "camera" / "poses.yaml", a.views_every)
         common = ["--out", str(proc), "--set", f"workers={a.workers}"]

@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -28,15 +27,7 @@ import time
 from pathlib import Path
 
 import psutil
-
-
-def _scratch(src: Path, dst: Path) -> None:
-    if dst.exists():
-        shutil.rmtree(dst)
-    (dst / "camera").mkdir(parents=True)
-    for f in (src / "camera").iterdir():
-        shutil.copy(f, dst / "camera" / f.name)
-    (dst / "observation.zarr").symlink_to((src / "observation.zarr").resolve())
+from _scratch import scratch_processed
 
 
 def _files(root: Path) -> dict[str, bytes]:
@@ -65,13 +56,13 @@ def main() -> int:
 
     res: dict = {"map": [S, T], "tiles": ntiles, "model": name}
     ref, run = work / "uninterrupted", work / "killed"
-    _scratch(src, ref)
+    scratch_processed(src, ref, ("observation.zarr",))
     t0 = time.perf_counter()
     subprocess.run(cmd(ref), check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     res["uninterrupted_s"] = time.perf_counter() - t0
     print(f"uninterrupted: {res['uninterrupted_s']:.1f} s for {ntiles} tiles", flush=True)
 
-    _scratch(src, run)
+    scratch_processed(src, run, ("observation.zarr",))
     marks = run / "fit" / f".{name}.zarr.tiles"
     t0 = time.perf_counter()
     p = subprocess.Popen(cmd(run), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,

@@ -23,12 +23,11 @@ from typing import Any
 
 import numpy as np
 
-from .conventions import FitStatus, mh_ks, mh_lobes
-from .errors import InputError
-from .fitting import open_fit
+from .conventions import mh_ks, mh_lobes
+from .fitting import open_mh_source
 from .geometry import unit
 from .models.advisor import advise_directions, hemisphere_candidates
-from .observation import open_observation_map, sample_texel_observations
+from .observation import sample_texel_observations
 from .paths import Processed, read_poses
 
 logger = logging.getLogger(__name__)
@@ -52,14 +51,10 @@ def run_advisor(processed: str | Path, config: dict[str, Any],
 
     proc = Processed(processed)
     cfg = config["advisor"]
-    src = open_fit(proc.fit(cfg["source"]))
-    if src.attrs.get("model") != "mh":
-        raise InputError(f"advisor.source: {cfg['source']!r} is not an MH fit")
-    obs = open_observation_map(proc.observation)
+    _, obs, P, fitted = open_mh_source(proc.root, cfg["source"], "advisor.source")
     T, S, _ = obs["valid"].shape
     tile = int(obs.attrs["tile"])
-    P = np.asarray(src["params"][:], float).reshape(T * S, -1)
-    ok = np.flatnonzero((np.asarray(src["status"][:]) == FitStatus.OK).ravel())
+    ok = np.flatnonzero(fitted)
     rng = np.random.default_rng(int(cfg["seed"]))
     cand = hemisphere_candidates(int(cfg["candidates"]),
                                  float(config["observation"]["max_zenith_deg"]))

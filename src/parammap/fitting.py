@@ -293,6 +293,25 @@ def _resume_or_create(tmp: Path, done: Path, key: str, ntiles: int,
     return g
 
 
+def open_mh_source(processed: str | Path, model: str, setting: str,
+                   ) -> tuple[zarr.Group, zarr.Group, np.ndarray, np.ndarray]:
+    """A finished MH fit that a later stage builds on (``setting``: the config key that
+    named it, for the error) and its observation map: (fit store, observation map,
+    parameters (T S, 4 + 6K) float64, (T S,) bool fitted)."""
+    from .observation import open_observation_map
+    from .paths import Processed
+
+    proc = Processed(processed)
+    src = open_fit(proc.fit(model))
+    if src.attrs.get("model") != "mh":
+        raise InputError(f"{setting}: {model!r} is not an MH fit")
+    obs = open_observation_map(proc.observation)
+    T, S, _ = obs["valid"].shape
+    P = np.asarray(src["params"][:], float).reshape(T * S, -1)
+    ok = (np.asarray(src["status"][:]) == FitStatus.OK).ravel()
+    return src, obs, P, ok
+
+
 def open_fit(path: str | Path) -> zarr.Group:
     """Open a finished fit store; refuses a missing or incomplete one."""
     return open_complete(path, FitError, "fit store")

@@ -28,8 +28,7 @@ import zarr
 from scipy.ndimage import uniform_filter
 
 from .conventions import MH_M, FitStatus, mh_dir, mh_ks, mh_lobes, mh_size
-from .errors import InputError
-from .fitting import FIT_UNITS, open_fit
+from .fitting import FIT_UNITS, open_mh_source
 from .models.materials import (
     adjusted_rand_index,
     assign_materials,
@@ -41,7 +40,7 @@ from .models.materials import (
 )
 from .models.mh.model import mh_eval
 from .models.residuals import mean_percentage_residual
-from .observation import open_observation_map, sample_texel_observations, tile_observations
+from .observation import sample_texel_observations, tile_observations
 from .paths import Processed
 from .stores import COMPLETE_ATTR
 
@@ -166,15 +165,10 @@ def run_materials(processed: str | Path, config: dict[str, Any],
 
     proc = Processed(processed)
     cfg = config["materials"]
-    src = open_fit(proc.fit(cfg["source"]))
-    if src.attrs.get("model") != "mh":
-        raise InputError(f"materials.source: {cfg['source']!r} is not an MH fit")
-    obs = open_observation_map(proc.observation)
+    _, obs, P, ok = open_mh_source(proc.root, cfg["source"], "materials.source")
     T, S, N = obs["valid"].shape
     tile = int(obs.attrs["tile"])
     t0 = time.perf_counter()
-    P = np.asarray(src["params"][:], float).reshape(T * S, -1)
-    ok = (np.asarray(src["status"][:]) == FitStatus.OK).ravel()
     K = mh_lobes(P.shape[1])
     F, has = material_features(P)
     rng = np.random.default_rng(int(cfg["seed"]))
