@@ -64,3 +64,18 @@ def test_auto_map_resolution_and_budget():
     assert g["capped_by_budget"] and abs(g["S"] - 200) <= 1 and abs(g["T"] - 100) <= 1
     g = map_resolution(cap, [2.0], 50, 64, None, 4.0)
     assert (g["S"], g["T"], g["source"]) == (64, 32, "config")
+
+
+def test_numbers_given_as_text_are_read_as_numbers():
+    # Snakemake's --config hands nested values over as strings
+    # (observation={"texels_x": 512} arrives as '512')
+    cfg = validate_config({"captures": {"x": "."},
+                           "observation": {"texels_x": "512", "max_map_gib": "2.5"},
+                           "fit": {"mh": {"lobes": ["1", "auto"]}},
+                           "materials": {"enabled": "false"}})
+    assert cfg["observation"]["texels_x"] == 512
+    assert cfg["observation"]["max_map_gib"] == 2.5
+    assert cfg["fit"]["mh"]["lobes"] == [1, "auto"]
+    assert cfg["materials"]["enabled"] is False
+    with pytest.raises(ConfigError, match="observation.texels_x"):
+        validate_config({"captures": {"x": "."}, "observation": {"texels_x": "many"}})

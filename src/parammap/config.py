@@ -44,6 +44,53 @@ def _fill_defaults(instance: Any, sch: dict[str, Any]) -> None:
                 _fill_defaults(value, extra)
 
 
+def _allowed_types(sch: dict[str, Any]) -> set[str]:
+    """JSON types a schema node accepts (through oneOf / anyOf)."""
+    types = sch.get("type", [])
+    out = set([types] if isinstance(types, str) else types)
+    for alt in sch.get("oneOf", []) + sch.get("anyOf", []):
+        out |= _allowed_types(alt)
+    return out
+
+
+def _coerce(value: Any, sch: dict[str, Any]) -> Any:
+    """A number or boolean that arrived as text (Snakemake's ``--config`` hands nested
+    values over as strings: ``observation={"texels_x": 512}`` gives '512') as what the
+    schema asks for; anything else unchanged, for the validation to judge."""
+    if not isinstance(value, str):
+        return value
+    allowed = _allowed_types(sch)
+    if "integer" in allowed or "number" in allowed:
+        try:
+            return int(value)
+        except ValueError:
+            if "number" in allowed:
+                try:
+                    return float(value)
+                except ValueError:
+                    pass
+    if "boolean" in allowed and value.lower() in ("true", "false"):
+        return value.lower() == "true"
+    return value
+
+
+def _coerce_numbers(instance: Any, sch: dict[str, Any]) -> None:
+    if isinstance(instance, list) and isinstance(sch.get("items"), dict):
+        for i, v in enumerate(instance):
+            instance[i] = _coerce(v, sch["items"])
+            _coerce_numbers(instance[i], sch["items"])
+        return
+    if not isinstance(instance, dict):
+        return
+    props = sch.get("properties", {})
+    extra = sch.get("additionalProperties")
+    for key in list(instance):
+        sub = props.get(key, extra if isinstance(extra, dict) else None)
+        if sub is not None:
+            instance[key] = _coerce(instance[key], sub)
+            _coerce_numbers(instance[key], sub)
+
+
 def validate_config(config: dict[str, Any]) -> dict[str, Any]:
     """Return a validated copy of ``config`` with defaults filled in.
 
@@ -55,6 +102,7 @@ def validate_config(config: dict[str, Any]) -> dict[str, Any]:
     """
     sch = schema()
     cfg = copy.deepcopy(dict(config))
+    _coerce_numbers(cfg, sch)
     _fill_defaults(cfg, sch)
     validator = jsonschema.Draft202012Validator(sch)
     errors = sorted(validator.iter_errors(cfg), key=lambda e: list(e.absolute_path))

@@ -59,6 +59,14 @@ def models():
     return mh_models() + list(config["fit"]["sh"]["models"]) + extra
 
 
+def mh_source(section):
+    """The MH fit a later stage builds on: the configured ``<section>.source`` when the
+    workflow fits it, else the last MH model it fits (never an extra, unasked fit)."""
+    want = config[section]["source"]
+    fitted = mh_models()
+    return want if want in fitted or not fitted else fitted[-1]
+
+
 def compared_models():
     """The maps the held-out comparison scores: every model, the best-per-texel map
     where enabled, and the diffuse baseline."""

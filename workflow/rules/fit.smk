@@ -59,13 +59,14 @@ rule materials:
     input:
         capture=capture_dir,
         obs=f"{PROC}/{{sid}}/observation.zarr",
-        source=lambda wc: f"{PROC}/{wc.sid}/fit/{config['materials']['source']}.zarr",
+        source=lambda wc: f"{PROC}/{wc.sid}/fit/{mh_source('materials')}.zarr",
     output:
         store=directory(f"{PROC}/{{sid}}/fit/mh-materials.zarr"),
         metrics=f"{PROC}/{{sid}}/metrics/fit-mh-materials.json",
     params:
         cli=PARAMMAP,
         cfg=config_arg("materials"),
+        source=lambda wc: mh_source("materials"),
         out=lambda wc: f"{PROC}/{wc.sid}",
     log:
         "logs/fit/{sid}/mh-materials.log",
@@ -74,7 +75,8 @@ rule materials:
     conda:
         "../envs/parammap.yaml"
     shell:
-        "{params.cli} materials {input.capture} --out {params.out} {params.cfg} 2> {log}"
+        "{params.cli} materials {input.capture} --out {params.out} {params.cfg}"
+        " --set materials.source={params.source} 2> {log}"
 
 
 rule export_params:

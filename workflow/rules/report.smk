@@ -192,7 +192,7 @@ rule advise:
         capture=capture_dir,
         obs=f"{PROC}/{{sid}}/observation.zarr",
         poses=f"{PROC}/{{sid}}/camera/poses.yaml",
-        source=lambda wc: f"{PROC}/{wc.sid}/fit/{config['advisor']['source']}.zarr",
+        source=lambda wc: f"{PROC}/{wc.sid}/fit/{mh_source('advisor')}.zarr",
     output:
         metrics=f"{PROC}/{{sid}}/metrics/advice.json",
         figure=report(
@@ -204,6 +204,7 @@ rule advise:
     params:
         cli=PARAMMAP,
         cfg=config_arg("advisor", "observation"),
+        source=lambda wc: mh_source("advisor"),
         out=lambda wc: f"{PROC}/{wc.sid}",
         figures=lambda wc: f"{REPORTS}/{wc.sid}",
     log:
@@ -212,7 +213,7 @@ rule advise:
         "../envs/parammap.yaml"
     shell:
         "{params.cli} advise {input.capture} --out {params.out} --figures {params.figures}"
-        " {params.cfg} 2> {log}"
+        " {params.cfg} --set advisor.source={params.source} 2> {log}"
 
 
 rule fig_holdout:
