@@ -166,3 +166,27 @@ def test_coefficient_sd_matches_the_spread_over_noise_realisations(tmp_path):
     write_param_map(tmp_path / "s.exr", pm)
     back = read_param_map(tmp_path / "s.exr")
     np.testing.assert_array_equal(back.sd, o["sd"])
+
+
+def test_smoother_loo_is_exact_for_a_fixed_prior():
+    from parammap.models.sh import smoother, smoother_loo
+
+    rng = np.random.default_rng(3)
+    B, N, k = 2, 15, 9
+    Y = rng.standard_normal((B, N, k))
+    y = rng.standard_normal((B, N, 3))
+    om = rng.uniform(0.5, 2.0, (B, N))
+    P = np.eye(k) * 0.3  # a prior held fixed, as the projection's is
+
+    def coeffs(b, keep):
+        M = (Y[b][keep].T * om[b][keep]) @ Y[b][keep] + P
+        return np.linalg.solve(M, (Y[b][keep].T * om[b][keep]) @ y[b][keep])
+
+    M = np.swapaxes(Y, 1, 2) @ (om[..., None] * Y) + P
+    S = smoother(M, Y, om)
+    r = np.einsum("bnk,bkc->bnc", Y, S @ y) - y
+    e = smoother_loo(S, Y, r)
+    for b in range(B):
+        for v in (0, 7, 14):
+            keep = np.arange(N) != v
+            assert np.allclose(e[b, v], Y[b, v] @ coeffs(b, keep) - y[b, v])

@@ -2,20 +2,32 @@
 (004's outlook: try several models and keep the best per texel).
 
 Every candidate map (``params/<model>.exr``: MH, SH, the basis materials, diffuse) is
-judged at every texel by how well it predicts the texel's views it did not see: the
-leave-one-view-out error (PRESS) of its fit, linearised, with the noise weights of
+judged at every texel by how well it predicts the texel's views it did not see: each
+view's leave-one-view-out prediction of its fit, linearised, with the noise weights of
 :func:`parammap.observation.tile_observations` (:mod:`parammap.models.selection`):
 
 - MH: every parameter refitted (the MH fitter's own lobe choice criterion);
 - the basis materials (``mh-materials``): Kd and the lobe amplitudes refitted, m, the
   colour and the directions being the material's, shared by thousands of texels;
-- SH: the coefficients the texel uses (the bands its views resolve); diffuse: Kd.
+- SH: the projection's own leave-one-out prediction, exact for a linear smoother with
+  its prior and regularisation held (the projection rerun as its fit store records
+  it, :func:`parammap.models.sh.fit_sh_tile` with ``loo``); the published projections
+  (``sampled_cap: false``) by a plain least-squares refit of the coefficients used;
+- diffuse: Kd.
 
-A model with more freedom than the views support predicts left-out views worse, so
-the criterion needs no parameter count.
+``best.criterion`` says how the left-out predictions are scored, the same for every
+candidate: ``display`` (default), the mean 8-bit difference after the tone map of the
+held-out comparison (:func:`parammap.models.selection.display_error`, its gamma from
+the observation map's 99th percentile as the comparison takes it from the photo's),
+so a model is chosen for what a render of it shows; ``press``, the noise-weighted sum
+of squared radiance errors, which is ruled by the views on a highlight. A model with
+more freedom than the views support predicts left-out views worse, so neither needs a
+parameter count.
 
-Each texel then takes the choice most texels of its 3x3 neighbourhood made (a vote:
-one texel's evidence is noisy, and models change in regions). The result is the map
+Each texel takes the candidate with the least error (``best.pool_radius`` > 0: the
+choice most texels of its neighbourhood made; a 3x3 vote did worse than each texel's
+own choice on every generator capture, overruling the minority models where they are
+right). The result is the map
 ``params/best.exr``: one channel ``choice`` indexing the candidates named in its
 header (their own EXRs beside it; :func:`parammap.params.read_param_map` loads them and
 :func:`parammap.render.render` draws each texel with its model), so the held-out
@@ -27,45 +39,159 @@ texel only its own model's) against each single model.
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from scipy.ndimage import uniform_filter
 
+from .conventions import FitStatus
 from .errors import InputError
 from .materials import MATERIALS_MODEL
-from .models.mh.uncertainty import loo_error
-from .models.selection import press_amplitudes, press_diffuse, press_sh
+from .models.mh.uncertainty import loo_residuals
+from .models.selection import (
+    display_error,
+    loo_amplitudes,
+    loo_diffuse,
+    loo_sh,
+    press,
+)
+from .models.sh import fit_sh_tile
 from .observation import open_observation_map, tile_observations
 from .params import ParamMap, read_param_map, write_param_map
 from .paths import Processed
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["BEST_MODEL", "press", "run_best"]
+__all__ = ["BEST_MODEL", "CRITERIA", "choose", "display_gamma", "error_table", "loo", "run_best"]
 
 BEST_MODEL = "best"
+CRITERIA = ("display", "press")
 
 
-def press(name: str, model: str, p: np.ndarray, V: np.ndarray, L: np.ndarray,
-          W: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """(n,) leave-one-view-out error of candidate ``name`` (``model``) with parameter
-    rows p at texels with observations V, L, W, weights w (inf where not fitted)."""
+def loo(name: str, model: str, p: np.ndarray, V: np.ndarray, L: np.ndarray,
+        W: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Leave-one-view-out residuals (n, N, 3) of candidate ``name`` (``model``) with
+    parameter rows p at texels with observations V, L, W, weights w, and (n,) bool
+    where they are undefined (a view alone determines a parameter, or not fitted)."""
     if model == "diffuse":
-        out = press_diffuse(np.nan_to_num(p[:, :3]), V, L, W, w)
+        e, bad = loo_diffuse(np.nan_to_num(p[:, :3]), V, L, W, w)
     elif model == "sh":
-        out = press_sh(p, V, L, W, w)
+        e, bad = loo_sh(p, V, L, W, w)
     elif name == MATERIALS_MODEL:  # m, colour and directions are the material's
-        out = press_amplitudes(np.nan_to_num(p), V, L, W, w)
+        e, bad = loo_amplitudes(np.nan_to_num(p), V, L, W, w)
     else:
-        out = loo_error(np.nan_to_num(p), V, L, W, w)
-    return np.where(np.isfinite(p).all(1), out, np.inf)
+        e, bad = loo_residuals(np.nan_to_num(p), V, L, W, w)
+    return e, bad | ~np.isfinite(p).all(1)
+
+
+def display_gamma(obs, samples: int = 64, seed: int = 0) -> float:
+    """The held-out comparison's tone-map gamma (:func:`parammap.holdout.choose_gamma`:
+    the 99th percentile at 0.95) from the valid radiance of up to ``samples`` tiles of
+    the observation map, at random."""
+    T, S, _ = obs["valid"].shape
+    tile = int(obs.attrs["tile"])
+    starts = [(r, c) for r in range(0, T, tile) for c in range(0, S, tile)]
+    rng = np.random.default_rng(seed)
+    vals = []
+    for i in rng.permutation(len(starts))[:samples]:
+        r0, c0 = starts[i]
+        rows, cols = slice(r0, r0 + tile), slice(c0, c0 + tile)
+        _, L, W, _ = tile_observations(obs, rows, cols)
+        vals.append(L[W].ravel())
+    vals = np.concatenate(vals)
+    return math.log(20.0) / max(float(np.percentile(vals, 99)) if vals.size else 1.0, 1e-12)
+
+
+def _sh_loo(g, obs, rows: slice, cols: slice) -> tuple[np.ndarray, np.ndarray] | None:
+    """Exact leave-one-out residuals of an SH fit on the sampled cap (store ``g``):
+    the projection rerun on the tile with ``loo`` (None for the published ones)."""
+    a = dict(g.attrs)
+    if not a.get("sampled_cap"):
+        return None
+    kw = {"noise": obs["noise"][rows, cols]} if "noise" in obs else {}
+    out = fit_sh_tile(obs["radiance"][rows, cols], obs["direction"][rows, cols],
+                      obs["valid"][rows, cols], int(a["bands"]), str(a["hemisphere"]),
+                      a.get("regularisation") or "auto", sampled_cap=True,
+                      areas=a.get("solid_angles", "spherical"), loo=True, **kw)
+    e = out["loo"].reshape(-1, *out["loo"].shape[2:])
+    fitted = out["status"].ravel() == FitStatus.OK
+    W = np.isfinite(e).all(-1)
+    bad = ~fitted | (np.isinf(e).any(-1)).any(1)
+    return np.where(np.isfinite(e), e, 0.0), bad | ~W.any(1)
+
+
+def _fit_store(path: Path):
+    """The finished fit store at ``path``, or None when there is none."""
+    from .stores import open_complete
+
+    try:
+        return open_complete(path, InputError, "fit store")
+    except InputError:
+        return None
 
 
 def _stored(pm: ParamMap) -> int:
     """Values stored per texel of a map of this model."""
     return int(pm.params.shape[-1])
+
+
+def error_table(proc: Processed, maps: dict[str, ParamMap], obs,
+                criterion: str = "display") -> np.ndarray:
+    """(T S, len(maps)) leave-one-view-out error of every candidate at every texel by
+    ``criterion`` (module docstring; inf where undefined or not fitted), row-major
+    texels, candidates in the order of ``maps``."""
+    if criterion not in CRITERIA:
+        raise InputError(f"best.criterion: {criterion!r} is not one of {', '.join(CRITERIA)}")
+    T, S, _ = obs["valid"].shape
+    stores = {name: _fit_store(proc.fit(name)) for name, pm in maps.items()
+              if pm.model == "sh"}
+    for name, g in stores.items():
+        if g is None or not g.attrs.get("sampled_cap"):
+            logger.warning(f"best: {name} is judged by a plain least-squares refit of its "
+                           f"coefficients ({proc.fit(name)}: no fit store on the sampled "
+                           "cap to rerun), which overstates its error at the cap's edge")
+    gamma = display_gamma(obs) if criterion == "display" else None
+    tile = int(obs.attrs["tile"])
+    flat_of = np.arange(T * S).reshape(T, S)
+    B = np.full((T * S, len(maps)), np.inf)
+    for r0 in range(0, T, tile):
+        for c0 in range(0, S, tile):
+            rows, cols = slice(r0, min(r0 + tile, T)), slice(c0, min(c0 + tile, S))
+            flat = flat_of[rows, cols].ravel()
+            V, L, W, w = tile_observations(obs, rows, cols)
+            for j, (name, pm) in enumerate(maps.items()):
+                e = _sh_loo(stores[name], obs, rows, cols) if stores.get(name) else None
+                if e is None:
+                    p = pm.params.reshape(T * S, -1)[flat].astype(float)
+                    e = loo(name, pm.model, p, V, L, W, w)
+                B[flat, j] = (display_error(e, L, W, w, gamma) if gamma is not None
+                              else press(e, w))
+    return B
+
+
+TIE = 0.01  # relative: errors this close to the least are a tie
+
+
+def choose(B: np.ndarray, stored: np.ndarray, pool_radius: int,
+           shape: tuple[int, int]) -> np.ndarray:
+    """(T, S) index of the candidate each texel takes, from errors B (T S, J) and the
+    values each candidate stores per texel (J,): the least error, an error within
+    ``TIE`` of it counting as a tie that the smaller model wins (an MH fit that found
+    no lobe against diffuse; a saving no render shows), then, with ``pool_radius`` > 0,
+    the choice most texels of the (2 r + 1)^2 neighbourhood made."""
+    T, S = shape
+    low = B.min(1, keepdims=True)
+    near = B <= low + TIE * np.abs(low)
+    own = np.argmin(np.where(near, stored[None], np.inf), 1)
+    pool = 2 * pool_radius + 1
+    if pool == 1:
+        return own.reshape(T, S)
+    votes = np.stack([uniform_filter((own == j).reshape(T, S).astype(float), pool,
+                                     mode="constant").ravel() for j in range(B.shape[1])], 1)
+    votes[np.arange(T * S), own] += 0.5 / pool**2  # a tie keeps the texel's own choice
+    return np.argmax(votes, 1).reshape(T, S)
 
 
 def run_best(processed: str | Path, models: list[str], config: dict[str, Any],
@@ -91,30 +217,24 @@ def run_best(processed: str | Path, models: list[str], config: dict[str, Any],
         if pm.shape != (T, S):
             raise InputError(f"best: {name} is {pm.shape[1]}x{pm.shape[0]} texels, the "
                              f"observation map {S}x{T}")
-    tile = int(obs.attrs["tile"])
-    flat_of = np.arange(T * S).reshape(T, S)
-    B = np.full((T * S, len(maps)), np.inf)  # leave-one-view-out error (PRESS)
-    for r0 in range(0, T, tile):
-        for c0 in range(0, S, tile):
-            rows, cols = slice(r0, min(r0 + tile, T)), slice(c0, min(c0 + tile, S))
-            flat = flat_of[rows, cols].ravel()
-            V, L, W, w = tile_observations(obs, rows, cols)
-            for j, (name, pm) in enumerate(maps.items()):
-                p = pm.params.reshape(T * S, -1)[flat].astype(float)
-                B[flat, j] = press(name, pm.model, p, V, L, W, w)
-    own = np.argmin(B, 1)
-    pool = 2 * int(config["best"]["pool_radius"]) + 1
-    votes = np.stack([uniform_filter((own == j).reshape(T, S).astype(float), pool,
-                                     mode="constant").ravel() for j in range(len(maps))], 1)
-    votes[np.arange(T * S), own] += 0.5 / pool**2  # a tie keeps the texel's own choice
-    choice = np.argmax(votes, 1).reshape(T, S)
+    criterion = config["best"].get("criterion", "display")
+    B = error_table(proc, maps, obs, criterion)
+    stored = np.array([_stored(m) for m in maps.values()], float)
+    choice = choose(B, stored, int(config["best"]["pool_radius"]), (T, S))
     any_map = next(iter(maps.values()))
     pm = ParamMap("best", choice[..., None].astype(np.float32), any_map.width_mm,
                   any_map.height_mm, attrs={"candidates": " ".join(maps)})
     write_param_map(proc.params(BEST_MODEL), pm)
     share = {name: float((choice == j).mean()) for j, name in enumerate(maps)}
-    stored = np.array([_stored(m) for m in maps.values()], float)
-    m = {"candidates": list(maps), "chosen_fraction": share,
+    fin = np.isfinite(B).all(1)
+    m = {"candidates": list(maps), "criterion": criterion,
+         # the leave-one-out error of each candidate and of the map (texels where
+         # every candidate is defined): the saving the choice predicts
+         "loo_error_median": {name: float(np.median(B[fin, j])) if fin.any() else None
+                              for j, name in enumerate(maps)}
+         | {BEST_MODEL: float(np.median(B[fin, choice.ravel()[fin]])) if fin.any()
+            else None},
+         "chosen_fraction": share,
          "values_per_texel": float(stored[choice].mean()),
          "values_per_texel_single": {name: int(s) for name, s in zip(maps, stored,
                                                                         strict=True)}}
@@ -139,7 +259,7 @@ def _figure(path: Path, choice: np.ndarray, names: list[str], share: dict) -> Pa
                    interpolation="nearest")
     cb = fig.colorbar(im, ax=ax, ticks=range(len(names)))
     cb.ax.set_yticklabels([f"{n} ({100 * share[n]:.0f} %)" for n in names], fontsize=7)
-    ax.set_title("Model chosen per texel (leave-one-view-out error, 3x3 vote)", fontsize=9)
+    ax.set_title("Model chosen per texel (leave-one-view-out error)", fontsize=9)
     ax.set_xticks([])
     ax.set_yticks([])
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -1,11 +1,15 @@
-"""Leave-one-view-out prediction error (PRESS) of fitted maps of any model, per texel,
-so that different models can be compared on how well they predict views they did not
-see (the best-model stage). Every function returns the weighted PRESS
-``sum_v w_v |e_v|^2`` of the texels, with ``e_v`` the residual of view v once the
-(linearised) fit is refitted without it, ``(I - H_vv)^-1 r_v`` (H the hat matrix, H_vv
-its 3 x 3 block of the view's channels): the same criterion as the MH fitter's lobe
-choice (:func:`parammap.models.mh.uncertainty.loo_error`, used here for MH maps), inf
-where a view alone determines a parameter.
+"""Leave-one-view-out predictions of fitted maps of any model, per texel, so that
+different models can be compared on how well they predict views they did not see (the
+best-model stage). ``e_v``, the residual of view v once the (linearised) fit is
+refitted without it, is ``(I - H_vv)^-1 r_v`` (H the hat matrix, H_vv its 3 x 3 block of
+the view's channels): the MH fitter's lobe choice uses the same
+(:func:`parammap.models.mh.uncertainty.loo_residuals`, used here for MH maps).
+
+The ``loo_*`` functions return the (n, N, 3) residuals (prediction minus observation,
+0 where not valid) and (n,) bool where a view alone determines a parameter (its
+left-out prediction is undefined). :func:`press` sums them as squares in radiance,
+:func:`display_error` measures them as the held-out comparison measures renders: in
+8-bit levels after the report's tone map.
 
 Inputs: V, L (n, N, 3) directions and radiance, W (n, N) valid, w (n, N) weights (0
 where invalid).
@@ -19,12 +23,15 @@ from ..conventions import MH_KD, mh_ks, mh_lobes
 from .mh.model import mh_eval
 from .sh import sh_basis
 
-__all__ = ["press_amplitudes", "press_diffuse", "press_linear", "press_sh"]
+__all__ = ["display_error", "loo_amplitudes", "loo_diffuse", "loo_linear", "loo_sh",
+           "press", "press_linear"]
+
+Loo = tuple[np.ndarray, np.ndarray]
 
 
-def press_linear(J: np.ndarray, r: np.ndarray, w: np.ndarray, W: np.ndarray) -> np.ndarray:
-    """PRESS (n,) of a model linear in its parameters, with design J (n, N, 3, q) and
-    residuals r (n, N, 3) of its least-squares fit (weights w (n, N))."""
+def loo_linear(J: np.ndarray, r: np.ndarray, w: np.ndarray, W: np.ndarray) -> Loo:
+    """Leave-one-view-out residuals of a model linear in its parameters, with design J
+    (n, N, 3, q) and residuals r (n, N, 3) of its least-squares fit (weights w)."""
     n, N, _, q = J.shape
     sw = np.sqrt(np.where(W, w, 0.0))[..., None, None]
     Jw = J * sw
@@ -36,24 +43,58 @@ def press_linear(J: np.ndarray, r: np.ndarray, w: np.ndarray, W: np.ndarray) -> 
         det = np.linalg.det(IH)
         bad = ~(np.abs(det) > 1e-9) & W
         IH = np.where(bad[..., None, None], np.eye(3), IH)
-        e = (r * sw[..., 0])[..., None]
-        loo = np.linalg.solve(IH, e)[..., 0]
-    out = (np.where(W[..., None], loo, 0.0) ** 2).sum((1, 2))
-    return np.where(bad.any(1), np.inf, out)
+        loo = np.linalg.solve(IH, r[..., None])[..., 0]
+    return np.where(W[..., None], loo, 0.0), bad.any(1)
 
 
-def press_diffuse(kd: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
-                  w: np.ndarray) -> np.ndarray:
-    """PRESS of view-independent radiance ``kd`` (n, 3) (the weighted mean)."""
+def press(loo: Loo, w: np.ndarray) -> np.ndarray:
+    """(n,) weighted PRESS ``sum_v w_v |e_v|^2`` of leave-one-out residuals (inf where a
+    view alone determines a parameter)."""
+    e, bad = loo
+    return np.where(bad, np.inf, (w[..., None] * e ** 2).sum((1, 2)))
+
+
+def press_linear(J: np.ndarray, r: np.ndarray, w: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """PRESS (n,) of a linear model (:func:`loo_linear`)."""
+    return press(loo_linear(J, r, w, W), np.where(W, w, 0.0))
+
+
+def display_error(loo: Loo, L: np.ndarray, W: np.ndarray, w: np.ndarray,
+                  gamma: float) -> np.ndarray:
+    """(n,) mean 8-bit difference, after the tone map ``1 - exp(-gamma L)`` of the
+    held-out comparison, between each view's observation and its leave-one-out
+    prediction (weighted mean over the valid views and the channels; inf where a view
+    alone determines a parameter).
+
+    Radiance errors weigh as a viewer sees them: the tone map compresses a highlight's
+    error by ``exp(-gamma L)`` (to 1/20 at the 99th percentile), so the sum of squared
+    radiance (PRESS) is ruled by the few views on a highlight, and the mid-tones where
+    renders are looked at are not."""
+    e, bad = loo
+
+    def tone(x):
+        return 255.0 * (1.0 - np.exp(-gamma * np.maximum(x, 0.0)))
+
+    ww = np.where(W, w, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d = np.abs(tone(L + e) - tone(L)).mean(-1)
+        out = (ww * d).sum(1) / ww.sum(1)
+    return np.where(bad | ~np.isfinite(out), np.inf, out)
+
+
+def loo_diffuse(kd: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
+                w: np.ndarray) -> Loo:
+    """Leave-one-out residuals of view-independent radiance ``kd`` (n, 3) (the
+    weighted mean)."""
     J = np.broadcast_to(np.eye(3), L.shape[:2] + (3, 3))
-    return press_linear(J, np.where(W[..., None], kd[:, None] - L, 0.0), w, W)
+    return loo_linear(J, np.where(W[..., None], kd[:, None] - L, 0.0), w, W)
 
 
-def press_amplitudes(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
-                     w: np.ndarray) -> np.ndarray:
-    """PRESS of MH maps whose lobe shapes (m, directions, colours) are not the texel's
-    own but shared (the basis materials): only Kd and each lobe's amplitude are
-    refitted without the view."""
+def loo_amplitudes(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
+                   w: np.ndarray) -> Loo:
+    """Leave-one-out residuals of MH maps whose lobe shapes (m, directions, colours)
+    are not the texel's own but shared (the basis materials): only Kd and each lobe's
+    amplitude are refitted without the view."""
     P = np.asarray(P, float)
     K = mh_lobes(P.shape[1])
     cols = [np.broadcast_to(np.eye(3), L.shape[:2] + (3, 3))]
@@ -65,15 +106,16 @@ def press_amplitudes(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
                 one[:, mh_ks(j)] = 0.0
         cols.append(mh_eval(one, V)[..., None])  # the lobe, its colour included
     J = np.concatenate(cols, -1)
-    return press_linear(J, np.where(W[..., None], mh_eval(P, V) - L, 0.0), w, W)
+    return loo_linear(J, np.where(W[..., None], mh_eval(P, V) - L, 0.0), w, W)
 
 
-def press_sh(C: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
-             w: np.ndarray) -> np.ndarray:
-    """PRESS of SH maps, coefficients C (n, 3 nc) (channel-major, conventions.md),
-    refitting without the view only the coefficients the texel uses (non-zero; the
-    bands its views resolve). The channels share one design, so the hat matrix is the
-    same scalar per view for the three."""
+def loo_sh(C: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
+           w: np.ndarray) -> Loo:
+    """Leave-one-out residuals of SH maps, coefficients C (n, 3 nc) (channel-major,
+    conventions.md), refitting without the view by plain least squares only the
+    coefficients the texel uses (non-zero). For projections with a prior or
+    regularisation this overstates the error of views at the edge of the sampled cap
+    (their exact smoother: :func:`parammap.models.sh.fit_sh_tile` with ``loo``)."""
     C = np.nan_to_num(np.asarray(C, float))
     n = len(C)
     nc = C.shape[1] // 3
@@ -89,5 +131,4 @@ def press_sh(C: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
         h = ww * np.einsum("nvk,nkl,nvl->nv", Yu, np.linalg.pinv(A), Yu)
         bad = (h > 1 - 1e-9) & W
         loo = r / np.where(bad, 1.0, 1 - h)[..., None]
-    out = (ww[..., None] * loo ** 2).sum((1, 2))
-    return np.where(bad.any(1), np.inf, out)
+    return np.where(W[..., None], loo, 0.0), bad.any(1)

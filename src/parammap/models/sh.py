@@ -56,6 +56,8 @@ __all__ = [
     "project_cap",
     "sh_eval",
     "sh_outputs",
+    "smoother",
+    "smoother_loo",
     "solid_angles",
 ]
 
@@ -506,7 +508,9 @@ def guarded_project(
     (B, 3, n^2) coefficients, (B,) the relative lambda, (B,) int8 escalations per texel
     (``GUARD_STEPS + 1``: still outside after the last one), and the bands fitted; with
     ``system``, also the final normal-equation matrices (B, k^2, k^2) of the k fitted
-    bands (:func:`project_cap`).
+    bands (:func:`project_cap`) and the (B, N) observation weights they were built
+    with (``weights`` times the cap's cell fractions): together the linear smoother
+    ``c = M^-1 Y^T diag(omega) y`` of :func:`smoother`.
     """
     ref = directions.mean(0)
     full = n
@@ -522,8 +526,9 @@ def guarded_project(
     # renders look from within the zenith range the views covered, not beyond it
     reach = np.arccos(np.clip(directions[..., 2].min(), -1, 1)) + cap.rho
     Yu = cap.basis_u[cap.zenith_u <= reach]
+    omega = weights * cap.fraction
     if not len(Yu):
-        return (_pad_bands(c, full), lam, esc, n) + ((M,) if system else ())
+        return (_pad_bands(c, full), lam, esc, n) + ((M, omega) if system else ())
     lo, hi = radiance.min(1), radiance.max(1)  # (B, 3)
     tol = GUARD_TOLERANCE * (hi - lo) + 1e-12
     for step in range(GUARD_STEPS + 1):
@@ -539,11 +544,27 @@ def guarded_project(
         c[sel], _, M[sel] = project_cap(radiance[sel], directions[sel], weights[sel], n,
                                         hemisphere, cap, lam[sel], Y[sel],
                                         prior_scale=mu[sel] * 10.0 ** esc[sel], system=True)
-    return (_pad_bands(c, full), lam, esc, n) + ((M,) if system else ())
+    return (_pad_bands(c, full), lam, esc, n) + ((M, omega) if system else ())
 
 
-def coefficient_sd(M: np.ndarray, Y: np.ndarray, omega: np.ndarray, r: np.ndarray,
-                   n: int, sigma: np.ndarray | None = None) -> np.ndarray:
+def smoother(M: np.ndarray, Y: np.ndarray, omega: np.ndarray) -> np.ndarray:
+    """(B, k^2, N) the linear map ``S = M^-1 Y^T diag(omega)`` from a texel's
+    observations to its coefficients (M (B, k^2, k^2), Y (B, N, k^2), omega (B, N))."""
+    return np.linalg.solve(M, np.swapaxes(Y, 1, 2) * omega[:, None, :])
+
+
+def smoother_loo(S: np.ndarray, Y: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """(B, N, 3) leave-one-view-out residuals ``r_i / (1 - h_ii)`` of a linear smoother S
+    (:func:`smoother`), r (B, N, 3) the residuals of its fit, h the diagonal of the hat
+    matrix ``Y S``: exact for a linear smoother with its prior and regularisation held
+    fixed. Inf where a view alone determines the fit (h ~ 1)."""
+    h = np.einsum("bnk,bkn->bn", Y, S)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where((h > 1 - 1e-9)[..., None], np.inf, r / (1 - h)[..., None])
+
+
+def coefficient_sd(S: np.ndarray, Y: np.ndarray, r: np.ndarray, n: int,
+                   sigma: np.ndarray | None = None) -> np.ndarray:
     """Standard deviations of projected coefficients ``c = M^-1 Y^T diag(omega) y``.
 
     A linear smoother ``S = M^-1 Y^T diag(omega)`` propagates the observations'
@@ -557,15 +578,14 @@ def coefficient_sd(M: np.ndarray, Y: np.ndarray, omega: np.ndarray, r: np.ndarra
 
     Parameters
     ----------
-    M : (B, k^2, k^2) normal-equation matrices; Y : (B, N, k^2) basis at the views;
-    omega : (B, N) weights; r : (B, N, 3) residuals; n : bands of the output;
+    S : (B, k^2, N) the smoother (:func:`smoother`); Y : (B, N, k^2) basis at the views;
+    r : (B, N, 3) residuals; n : bands of the output;
     sigma : (B, N, 3) noise sd of each observation (radiance units), or None.
 
     Returns
     -------
     (B, 3, n^2): NaN for the bands above k (not fitted: zero by construction).
     """
-    S = np.linalg.solve(M, np.swapaxes(Y, 1, 2) * omega[:, None, :])  # (B, k2, N)
     if sigma is not None:
         var = np.einsum("bkn,bnc->bck", S * S, sigma * sigma)
     else:
@@ -606,7 +626,7 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
                 hemisphere: str, reg: float | str = "auto", batch: int = 256,
                 min_obs: int | None = None, sampled_cap: bool = True,
                 noise: np.ndarray | None = None, areas: str = "spherical",
-                ) -> dict[str, np.ndarray]:
+                loo: bool = False) -> dict[str, np.ndarray]:
     """Project every texel of a tile, batched (texels sharing one validity pattern
     share one triangulation and one :class:`SampledCap`). (t, u, N, 3) inputs; outputs
     as :func:`sh_outputs`. ``sampled_cap`` (default) fits lsop, rlsop and wls with
@@ -615,10 +635,14 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
     N) relative sd per observation: cell weights are multiplied by the noise weights
     of :func:`parammap.models.weights.noise_weights`, and ``chi2`` is reported.
     ``areas``: ``spherical`` Voronoi cells (default) or 004's ``planar`` cells divided
-    by cos(theta) (:func:`planar_solid_angles`), for reproducing its artefacts."""
+    by cos(theta) (:func:`planar_solid_angles`), for reproducing its artefacts.
+    ``loo``: also ``loo`` (t, u, N, 3), each valid view's leave-one-out residual
+    (prediction minus observation, :func:`smoother_loo`; inf where the view alone
+    determines the fit), for the projections on the sampled cap (NaN otherwise)."""
     t, u, N, _ = radiance.shape
+    outputs = sh_outputs(n) | ({"loo": ((N, 3), "float64", float("nan"))} if loo else {})
     out = {k: np.full((t, u) + shp, fill, dtype) for k, (shp, dtype, fill) in
-           sh_outputs(n).items()}
+           outputs.items()}
     flat = {k: v.reshape((t * u,) + v.shape[2:]) for k, v in out.items()}
     L = radiance.reshape(t * u, N, 3).astype(float)
     V = direction.reshape(t * u, N, 3).astype(float)
@@ -645,14 +669,18 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
                     * NW[sel][:, w]
                 Y = sh_basis(v, n)
                 if sampled_cap and hemisphere in SH_CAP_AWARE:
-                    c, lam, esc, bands, M = guarded_project(y, v, omega, n, hemisphere, reg,
-                                                            Y, system=True)
+                    c, lam, esc, bands, M, om = guarded_project(y, v, omega, n, hemisphere,
+                                                                reg, Y, system=True)
                     flat["reg"][sel], flat["guard"][sel] = lam, esc
                     flat["bands"][sel] = bands
                     sigma = None if NZ is None else NZ[sel][:, w][..., None] * np.abs(y)
-                    flat["sd"][sel] = coefficient_sd(M, Y[..., : bands * bands], omega,
-                                                     y - np.matmul(Y, c.transpose(0, 2, 1)),
-                                                     n, sigma).reshape(len(sel), -1)
+                    Yk = Y[..., : bands * bands]
+                    Sm = smoother(M, Yk, om)
+                    r = y - np.matmul(Y, c.transpose(0, 2, 1))
+                    flat["sd"][sel] = coefficient_sd(Sm, Yk, r, n, sigma).reshape(len(sel), -1)
+                    if loo:
+                        flat["loo"][sel[:, None], np.flatnonzero(w)[None]] = \
+                            smoother_loo(Sm, Yk, -r)  # prediction - observation
                 else:
                     c = project(y, v, omega, n, hemisphere,
                                 1e-4 if reg == "auto" else float(reg), basis=Y)

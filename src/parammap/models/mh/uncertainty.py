@@ -34,7 +34,7 @@ from ...conventions import (
 )
 from .model import _lobes_present, _params_to_x_batch, _x_to_params_batch, mh_eval
 
-__all__ = ["loo_error", "parameter_sd"]
+__all__ = ["loo_error", "loo_residuals", "parameter_sd"]
 
 STEP = 1e-6  # relative forward-difference step in x space
 
@@ -75,15 +75,13 @@ def _linearised(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
     return J, JW, r, w, free, A, mask
 
 
-def loo_error(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
-              weights: np.ndarray | None = None) -> np.ndarray:
-    """Leave-one-view-out prediction error of fitted MH parameters, per texel.
+def loo_residuals(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
+                  weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Leave-one-view-out residuals of fitted MH parameters, per texel and view.
 
     The linearised fit's leave-one-out residual of view v is ``(I - H_vv)^-1 r_v``, H the
     (weighted) hat matrix and H_vv its 3 x 3 block of the view's channels: a view that
-    alone determines a lobe (H_vv near I) predicts itself badly once left out. The sum
-    of the squared (weighted) leave-one-out residuals, PRESS, estimates how the texel's
-    fit does in directions no view of it saw, at the cost of one Jacobian.
+    alone determines a lobe (H_vv near I) predicts itself badly once left out.
 
     Parameters
     ----------
@@ -92,7 +90,9 @@ def loo_error(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
 
     Returns
     -------
-    (n,) weighted PRESS (inf where a view's leave-one-out system is singular).
+    (n, N, 3) prediction minus observation of each view once left out (0 where not
+    valid), and (n,) bool: some view's leave-one-out system is singular (that view
+    alone determines a parameter).
     """
     P = np.asarray(P, float)
     n, N = W.shape
@@ -103,15 +103,30 @@ def loo_error(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
     with np.errstate(invalid="ignore", divide="ignore"):
         Ai = np.linalg.pinv(A)
         H = np.einsum("nvik,nkl,nvjl->nvij", Jw, Ai, Jw, optimize=True)
-        e = (r * np.sqrt(w)[..., None])[..., None]
         IH = np.eye(3) - H
         # a view whose block is (nearly) singular is predicted only by itself
         det = np.linalg.det(IH)
         bad = ~(np.abs(det) > 1e-9) & W
         IH = np.where(bad[..., None, None], np.eye(3), IH)
-        loo = np.linalg.solve(IH, e)[..., 0]
-    out = (np.where(W[..., None], loo, 0.0) ** 2).sum((1, 2))
-    return np.where(bad.any(1), np.inf, out)
+        # H acts on the weighted residuals; a view of weight 0 has H_vv = 0
+        loo = np.linalg.solve(IH, r[..., None])[..., 0]
+    return np.where(W[..., None], loo, 0.0), bad.any(1)
+
+
+def loo_error(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
+              weights: np.ndarray | None = None) -> np.ndarray:
+    """Leave-one-view-out prediction error of fitted MH parameters, per texel: the sum
+    of the squared (weighted) leave-one-out residuals of :func:`loo_residuals`, PRESS,
+    which estimates how the texel's fit does in directions no view of it saw, at the
+    cost of one Jacobian.
+
+    Returns
+    -------
+    (n,) weighted PRESS (inf where a view's leave-one-out system is singular).
+    """
+    loo, bad = loo_residuals(P, V, L, W, weights)
+    w = (np.ones(W.shape) if weights is None else np.asarray(weights, float)) * W
+    return np.where(bad, np.inf, (w[..., None] * loo ** 2).sum((1, 2)))
 
 
 def parameter_sd(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
