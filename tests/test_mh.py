@@ -277,6 +277,43 @@ def test_repair_clears_a_stain_wider_than_the_neighbourhood():
     np.testing.assert_array_equal(out["params"][keep], before["params"][keep])
 
 
+def test_repair_gives_a_patch_the_lobe_that_a_few_neighbours_found():
+    """Two highlights over a whole patch, the K = 2 start missing the second one almost
+    everywhere: the stuck texels are the neighbourhood, so its median does not expose
+    them; the lobe the few right texels found spreads to them (their RMSE 3x lower
+    with it), and texels of the one-highlight patch beside them keep their one lobe."""
+    from parammap.models.mh import repair_mh_tile
+    from parammap.synth.sampling import sample_directions
+
+    n, rng = 9, np.random.default_rng(1)
+    V = sample_directions("stratified", 75.0, n_side=9, seed=0)[:80]
+    d1, d2 = np.array([0.3, -0.2, 0.93]), np.array([-0.45, 0.35, 0.82])
+    two = np.r_[[0.2, 0.15, 0.1], 40.0, [0.8, 0.7, 0.6], d1 / np.linalg.norm(d1),
+                [0.6, 0.6, 0.5], d2 / np.linalg.norm(d2)]
+    one = two.copy()
+    one[10:13], one[13:16] = 0.0, [0.0, 0.0, 1.0]
+    truth = np.broadcast_to(two, (n, n, len(two))).copy()
+    truth[:, 6:] = one  # a one-highlight patch on the right
+    rad = np.stack([[mh_eval(truth[i, j], V) for j in range(n)] for i in range(n)])
+    rad = (rad * (1 + 0.002 * rng.standard_normal(rad.shape))).astype(np.float32)
+    dirs = np.broadcast_to(V, (n, n) + V.shape).astype(np.float32)
+    valid = np.ones((n, n, len(V)), bool)
+    fields = fit_mh_tile(rad, dirs, valid, 2)
+    # stuck: the second highlight missed everywhere but in a 2x2 corner
+    stuck = np.ones((n, n), bool)
+    stuck[:2, :2] = False
+    stuck[:, 6:] = False
+    fields["params"][stuck] = one
+    fields["k_used"][stuck] = 1
+    fields["rmse"][stuck] = np.sqrt(((mh_eval(np.broadcast_to(one, (stuck.sum(), len(one))),
+                                              dirs[stuck]) - rad[stuck]) ** 2).mean(-2))
+    out = repair_mh_tile(fields, rad, dirs, valid, (0, 0), K=2)
+    assert (out["k_used"][:, :6] == 2).all()
+    np.testing.assert_allclose(out["params"][:, :6], truth[:, :6], rtol=0.1, atol=0.03)
+    assert (out["k_used"][:, 6:] == fields["k_used"][:, 6:]).all()
+    assert (out["changed"][:, 6:] == 0).all()
+
+
 def test_repair_starts_from_the_neighbour_that_explains_the_texel():
     """Neighbours of two materials: the one whose lobe explains the texel's data once
     its colours are refit ranks first, whatever its distance (a stain beside a material

@@ -1,5 +1,7 @@
 """Repair of MH \"stains\": texels stuck in a poor local minimum beside well-fitted
-neighbours of the same material are refit from the neighbours' parameters."""
+neighbours of the same material are refit from the neighbours' parameters; so are
+texels that missed a lobe their neighbours found (a whole patch can miss a second
+highlight, and then its neighbourhood median does not expose it)."""
 
 from __future__ import annotations
 
@@ -86,10 +88,12 @@ def repair_mh_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
     """Refit the texels of a tile that stand out from their neighbourhood.
 
     A texel whose RMSE (mean over channels) exceeds ``factor`` times the median over its
-    (2 ``radius`` + 1)^2 neighbourhood is refit with nlopt from the parameters of the
-    ``starts`` neighbours in that window that do not stand out and explain its data best
-    once their colours are refit (:func:`_rescaled_starts`: the nearest texels may be of
-    another material); the best fit replaces the texel's
+    (2 ``radius`` + 1)^2 neighbourhood, or ``factor`` times what the lobes of a
+    neighbour with more lobes give it (:func:`_missed_lobes`), is refit with nlopt from
+    the parameters of the ``starts`` neighbours in that window that do not stand out
+    and explain its data best once their colours are refit (:func:`_rescaled_starts`:
+    the nearest texels may be of another material; for ``auto``, by BIC over every
+    count of lobes together); the best fit replaces the texel's
     only if it is better (lower RSS, or for ``auto`` a BIC lower by ``cfg.bic_margin``),
     so a texel whose own data are good is never changed.
 
@@ -134,6 +138,10 @@ def repair_mh_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
         if fresh is not None:
             near_fresh = maximum_filter(fresh, 2 * radius + 1, mode="constant")[sl]
             todo &= near_fresh | ~tried
+        todo |= _missed_lobes(params, kused, rmse, good, radiance, direction, valid,
+                              offset, ~out["changed"].astype(bool) & ~todo
+                              & (~tried if fresh is None else near_fresh | ~tried),
+                              factor=factor, radius=radius, starts=starts)
         bad = np.argwhere(todo)
         if len(bad) == 0:
             break
@@ -166,6 +174,43 @@ def repair_mh_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
     return out if out["changed"].any() or tried.any() else None
 
 
+def _missed_lobes(params: np.ndarray, kused: np.ndarray, rmse: np.ndarray,
+                  good: np.ndarray, radiance: np.ndarray, direction: np.ndarray,
+                  valid: np.ndarray, offset: tuple[int, int], check: np.ndarray, *,
+                  factor: float, radius: int, starts: int) -> np.ndarray:
+    """(t, u) texels of the tile (among ``check``) that missed a lobe their neighbours
+    found: a well-fitted neighbour in the window with more lobes explains the texel's
+    data, its shininess and directions kept and only Kd and Ks refit
+    (:func:`_rescaled_starts`), with an RMSE ``factor`` times lower than the texel's own
+    fit. Such a region (a second highlight that the K-lobe start missed over a whole
+    patch) is a stain that the neighbourhood median does not expose, being itself
+    poor there. Up to ``starts`` of the nearest such neighbours are tried."""
+    oy, ox = offset
+    out = np.zeros(check.shape, bool)
+    gy, gx = np.nonzero(good)
+    for i, j in np.argwhere(check):
+        at = (i + oy, j + ox)
+        own = float(np.nanmean(rmse[at]))
+        if not own > 0:
+            continue
+        d = np.maximum(np.abs(gy - at[0]), np.abs(gx - at[1]))
+        near = np.flatnonzero((d <= radius) & (kused[gy, gx] > kused[at]))
+        if len(near) == 0:
+            continue
+        near = near[np.argsort(d[near], kind="stable")[:starts]]
+        w = valid[i, j] & np.isfinite(radiance[i, j]).all(-1) \
+            & np.isfinite(direction[i, j]).all(-1)
+        if w.sum() < 4:
+            continue
+        V, L = direction[i, j][w].astype(float), radiance[i, j][w].astype(float)
+        ks = kused[gy[near], gx[near]].astype(int)
+        best = min(float(_rescaled_starts(params[gy[near[ks == k]], gx[near[ks == k]]]
+                                          .astype(float), V, L, int(k))[1].min())
+                   for k in np.unique(ks))
+        out[i, j] = factor * np.sqrt(best / L.size) < own
+    return out
+
+
 def _refit_from_neighbours(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray,
                            at: tuple[int, int], params: np.ndarray, kused: np.ndarray,
                            rmse: np.ndarray, gy: np.ndarray, gx: np.ndarray, *,
@@ -185,17 +230,22 @@ def _refit_from_neighbours(radiance: np.ndarray, direction: np.ndarray, valid: n
     near = np.flatnonzero((np.abs(gy - at[0]) <= radius) & (np.abs(gx - at[1]) <= radius))
     ks = kused[gy[near], gx[near]].astype(int) if K == "auto" else np.full(len(near), int(K))
     best, evals = None, 0
+    cands = []  # (rescaled criterion, lobes, start): the best ``starts`` of every count
     for k in np.unique(ks[ks >= 1]):
         sel = near[ks == k]
         Q, score = _rescaled_starts(params[gy[sel], gx[sel]].astype(float), V, L, int(k))
-        for q in np.argsort(score, kind="stable")[:starts]:
-            r = fit_texel(V, L, Q[q], cfg)
-            evals += r.evals
-            if r.status != FitStatus.OK:
-                continue
-            crit = bic(r.rss, L.size, int(k), floor) if K == "auto" else r.rss
-            if best is None or crit < best[0]:
-                best = (crit, r, int(k))
+        crit = [bic(float(x), L.size, int(k), floor) if K == "auto" else float(x)
+                for x in score]
+        cands += [(crit[q], int(k), Q[q]) for q in range(len(Q))]
+    cands.sort(key=lambda c: c[0])
+    for _, k, q in cands[:starts]:
+        r = fit_texel(V, L, q, cfg)
+        evals += r.evals
+        if r.status != FitStatus.OK:
+            continue
+        crit = bic(r.rss, L.size, k, floor) if K == "auto" else r.rss
+        if best is None or crit < best[0]:
+            best = (crit, r, k)
     margin = cfg.bic_margin if K == "auto" else 0.0
     if best is None or not best[0] < crit0 - margin:
         return None, 0, evals, V, L
