@@ -19,7 +19,8 @@ from .uncertainty import parameter_sd
 # local minimum shows as a "stain" of high residual among well-fitted neighbours).
 REPAIR_FACTOR = 3.0
 REPAIR_RADIUS = 4  # neighbourhood (2r + 1)^2 = 9x9 texels
-REPAIR_STARTS = 8  # well-fitted neighbours tried as starts (those that explain it best)
+REPAIR_STARTS = 3  # well-fitted neighbours tried as starts, those that explain it best (8
+# on the demo: the same held-out error and mean RMSE within 0.3 %, the fit 1.6x slower)
 REPAIR_ROUNDS = 32  # a stain wider than the neighbourhood is repaired from its rim inwards
 
 
