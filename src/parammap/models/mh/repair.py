@@ -188,25 +188,31 @@ def _missed_lobes(params: np.ndarray, kused: np.ndarray, rmse: np.ndarray,
     poor there. Up to ``starts`` of the nearest such neighbours are tried."""
     oy, ox = offset
     out = np.zeros(check.shape, bool)
-    gy, gx = np.nonzero(good)
-    for i, j in np.argwhere(check):
+    H, Wd = good.shape
+    # more lobes than the texel somewhere in its window: the only texels to look at
+    more = maximum_filter(np.where(good, kused, -1), 2 * radius + 1, mode="constant",
+                          cval=-1)
+    cand = check & (more[oy:oy + check.shape[0], ox:ox + check.shape[1]]
+                    > kused[oy:oy + check.shape[0], ox:ox + check.shape[1]])
+    for i, j in np.argwhere(cand):
         at = (i + oy, j + ox)
         own = float(np.nanmean(rmse[at]))
         if not own > 0:
             continue
-        d = np.maximum(np.abs(gy - at[0]), np.abs(gx - at[1]))
-        near = np.flatnonzero((d <= radius) & (kused[gy, gx] > kused[at]))
-        if len(near) == 0:
-            continue
-        near = near[np.argsort(d[near], kind="stable")[:starts]]
+        r0, c0 = max(at[0] - radius, 0), max(at[1] - radius, 0)
+        win = (slice(r0, min(at[0] + radius + 1, H)), slice(c0, min(at[1] + radius + 1, Wd)))
+        ny, nx = np.nonzero(good[win] & (kused[win] > kused[at]))
+        d = np.maximum(np.abs(ny + r0 - at[0]), np.abs(nx + c0 - at[1]))
+        order = np.argsort(d, kind="stable")[:starts]
+        ny, nx = ny[order] + r0, nx[order] + c0
         w = valid[i, j] & np.isfinite(radiance[i, j]).all(-1) \
             & np.isfinite(direction[i, j]).all(-1)
         if w.sum() < 4:
             continue
         V, L = direction[i, j][w].astype(float), radiance[i, j][w].astype(float)
-        ks = kused[gy[near], gx[near]].astype(int)
-        best = min(float(_rescaled_starts(params[gy[near[ks == k]], gx[near[ks == k]]]
-                                          .astype(float), V, L, int(k))[1].min())
+        ks = kused[ny, nx].astype(int)
+        best = min(float(_rescaled_starts(params[ny[ks == k], nx[ks == k]].astype(float),
+                                          V, L, int(k))[1].min())
                    for k in np.unique(ks))
         out[i, j] = factor * np.sqrt(best / L.size) < own
     return out
