@@ -106,3 +106,20 @@ def test_best_stage_keeps_the_lobe_where_the_views_need_it(tmp_path):
     assert (tmp_path / "figs" / "best_choice.png").is_file()
     with pytest.raises(InputError, match="at least two"):
         run_best(tmp_path, ["mh-1"], cfg)
+
+
+def test_choice_leaves_the_default_only_for_a_significant_gain():
+    from parammap.best import choose
+
+    # four texels, candidates a (the default: least mean error), b, and c
+    B = np.array([[1.0, 0.9, 2.0],    # b better, but within one standard error
+                  [1.0, 0.5, 2.0],    # b better by more than one standard error
+                  [np.inf, 0.5, 2.0],  # a undefined (a view alone makes its lobe)
+                  [1.0, 3.0, 2.0]])
+    SE = np.full((4, 3, 3), 0.2)
+    got = choose(B, SE, 0, (2, 2)).ravel()
+    assert list(got) == [0, 1, 0, 0]
+    assert list(choose(B, None, 0, (2, 2)).ravel()) == [1, 1, 1, 0]  # least, however slight
+    same = np.tile([0, 1, 2], (4, 1))
+    same[1, 1] = 2  # b is c's twin at texel 1 (e.g. an MH fit without a lobe, diffuse)
+    assert list(choose(B, SE, 0, (2, 2), same).ravel()) == [0, 2, 0, 0]

@@ -24,10 +24,14 @@ of squared radiance errors, which is ruled by the views on a highlight. A model 
 more freedom than the views support predicts left-out views worse, so neither needs a
 parameter count.
 
-Each texel takes the candidate with the least error (``best.pool_radius`` > 0: the
-choice most texels of its neighbourhood made; a 3x3 vote did worse than each texel's
-own choice on every generator capture, overruling the minority models where they are
-right). The result is the map
+The map's default is the candidate with the least mean error; a texel leaves it only
+for a candidate its own views say is better by more than one standard error of the
+difference (``best.significance``; :func:`choose`): the least of eight noisy errors is
+often least by chance, and taking it cost the demo 0.3 levels on its held-out views.
+An MH map whose fit found no lobe at a texel is written there as the diffuse map (the
+same model, smaller). ``best.pool_radius`` > 0 adds a neighbourhood vote (worse on
+every generator capture: it overrules the minority models where they are right).
+The result is the map
 ``params/best.exr``: one channel ``choice`` indexing the candidates named in its
 header (their own EXRs beside it; :func:`parammap.params.read_param_map` loads them and
 :func:`parammap.render.render` draws each texel with its model), so the held-out
@@ -46,17 +50,11 @@ from typing import Any
 import numpy as np
 from scipy.ndimage import uniform_filter
 
-from .conventions import FitStatus
+from .conventions import FitStatus, mh_ks, mh_lobes
 from .errors import InputError
 from .materials import MATERIALS_MODEL
 from .models.mh.uncertainty import loo_residuals
-from .models.selection import (
-    display_error,
-    loo_amplitudes,
-    loo_diffuse,
-    loo_sh,
-    press,
-)
+from .models.selection import loo_amplitudes, loo_diffuse, loo_sh, view_errors
 from .models.sh import fit_sh_tile
 from .observation import open_observation_map, tile_observations
 from .params import ParamMap, read_param_map, write_param_map
@@ -64,7 +62,8 @@ from .paths import Processed
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["BEST_MODEL", "CRITERIA", "choose", "display_gamma", "error_table", "loo", "run_best"]
+__all__ = ["BEST_MODEL", "CRITERIA", "choose", "display_gamma", "error_table", "identical", "loo",
+           "run_best"]
 
 BEST_MODEL = "best"
 CRITERIA = ("display", "press")
@@ -138,13 +137,22 @@ def _stored(pm: ParamMap) -> int:
 
 
 def error_table(proc: Processed, maps: dict[str, ParamMap], obs,
-                criterion: str = "display") -> np.ndarray:
-    """(T S, len(maps)) leave-one-view-out error of every candidate at every texel by
-    ``criterion`` (module docstring; inf where undefined or not fitted), row-major
-    texels, candidates in the order of ``maps``."""
+                criterion: str = "display") -> tuple[np.ndarray, np.ndarray]:
+    """Leave-one-view-out error of every candidate at every texel by ``criterion``
+    (module docstring), row-major texels, candidates in the order of ``maps``.
+
+    Returns
+    -------
+    B : (T S, J) the error (display: weighted mean over the views; press: weighted sum;
+        inf where undefined or not fitted).
+    SE : (T S, J, J) float32 standard error of the difference ``B_a - B_b`` from the
+        spread of the per-view differences (how far the texel's views can tell two
+        candidates apart; inf where either is undefined).
+    """
     if criterion not in CRITERIA:
         raise InputError(f"best.criterion: {criterion!r} is not one of {', '.join(CRITERIA)}")
     T, S, _ = obs["valid"].shape
+    J = len(maps)
     stores = {name: _fit_store(proc.fit(name)) for name, pm in maps.items()
               if pm.model == "sh"}
     for name, g in stores.items():
@@ -155,43 +163,110 @@ def error_table(proc: Processed, maps: dict[str, ParamMap], obs,
     gamma = display_gamma(obs) if criterion == "display" else None
     tile = int(obs.attrs["tile"])
     flat_of = np.arange(T * S).reshape(T, S)
-    B = np.full((T * S, len(maps)), np.inf)
+    B = np.full((T * S, J), np.inf)
+    SE = np.full((T * S, J, J), np.inf, np.float32)
     for r0 in range(0, T, tile):
         for c0 in range(0, S, tile):
             rows, cols = slice(r0, min(r0 + tile, T)), slice(c0, min(c0 + tile, S))
             flat = flat_of[rows, cols].ravel()
             V, L, W, w = tile_observations(obs, rows, cols)
+            E = np.empty((len(flat), J, W.shape[1]))
             for j, (name, pm) in enumerate(maps.items()):
                 e = _sh_loo(stores[name], obs, rows, cols) if stores.get(name) else None
                 if e is None:
                     p = pm.params.reshape(T * S, -1)[flat].astype(float)
                     e = loo(name, pm.model, p, V, L, W, w)
-                B[flat, j] = (display_error(e, L, W, w, gamma) if gamma is not None
-                              else press(e, w))
-    return B
+                E[:, j] = view_errors(e, L, W, gamma)
+            B[flat], SE[flat] = _aggregate(E, W, w, criterion)
+    return B, SE
 
 
-TIE = 0.01  # relative: errors this close to the least are a tie
+def _aggregate(E: np.ndarray, W: np.ndarray, w: np.ndarray,
+               criterion: str) -> tuple[np.ndarray, np.ndarray]:
+    """Per-texel error (n, J) and the standard error of pairwise differences (n, J, J)
+    from per-view errors E (n, J, N): the weighted mean (display) or sum (press) of the
+    valid views, the standard error of that statistic for the differences."""
+    ww = np.where(W, w, 0.0)
+    sw = ww.sum(1)
+    scale = np.ones(len(E)) if criterion == "display" else W.sum(1).astype(float)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        X = np.where(W[:, None], E, 0.0)
+        mean = (ww[:, None] * X).sum(2) / sw[:, None]
+        B = np.where(np.isfinite(mean), mean * scale[:, None], np.inf)
+        # effective number of views of the weighted mean (Kish)
+        neff = sw ** 2 / np.maximum((ww ** 2).sum(1), 1e-300)
+        se = np.zeros(B.shape + (B.shape[1],))
+        for a in range(B.shape[1]):
+            for b in range(a):
+                d = X[:, a] - X[:, b]
+                md = (ww * d).sum(1) / sw
+                vd = (ww * (d - md[:, None]) ** 2).sum(1) / sw
+                se[:, a, b] = se[:, b, a] = np.sqrt(vd / np.maximum(neff - 1, 1)) * scale
+    fin = np.isfinite(B)
+    se = np.where(fin[:, :, None] & fin[:, None, :] & np.isfinite(se), se, np.inf)
+    return B, se.astype(np.float32)
 
 
-def choose(B: np.ndarray, stored: np.ndarray, pool_radius: int,
-           shape: tuple[int, int]) -> np.ndarray:
-    """(T, S) index of the candidate each texel takes, from errors B (T S, J) and the
-    values each candidate stores per texel (J,): the least error, an error within
-    ``TIE`` of it counting as a tie that the smaller model wins (an MH fit that found
-    no lobe against diffuse; a saving no render shows), then, with ``pool_radius`` > 0,
-    the choice most texels of the (2 r + 1)^2 neighbourhood made."""
+def choose(B: np.ndarray, SE: np.ndarray | None, pool_radius: int,
+           shape: tuple[int, int], same: np.ndarray | None = None) -> np.ndarray:
+    """(T, S) index of the candidate each texel takes.
+
+    From errors B (T S, J) and the standard errors of their differences SE (T S, J, J)
+    (:func:`error_table`):
+
+    1. the default is the candidate with the least mean error over the map;
+    2. a texel takes another only where its own views say that one is better by more
+       than one standard error of the difference (with eight candidates and a few
+       dozen views, the least of eight noisy errors is often least by chance, and a
+       render shows the texel's true error, not its luckiest estimate); among those,
+       the least error. Where the default's error is undefined (one view alone
+       determines its lobe, which leaving that view out cannot judge) the texel keeps
+       the default, as the MH fitter keeps such a lobe. Without SE: the least error;
+    3. ``same`` (T S, J): per texel, the index of the smallest candidate identical to
+       each there (an MH map whose fit found no lobe is the diffuse one), taken instead;
+    4. with ``pool_radius`` > 0, the choice most texels of the (2 r + 1)^2
+       neighbourhood made.
+    """
     T, S = shape
-    low = B.min(1, keepdims=True)
-    near = B <= low + TIE * np.abs(low)
-    own = np.argmin(np.where(near, stored[None], np.inf), 1)
+    n, J = B.shape
+    rows = np.arange(n)
+    fin = np.isfinite(B).all(1)
+    if SE is not None and fin.any():
+        default = int(np.argmin(B[fin].mean(0)))
+        better = B + SE[:, :, default] < B[:, [default]]
+        better[:, default] = True
+        own = np.argmin(np.where(better, B, np.inf), 1)
+        own = np.where(np.isfinite(B[:, default]), own, default)
+    else:
+        own = np.argmin(B, 1)
+    if same is not None:
+        own = same[rows, own]
     pool = 2 * pool_radius + 1
     if pool == 1:
         return own.reshape(T, S)
     votes = np.stack([uniform_filter((own == j).reshape(T, S).astype(float), pool,
-                                     mode="constant").ravel() for j in range(B.shape[1])], 1)
-    votes[np.arange(T * S), own] += 0.5 / pool**2  # a tie keeps the texel's own choice
+                                     mode="constant").ravel() for j in range(J)], 1)
+    votes[rows, own] += 0.5 / pool**2  # a tie keeps the texel's own choice
     return np.argmax(votes, 1).reshape(T, S)
+
+
+def identical(maps: dict[str, ParamMap]) -> np.ndarray:
+    """(T S, J) for choose: per texel, each candidate's own index, or the diffuse
+    candidate's where an MH candidate has no lobe there (the same model, smaller)."""
+    names = list(maps)
+    first = next(iter(maps.values()))
+    n = first.shape[0] * first.shape[1]
+    same = np.broadcast_to(np.arange(len(names)), (n, len(names))).copy()
+    diffuse = [j for j, m in enumerate(maps.values()) if m.model == "diffuse"]
+    if not diffuse:
+        return same
+    for j, m in enumerate(maps.values()):
+        if m.model == "mh":
+            P = m.params.reshape(n, -1)
+            K = mh_lobes(P.shape[1])
+            ks = sum(np.nan_to_num(P[:, mh_ks(k)]).sum(1) for k in range(K))
+            same[(ks <= 0) & np.isfinite(P).all(1), j] = diffuse[0]
+    return same
 
 
 def run_best(processed: str | Path, models: list[str], config: dict[str, Any],
@@ -218,9 +293,10 @@ def run_best(processed: str | Path, models: list[str], config: dict[str, Any],
             raise InputError(f"best: {name} is {pm.shape[1]}x{pm.shape[0]} texels, the "
                              f"observation map {S}x{T}")
     criterion = config["best"].get("criterion", "display")
-    B = error_table(proc, maps, obs, criterion)
+    B, SE = error_table(proc, maps, obs, criterion)
     stored = np.array([_stored(m) for m in maps.values()], float)
-    choice = choose(B, stored, int(config["best"]["pool_radius"]), (T, S))
+    choice = choose(B, SE if config["best"].get("significance", True) else None,
+                    int(config["best"]["pool_radius"]), (T, S), identical(maps))
     any_map = next(iter(maps.values()))
     pm = ParamMap("best", choice[..., None].astype(np.float32), any_map.width_mm,
                   any_map.height_mm, attrs={"candidates": " ".join(maps)})

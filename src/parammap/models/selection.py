@@ -23,7 +23,7 @@ from ..conventions import MH_KD, mh_ks, mh_lobes
 from .mh.model import mh_eval
 from .sh import sh_basis
 
-__all__ = ["display_error", "loo_amplitudes", "loo_diffuse", "loo_linear", "loo_sh",
+__all__ = ["display_error", "view_errors", "loo_amplitudes", "loo_diffuse", "loo_linear", "loo_sh",
            "press", "press_linear"]
 
 Loo = tuple[np.ndarray, np.ndarray]
@@ -59,27 +59,42 @@ def press_linear(J: np.ndarray, r: np.ndarray, w: np.ndarray, W: np.ndarray) -> 
     return press(loo_linear(J, r, w, W), np.where(W, w, 0.0))
 
 
-def display_error(loo: Loo, L: np.ndarray, W: np.ndarray, w: np.ndarray,
-                  gamma: float) -> np.ndarray:
-    """(n,) mean 8-bit difference, after the tone map ``1 - exp(-gamma L)`` of the
-    held-out comparison, between each view's observation and its leave-one-out
-    prediction (weighted mean over the valid views and the channels; inf where a view
-    alone determines a parameter).
+def view_errors(loo: Loo, L: np.ndarray, W: np.ndarray, gamma: float | None) -> np.ndarray:
+    """(n, N) error of each valid view's leave-one-out prediction (NaN where not
+    valid; inf on texels where a view alone determines a parameter): with ``gamma``,
+    the mean 8-bit difference over the channels after the tone map ``1 - exp(-gamma
+    L)`` of the held-out comparison; without, the squared radiance error (PRESS's
+    terms).
 
-    Radiance errors weigh as a viewer sees them: the tone map compresses a highlight's
-    error by ``exp(-gamma L)`` (to 1/20 at the 99th percentile), so the sum of squared
-    radiance (PRESS) is ruled by the few views on a highlight, and the mid-tones where
+    Radiance errors weigh as a viewer sees them with ``gamma``: the tone map compresses
+    a highlight's error by ``exp(-gamma L)`` (to 1/20 at the 99th percentile), so the sum
+    of squared radiance is ruled by the few views on a highlight, and the mid-tones where
     renders are looked at are not."""
     e, bad = loo
+    if gamma is None:
+        d = (e ** 2).sum(-1)
+    else:
+        def tone(x):
+            return 255.0 * (1.0 - np.exp(-gamma * np.maximum(x, 0.0)))
 
-    def tone(x):
-        return 255.0 * (1.0 - np.exp(-gamma * np.maximum(x, 0.0)))
+        with np.errstate(invalid="ignore"):
+            d = np.abs(tone(L + e) - tone(L)).mean(-1)
+    d = np.where(W, d, np.nan)
+    return np.where(bad[:, None] | ~np.isfinite(np.where(W, d, 0.0)).all(1)[:, None],
+                    np.inf, d)
 
+
+def display_error(loo: Loo, L: np.ndarray, W: np.ndarray, w: np.ndarray,
+                  gamma: float) -> np.ndarray:
+    """(n,) mean 8-bit difference, after the tone map of the held-out comparison,
+    between each view's observation and its leave-one-out prediction (weighted mean of
+    :func:`view_errors` over the valid views; inf where a view alone determines a
+    parameter)."""
+    d = view_errors(loo, L, W, gamma)
     ww = np.where(W, w, 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
-        d = np.abs(tone(L + e) - tone(L)).mean(-1)
-        out = (ww * d).sum(1) / ww.sum(1)
-    return np.where(bad | ~np.isfinite(out), np.inf, out)
+        out = (ww * np.where(W, d, 0.0)).sum(1) / ww.sum(1)
+    return np.where(np.isfinite(out), out, np.inf)
 
 
 def loo_diffuse(kd: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
