@@ -5,9 +5,11 @@ From a processed physically based capture (``benchmarks/pbr_capture.py`` first),
 ``--pool`` of its fitted views is set aside (seeded at random) and the rest are fitted
 (``--model``, an MH fit). The advisor ranks the pool's directions (as seen from the
 region's centre) by the greedy D-optimal design of the ``advise`` stage on that fit;
-its ``--count`` best are added back and the map refitted, and so are ``--random`` draws
-of as many pool views at random. Each map is compared with the clean renders of the
-capture's held-out views (mean 8-bit difference, as ``pbr_capture.py``). The pool's
+its ``--count`` best are added back and the map refitted, and so are the pool views
+that fill the largest gaps between the fitted ones (the advisor's fallback) and
+``--random`` draws of as many pool views at random. Each map is compared with the clean
+renders of the capture's held-out views (mean 8-bit difference, as
+``pbr_capture.py``). The pool's
 views are real photos of the capture, so no view is rendered anew.
 
     python benchmarks/advisor_pbr.py --preset pbr-tiny --pool 8 --count 3 --random 3
@@ -95,6 +97,16 @@ def run(preset: str, root: Path, pool: int, count: int, draws: int, model: str,
     picked = [pool_ids[i] for i in _advise(work, model, pool_dirs, count, seed)]
     res["advised_views"] = picked
     res["advised"] = _fit(cap, truth, work, poses, base | set(picked), model)
+    # the advisor's own fallback: fill the largest gaps between the views (greedy)
+    have = unit(np.array([centre[i] for i in base]) - X0)
+    gap = np.degrees(np.arccos(np.clip((pool_dirs @ have.T).max(1), -1, 1)))
+    gaps = []
+    for _ in range(count):
+        b = int(np.argmax(gap))
+        gaps.append(pool_ids[b])
+        gap = np.minimum(gap, np.degrees(np.arccos(np.clip(pool_dirs @ pool_dirs[b], -1, 1))))
+    res["gap_views"] = gaps
+    res["gaps"] = _fit(cap, truth, work, poses, base | set(gaps), model)
     res["random"] = []
     for k in range(draws):
         ids = list(np.random.default_rng(seed + 1 + k).choice(pool_ids, count, replace=False))
@@ -107,6 +119,7 @@ def run(preset: str, root: Path, pool: int, count: int, draws: int, model: str,
         return float(np.mean([row[model] for row in errs.values()]))
 
     res["mean"] = {"base": mean(res["base"]), "advised": mean(res["advised"]),
+                   "gaps": mean(res["gaps"]),
                    "random": [mean(r["errors"]) for r in res["random"]]}
     return res
 
@@ -126,6 +139,7 @@ if __name__ == "__main__":
     m = r["mean"]
     print(f"{a.preset} {a.model}: held-out mean 8-bit difference with {r['fitted_before']} "
           f"views {m['base']:.2f}; + {a.count} advised {r['advised_views']} "
-          f"{m['advised']:.2f}; + {a.count} random " + ", ".join(f"{x:.2f}" for x in
+          f"{m['advised']:.2f}; + {a.count} filling gaps {r['gap_views']} {m['gaps']:.2f}; "
+          f"+ {a.count} random " + ", ".join(f"{x:.2f}" for x in
                                                               m["random"])
           + f" (mean {np.mean(m['random']):.2f}); {r['seconds']:.0f} s")
