@@ -123,3 +123,38 @@ def test_choice_leaves_the_default_only_for_a_significant_gain():
     same = np.tile([0, 1, 2], (4, 1))
     same[1, 1] = 2  # b is c's twin at texel 1 (e.g. an MH fit without a lobe, diffuse)
     assert list(choose(B, SE, 0, (2, 2), same).ravel()) == [0, 2, 0, 0]
+
+
+def test_sh_is_judged_by_its_own_projection_not_a_plain_refit(tmp_path):
+    """The best stage reruns an SH fit on the sampled cap from its store to get each
+    view's exact leave-one-out residual (prior and regularisation held); without the
+    store it falls back to a plain least-squares refit, which lets a view at the cap's
+    edge determine a coefficient alone and overstates the error."""
+    import shutil
+
+    from parammap.best import error_table
+    from parammap.fitting import fit_sh_map
+    from parammap.observation import open_observation_map
+    from parammap.paths import Processed
+
+    case, label = patches_case(texels=12, noise=0.01, seed=2)
+    write_observation_arrays(tmp_path / "observation.zarr", case.radiance, case.direction,
+                             case.valid, 1000.0, 1000.0, tile=6)
+    cfg = validate_config({"captures": {"x": "."}})
+    fit_sh_map(tmp_path / "observation.zarr", tmp_path / "fit" / "sh-rlsop-16.zarr",
+               "rlsop", 4, cfg["fit"]["sh"], "synchronous", 1)
+    (tmp_path / "params").mkdir()
+    write_param_map(tmp_path / "params" / "sh-rlsop-16.exr",
+                    param_map_from_fit(tmp_path / "fit" / "sh-rlsop-16.zarr"))
+    write_param_map(tmp_path / "params" / "diffuse.exr",
+                    diffuse_map(tmp_path / "observation.zarr"))
+    proc = Processed(tmp_path)
+    maps = {n: read_param_map(proc.params(n)) for n in ("sh-rlsop-16", "diffuse")}
+    obs = open_observation_map(proc.observation)
+    exact, se = error_table(proc, maps, obs)
+    assert np.isfinite(exact).all() and se.shape == (144, 2, 2)
+    shutil.rmtree(tmp_path / "fit")
+    plain, _ = error_table(proc, maps, obs)
+    np.testing.assert_allclose(plain[:, 1], exact[:, 1])  # diffuse: the same either way
+    fin = np.isfinite(plain[:, 0])
+    assert np.median(plain[fin, 0]) > 1.1 * np.median(exact[:, 0])  # 1.18 measured
