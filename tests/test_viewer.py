@@ -21,6 +21,7 @@ from parammap.calibration import load_intrinsics
 from parammap.cli import main
 from parammap.params import read_param_map
 from parammap.render import render, tone_map
+from parammap.viewer import read_payload_script
 
 CHROMIUM = next((p for p in ("/usr/bin/chromium", "/usr/bin/chromium-browser")
                  if Path(p).exists()), shutil.which("chromium"))
@@ -117,8 +118,7 @@ def test_page_decodes_payloads_as_python_does(viewer_dir):
             got = np.array(page.evaluate(
                 f"(async () => {{ await viewer.setModel('{m['name']}');"
                 f" return Array.from(viewer.layers('{m['name']}')); }})()"), np.float32)
-            text = (vdir / m["file"]).read_text()
-            payload = base64.b64decode(text.split('"')[-2])
+            payload = read_payload_script((vdir / m["file"]).read_bytes())
             want = decode_layers(m["compact"], payload, (m["nlayers"], m["T"], m["S"]))
             np.testing.assert_allclose(got, want.ravel(), rtol=1e-5, atol=1e-6)
         browser.close()
@@ -244,7 +244,7 @@ def test_texel_inspector_shows_the_clicked_texel(viewer_dir):
         for k, v in want.items():
             assert abs(t["params"][k] - v) <= 1e-6 * max(1.0, abs(v)), (k, t["params"][k], v)
     assert f"row {got[-1]['row']}, col {got[-1]['col']}" in text
-    arr = decode_inspector(e, base64.b64decode((vdir / e["file"]).read_text().split('"')[1]))
+    arr = decode_inspector(e, read_payload_script((vdir / e["file"]).read_bytes()))
     r, c = got[0]["row"] // e["step"], got[0]["col"] // e["step"]
     np.testing.assert_allclose(arr["mh-2:params"][r, c], pm.params[got[0]["row"],
                                                                     got[0]["col"]])

@@ -20,6 +20,10 @@ step that spends an equal share of :data:`SH_ERROR_LEVELS` (the mean error a ren
 may gain at the report's tone mapping), components within one step left out
 (:func:`_weight_steps`); deflate then codes a component of few levels in few bits.
 
+Each byte plane is then filtered as PNG filters its rows (:func:`_filter`): stored as
+it is, or as the difference to its left, upper, or left + upper - upper-left
+neighbour, whichever deflates smallest on a sample of its rows (smooth maps such as
+Kd, m and the leading SH components shrink several times; noise stays unfiltered).
 The planes are concatenated (plane after plane, texel row 0 first) and deflated
 (zlib), which the browser inflates natively (``DecompressionStream("deflate")``); the
 page rebuilds the float layers from the manifest entry :func:`encode_layers` returns.
@@ -73,6 +77,42 @@ def _quantise(y: np.ndarray) -> tuple[np.ndarray, float, float]:
 
 def _dequantise(q: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return lo + q.astype(np.float64) * ((hi - lo) / LEVELS)
+
+
+FILTER_LEFT, FILTER_UP = 1, 2  # filter codes are bit sets: 3 = both (the plane predictor)
+FILTER_SAMPLE_BYTES = 1 << 20  # bytes of a plane on which its filter is chosen
+
+
+def _filter(q: np.ndarray, code: int) -> np.ndarray:
+    """(T, S) uint8 plane minus its prediction, mod 256: ``code`` & FILTER_LEFT
+    differences along rows, & FILTER_UP along columns (both: the plane predictor
+    left + up - upper-left); outside the plane counts as 0."""
+    r = q.astype(np.int16)
+    if code & FILTER_LEFT:
+        r = np.diff(r, axis=1, prepend=0)
+    if code & FILTER_UP:
+        r = np.diff(r, axis=0, prepend=0)
+    return (r & 255).astype(np.uint8)
+
+
+def _unfilter(r: np.ndarray, code: int) -> np.ndarray:
+    """The inverse of :func:`_filter` (running sums mod 256)."""
+    q = r.astype(np.int64)
+    if code & FILTER_UP:
+        q = np.cumsum(q, axis=0)
+    if code & FILTER_LEFT:
+        q = np.cumsum(q, axis=1)
+    return (q & 255).astype(np.uint8)
+
+
+def _best_filter(q: np.ndarray) -> int:
+    """The filter under which a (T, S) plane deflates smallest, judged on a block of
+    rows from its middle (about :data:`FILTER_SAMPLE_BYTES`)."""
+    T, S = q.shape
+    rows = max(2, min(T, FILTER_SAMPLE_BYTES // max(S, 1)))
+    block = q[(T - rows) // 2:(T - rows) // 2 + rows]
+    sizes = [len(zlib.compress(_filter(block, c).tobytes(), 6)) for c in range(4)]
+    return int(np.argmin(sizes))
 
 
 def _render_directions(count: int = 128, max_zenith_deg: float = 80.0) -> np.ndarray:
@@ -188,13 +228,14 @@ def encode_layers(layers: np.ndarray, info: dict[str, Any],
     SH, the PCA's ``components`` (kept) and ``values``, each kept component's plane
     with its ``bits`` (8 or 16), ``lo`` and ``step`` (weight = lo + level x step); the
     payload is the deflated 8-bit planes (a 16-bit weight as its
-    high-byte plane, then its low-byte plane), then (SH) at the next multiple of 4
+    high-byte plane, then its low-byte plane), each filtered by its code in the
+    entry's ``filters`` (:func:`_filter`), then (SH) at the next multiple of 4
     bytes the PCA mean and the kept components' basis rows as little-endian float32
     (``values`` x (1 + ``components``)).
     """
     L, T, S, _ = layers.shape
     x = np.asarray(layers, np.float64)
-    planes, data = [], []
+    planes, data, tail = [], [], []
     entry: dict[str, Any] = {"encoding": "u8-planes+deflate", "planes": planes}
     if info["model"] == "sh":
         X = x[..., :3].transpose(1, 2, 0, 3).reshape(T * S, L * 3)
@@ -217,8 +258,8 @@ def encode_layers(layers: np.ndarray, info: dict[str, Any],
                            "step": float(step[j])})
         entry["pca"] = {"components": len(keep), "values": L * 3}
         pad = -sum(len(a) for a in data) % 4
-        data += [np.zeros(pad, np.uint8),
-                 np.r_[mean, V[:, keep].T.ravel()].astype("<f4").view(np.uint8)]
+        tail = [np.zeros(pad, np.uint8),
+                np.r_[mean, V[:, keep].T.ravel()].astype("<f4").view(np.uint8)]
     else:
         mh = info["model"] == "mh"
         for layer in range(L):
@@ -240,6 +281,10 @@ def encode_layers(layers: np.ndarray, info: dict[str, Any],
                 q, lo, hi = _quantise(_forward(y, transfer))
                 data.append(q.ravel())
                 planes.append({**spec, "transfer": transfer, "lo": lo, "hi": hi})
+    entry["filters"] = [_best_filter(a.reshape(T, S)) for a in data]
+    data = [_filter(a.reshape(T, S), c).ravel() for a, c in zip(data, entry["filters"],
+                                                                strict=True)]
+    data += tail
     payload = zlib.compress(np.concatenate(data).tobytes() if data else b"", 9)
     return entry, payload
 
@@ -248,7 +293,10 @@ def decode_layers(entry: dict, payload: bytes, shape: tuple[int, int, int]) -> n
     """The float layers (L, T, S, 4) of a manifest entry and its payload (``shape`` =
     L, T, S); what the page does, in numpy."""
     L, T, S = shape
-    raw = np.frombuffer(zlib.decompress(payload), np.uint8)
+    raw = np.frombuffer(zlib.decompress(payload), np.uint8).copy()
+    n = T * S
+    for i, code in enumerate(entry.get("filters", [])):
+        raw[i * n:(i + 1) * n] = _unfilter(raw[i * n:(i + 1) * n].reshape(T, S), code).ravel()
     out = np.zeros((L, T, S, 4))
     n, pos = T * S, 0
     if "pca" in entry:
