@@ -124,6 +124,35 @@ def test_page_decodes_payloads_as_python_does(viewer_dir):
         browser.close()
 
 
+def test_page_reduces_sh_maps_by_averaging_their_weights(viewer_dir):
+    """An SH map above the page's float-layer budget is built at a reduced resolution
+    from its PCA weights averaged over f x f blocks: the same layers as the block
+    average of the full decoding (SH and PCA are linear), remainder rows and columns
+    left out."""
+    import json
+
+    from parammap.viewer.compact import decode_layers
+
+    _, _, vdir = viewer_dir
+    m = next(x for x in json.loads((vdir / "manifest.json").read_text())["models"]
+             if x["name"] == "sh-wls-16")
+    full = decode_layers(m["compact"], read_payload_script((vdir / m["file"]).read_bytes()),
+                         (m["nlayers"], m["T"], m["S"]))
+    with playwright.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        page = browser.new_page()
+        page.goto((vdir / "index.html").as_uri())
+        page.wait_for_function("window.viewer && window.viewer.ready", timeout=30000)
+        page.evaluate("viewer.setModel('sh-wls-16')")
+        for f in (2, 3):
+            got = np.array(page.evaluate(f"viewer.reducedLayers('sh-wls-16', {f})"), np.float32)
+            L, T, S = m["nlayers"], m["T"] // f, m["S"] // f
+            want = full[:, :T * f, :S * f].reshape(L, T, f, S, f, 4).mean((2, 4))
+            np.testing.assert_allclose(got.reshape(L, T, S, 4)[..., :3], want[..., :3],
+                                       rtol=1e-4, atol=1e-5)
+        browser.close()
+
+
 def _open(p, vdir, hash_: str = ""):
     browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
     page = browser.new_page()
