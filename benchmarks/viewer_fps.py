@@ -12,6 +12,7 @@ orbits the camera and the benchmark reports whether the image changed.
 from __future__ import annotations
 
 import argparse
+import json
 import tempfile
 import time
 from pathlib import Path
@@ -54,6 +55,9 @@ def main() -> None:
             t0 = time.perf_counter()
             write_viewer(tmp, "bench", maps, intr, views, 1.0)
             written = time.perf_counter() - t0
+            man = json.loads((Path(tmp) / "manifest.json").read_text())
+            print(f"{size}x{size} payload bytes per texel: " + ", ".join(
+                f"{m['name']} {m['bytes_per_texel']:.2f}" for m in man["models"]))
             browser = p.chromium.launch(executable_path=a.chromium, args=ARGS)
             page = browser.new_page()
             t0 = time.perf_counter()
@@ -69,6 +73,9 @@ def main() -> None:
                 t0 = time.perf_counter()
                 page.evaluate(f"viewer.setModel('{name}')")
                 loaded = time.perf_counter() - t0
+                note = page.inner_text("#msg").strip()
+                if note:
+                    print(f"  {name}: {note}")
                 for label, js in (("orbit 640x480", "viewer.setView('')"),
                                   (f"view {held}", f"viewer.setView('{held}')")):
                     page.evaluate(js)

@@ -79,6 +79,7 @@ def _dequantise(q: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return lo + q.astype(np.float64) * ((hi - lo) / LEVELS)
 
 
+PCA_CHUNK = 1 << 18  # texels per chunk of the SH PCA's sums
 FILTER_LEFT, FILTER_UP = 1, 2  # filter codes are bit sets: 3 = both (the plane predictor)
 FILTER_SAMPLE_BYTES = 1 << 20  # bytes of a plane on which its filter is chosen
 
@@ -234,21 +235,29 @@ def encode_layers(layers: np.ndarray, info: dict[str, Any],
     (``values`` x (1 + ``components``)).
     """
     L, T, S, _ = layers.shape
-    x = np.asarray(layers, np.float64)
     planes, data, tail = [], [], []
     entry: dict[str, Any] = {"encoding": "u8-planes+deflate", "planes": planes}
     if info["model"] == "sh":
-        X = x[..., :3].transpose(1, 2, 0, 3).reshape(T * S, L * 3)
-        mean = X.mean(0)
-        Xc = X - mean
-        w, V = np.linalg.eigh(Xc.T @ Xc)
+        # float32 texels and chunked float64 sums: a 4096 x 4096 map stays within a few
+        # copies of its own size
+        X = np.ascontiguousarray(layers[..., :3].transpose(1, 2, 0, 3), np.float32) \
+            .reshape(T * S, L * 3)
+        mean = X.mean(0, dtype=np.float64)
+        chunks = [slice(i, min(i + PCA_CHUNK, len(X))) for i in range(0, len(X), PCA_CHUNK)]
+        cov = np.zeros((L * 3, L * 3))
+        for sl in chunks:
+            Xc = X[sl] - mean
+            cov += Xc.T @ Xc
+        w, V = np.linalg.eigh(cov)
         V = V[:, ::-1]
-        W = Xc @ V
+        W = np.empty(X.shape, np.float32)
+        for sl in chunks:
+            W[sl] = (X[sl] - mean) @ V
         step = _weight_steps(X, V, W, gamma)
         keep = np.flatnonzero(np.isfinite(step))
         for j in keep:
             lo = float(W[:, j].min())
-            q = np.round((W[:, j] - lo) / step[j]).astype(np.int64)
+            q = np.round((W[:, j].astype(np.float64) - lo) / step[j]).astype(np.int64)
             bits = 8 if q.max() <= 255 else 16
             # a 16-bit weight as its high-byte plane, then its low-byte plane (the high
             # bytes of a smooth map deflate well)
@@ -261,6 +270,7 @@ def encode_layers(layers: np.ndarray, info: dict[str, Any],
         tail = [np.zeros(pad, np.uint8),
                 np.r_[mean, V[:, keep].T.ravel()].astype("<f4").view(np.uint8)]
     else:
+        x = np.asarray(layers, np.float64)
         mh = info["model"] == "mh"
         for layer in range(L):
             if mh and _mh_role(layer, 0) == "dir":
