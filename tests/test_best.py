@@ -109,14 +109,15 @@ def test_best_stage_keeps_the_lobe_where_the_views_need_it(tmp_path):
 
 
 def test_choice_leaves_the_default_only_for_a_significant_gain():
-    from parammap.best import choose
+    from parammap.best import choose, pair_index
 
     # four texels, candidates a (the default: least mean error), b, and c
     B = np.array([[1.0, 0.9, 2.0],    # b better, but within one standard error
                   [1.0, 0.5, 2.0],    # b better by more than one standard error
                   [np.inf, 0.5, 2.0],  # a undefined (a view alone makes its lobe)
                   [1.0, 3.0, 2.0]])
-    SE = np.full((4, 3, 3), 0.2)
+    SE = np.full((4, 3), 0.2, np.float32)  # the pairs (b, a), (c, a), (c, b)
+    SE[1, pair_index(2, 1)] = np.inf  # a pair without the default plays no part
     got = choose(B, SE, 0, (2, 2)).ravel()
     assert list(got) == [0, 1, 0, 0]
     assert list(choose(B, None, 0, (2, 2)).ravel()) == [1, 1, 1, 0]  # least, however slight
@@ -152,7 +153,7 @@ def test_sh_is_judged_by_its_own_projection_not_a_plain_refit(tmp_path):
     maps = {n: read_param_map(proc.params(n)) for n in ("sh-rlsop-16", "diffuse")}
     obs = open_observation_map(proc.observation)
     exact, se = error_table(proc, maps, obs)
-    assert np.isfinite(exact).all() and se.shape == (144, 2, 2)
+    assert np.isfinite(exact).all() and se.shape == (144, 1)  # one pair
     shutil.rmtree(tmp_path / "fit")
     plain, _ = error_table(proc, maps, obs)
     np.testing.assert_allclose(plain[:, 1], exact[:, 1])  # diffuse: the same either way

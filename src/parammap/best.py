@@ -63,7 +63,7 @@ from .paths import Processed
 logger = logging.getLogger(__name__)
 
 __all__ = ["BEST_MODEL", "CRITERIA", "choose", "display_gamma", "error_table", "identical", "loo",
-           "run_best"]
+           "pair_index", "run_best"]
 
 BEST_MODEL = "best"
 CRITERIA = ("display", "press")
@@ -145,9 +145,11 @@ def error_table(proc: Processed, maps: dict[str, ParamMap], obs,
     -------
     B : (T S, J) the error (display: weighted mean over the views; press: weighted sum;
         inf where undefined or not fitted).
-    SE : (T S, J, J) float32 standard error of the difference ``B_a - B_b`` from the
-        spread of the per-view differences (how far the texel's views can tell two
-        candidates apart; inf where either is undefined).
+    SE : (T S, J (J - 1) / 2) float32 standard error of the difference ``B_a - B_b``
+        for every pair a > b (:func:`pair_index`), from the spread of the per-view
+        differences (how far the texel's views can tell two candidates apart; inf where
+        either is undefined). Each pair once: 29 MB at 512 x 512 with eight candidates,
+        where the full (J, J) table took 67 MB.
     """
     if criterion not in CRITERIA:
         raise InputError(f"best.criterion: {criterion!r} is not one of {', '.join(CRITERIA)}")
@@ -164,7 +166,7 @@ def error_table(proc: Processed, maps: dict[str, ParamMap], obs,
     tile = int(obs.attrs["tile"])
     flat_of = np.arange(T * S).reshape(T, S)
     B = np.full((T * S, J), np.inf)
-    SE = np.full((T * S, J, J), np.inf, np.float32)
+    SE = np.full((T * S, J * (J - 1) // 2), np.inf, np.float32)
     for r0 in range(0, T, tile):
         for c0 in range(0, S, tile):
             rows, cols = slice(r0, min(r0 + tile, T)), slice(c0, min(c0 + tile, S))
@@ -181,11 +183,18 @@ def error_table(proc: Processed, maps: dict[str, ParamMap], obs,
     return B, SE
 
 
+def pair_index(a: int, b: int) -> int:
+    """Column of the pair of candidates (a, b), a != b, in :func:`error_table`'s SE."""
+    a, b = max(a, b), min(a, b)
+    return a * (a - 1) // 2 + b
+
+
 def _aggregate(E: np.ndarray, W: np.ndarray, w: np.ndarray,
                criterion: str) -> tuple[np.ndarray, np.ndarray]:
-    """Per-texel error (n, J) and the standard error of pairwise differences (n, J, J)
-    from per-view errors E (n, J, N): the weighted mean (display) or sum (press) of the
-    valid views, the standard error of that statistic for the differences."""
+    """Per-texel error (n, J) and the standard error of pairwise differences
+    (n, J (J - 1) / 2, :func:`pair_index`) from per-view errors E (n, J, N): the weighted
+    mean (display) or sum (press) of the valid views, the standard error of that
+    statistic for the differences."""
     ww = np.where(W, w, 0.0)
     sw = ww.sum(1)
     scale = np.ones(len(E)) if criterion == "display" else W.sum(1).astype(float)
@@ -195,15 +204,17 @@ def _aggregate(E: np.ndarray, W: np.ndarray, w: np.ndarray,
         B = np.where(np.isfinite(mean), mean * scale[:, None], np.inf)
         # effective number of views of the weighted mean (Kish)
         neff = sw ** 2 / np.maximum((ww ** 2).sum(1), 1e-300)
-        se = np.zeros(B.shape + (B.shape[1],))
-        for a in range(B.shape[1]):
+        J = B.shape[1]
+        se = np.full((len(B), J * (J - 1) // 2), np.inf)
+        fin = np.isfinite(B)
+        for a in range(J):
             for b in range(a):
                 d = X[:, a] - X[:, b]
                 md = (ww * d).sum(1) / sw
                 vd = (ww * (d - md[:, None]) ** 2).sum(1) / sw
-                se[:, a, b] = se[:, b, a] = np.sqrt(vd / np.maximum(neff - 1, 1)) * scale
-    fin = np.isfinite(B)
-    se = np.where(fin[:, :, None] & fin[:, None, :] & np.isfinite(se), se, np.inf)
+                v = np.sqrt(vd / np.maximum(neff - 1, 1)) * scale
+                ok = fin[:, a] & fin[:, b] & np.isfinite(v)
+                se[:, pair_index(a, b)] = np.where(ok, v, np.inf)
     return B, se.astype(np.float32)
 
 
@@ -211,8 +222,8 @@ def choose(B: np.ndarray, SE: np.ndarray | None, pool_radius: int,
            shape: tuple[int, int], same: np.ndarray | None = None) -> np.ndarray:
     """(T, S) index of the candidate each texel takes.
 
-    From errors B (T S, J) and the standard errors of their differences SE (T S, J, J)
-    (:func:`error_table`):
+    From errors B (T S, J) and the standard errors of their differences SE
+    (T S, J (J - 1) / 2, by :func:`pair_index`; :func:`error_table`):
 
     1. the default is the candidate with the least mean error over the map;
     2. a texel takes another only where its own views say that one is better by more
@@ -233,7 +244,11 @@ def choose(B: np.ndarray, SE: np.ndarray | None, pool_radius: int,
     fin = np.isfinite(B).all(1)
     if SE is not None and fin.any():
         default = int(np.argmin(B[fin].mean(0)))
-        better = B + SE[:, :, default] < B[:, [default]]
+        col = np.zeros(B.shape, np.float32)
+        for j in range(J):
+            if j != default:
+                col[:, j] = SE[:, pair_index(j, default)]
+        better = B + col < B[:, [default]]
         better[:, default] = True
         own = np.argmin(np.where(better, B, np.inf), 1)
         own = np.where(np.isfinite(B[:, default]), own, default)
