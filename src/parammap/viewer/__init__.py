@@ -70,12 +70,17 @@ def payload_script(target: str, payload: bytes) -> bytes:
     """The bytes of a script that assigns ``[len(payload), text]`` to the JavaScript
     expression ``target``, ``text`` holding ``payload`` 15 bits per UTF-16 code unit
     (the page's ``textBytes`` decodes it)."""
-    bits = np.unpackbits(np.frombuffer(payload, np.uint8))
-    bits = np.r_[bits, np.zeros(-len(bits) % TEXT_BITS, np.uint8)].reshape(-1, TEXT_BITS)
-    units = bits.astype(np.uint32) @ (1 << np.arange(TEXT_BITS - 1, -1, -1, dtype=np.uint32))
+    data = np.frombuffer(payload, np.uint8)
+    body = []
+    # 15 bytes are 8 code units exactly: chunks of whole groups keep memory flat
+    for i in range(0, len(data), 15 << 16):
+        bits = np.unpackbits(data[i:i + (15 << 16)])
+        bits = np.r_[bits, np.zeros(-len(bits) % TEXT_BITS, np.uint8)].reshape(-1, TEXT_BITS)
+        # a leading zero bit makes each 15-bit group a big-endian 16-bit integer
+        units = np.packbits(np.c_[np.zeros(len(bits), np.uint8), bits], axis=1).view(">u2")
+        body.append((units.ravel() + TEXT_BASE).astype("<u2").tobytes())
     head = f'{target} = [{len(payload)}, "'.encode("utf-16-le")
-    body = (units + TEXT_BASE).astype("<u2").tobytes()
-    return b"\xff\xfe" + head + body + '"];\n'.encode("utf-16-le")
+    return b"\xff\xfe" + head + b"".join(body) + '"];\n'.encode("utf-16-le")
 
 
 def read_payload_script(data: bytes) -> bytes:
