@@ -1,13 +1,15 @@
 """Per-texel standard deviations of fitted MH parameters.
 
 From a converged fit: the Jacobian J of the residuals with respect to the free
-parameters (x space: Kd, ln m, and per lobe Ks and two angles) and the covariance
-A^-1 B A^-1 with A = J^T W J and B = J^T W diag(r^2) W J (the heteroscedasticity-robust
-"sandwich" of linearised least squares, scaled by n / (n - p)): a capture's noise
-grows with the radiance, and the textbook s^2 A^-1 understates the lobe's uncertainty
-2-3x. Checked against the spread of fits over noise realisations: Kd and the lobe
-direction within about 30 %, m and Ks (set by the few views near the highlight)
-within a factor 2; the leverage-corrected variants (HC2, HC3) overstate Ks 3-5x.
+parameters (x space: Kd, ln m, and per lobe Ks and two angles; analytic,
+:func:`jacobian_x`) and the covariance A^-1 B A^-1 with A = J^T W J and
+B = J^T W diag(r*^2) W J, r* the leave-one-view-out residuals (the leverage-corrected
+"sandwich" HC3 of linearised least squares): a capture's noise grows with the radiance,
+and the few views near a highlight pull the fit to themselves, so both the textbook
+s^2 A^-1 and the plain sandwich (HC0) understate the lobe's uncertainty (Ks up to 6x on
+the test material). Checked against the spread of fits over noise realisations of one
+material (three noise seeds): Kd and the lobe direction within about 25 %, m and Ks
+(set by the few views near the highlight) overstated by at most 1.8x.
 Reported in the parameters' own units (:func:`parammap.conventions.mh_sd_channels`):
 Kd, m and Ks directly, the lobe direction as an angle in degrees. Lobes a texel does
 not use (Ks = 0) get NaN.
@@ -24,6 +26,8 @@ from ...conventions import (
     MH_SD_LOBE,
     MHX_KD,
     MHX_LNM,
+    mh_dir,
+    mh_ks,
     mh_lobes,
     mh_sd_dir,
     mh_sd_size,
@@ -32,11 +36,51 @@ from ...conventions import (
     mhx_size,
     mhx_theta,
 )
-from .model import _lobes_present, _params_to_x_batch, _x_to_params_batch, mh_eval
+from .model import M_MAX, M_MIN, _lobes_present, _params_to_x_batch, mh_eval
 
-__all__ = ["loo_error", "loo_residuals", "parameter_sd"]
+__all__ = ["jacobian_x", "loo_error", "loo_residuals", "parameter_sd"]
 
-STEP = 1e-6  # relative forward-difference step in x space
+
+def jacobian_x(P: np.ndarray, V: np.ndarray) -> np.ndarray:
+    """Jacobian of :func:`mh_eval` in x space (Kd, ln m, per lobe Ks, theta, phi),
+    analytic.
+
+    Parameters
+    ----------
+    P : (n, 4 + 6K) parameters (unit lobe directions); V : (n, N, 3) view directions.
+
+    Returns
+    -------
+    (n, N, 3, 4 + 5K): d radiance (channel) / d x. Kd and Ks enter linearly; a lobe
+    ``Ks c^m`` with ``c = max(d . v, 0)`` gives ``Ks c^m m ln c`` for ln m and
+    ``Ks m c^(m - 1) (dd/dtheta . v)`` for an angle (0 where c = 0).
+    """
+    P = np.asarray(P, float)
+    V = np.asarray(V, float)
+    n, N = V.shape[:2]
+    K = mh_lobes(P.shape[1])
+    J = np.zeros((n, N, 3, mhx_size(K)))
+    rgb = np.arange(3)
+    J[:, :, rgb, rgb + MHX_KD.start] = 1.0
+    m = np.clip(P[:, MH_M], M_MIN, M_MAX)[:, None]
+    for k in range(K):
+        ks = P[:, mh_ks(k)][:, None, :]  # (n, 1, 3)
+        d = P[:, mh_dir(k)]
+        th = np.arccos(np.clip(d[:, 2], -1.0, 1.0))
+        ph = np.arctan2(d[:, 1], d[:, 0])
+        c = np.clip(np.einsum("nvc,nc->nv", V, d), 0.0, None)
+        pos = c > 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cm = np.where(pos, c ** m, 0.0)
+            dcm = np.where(pos, m * cm / np.where(pos, c, 1.0), 0.0)  # m c^(m - 1)
+            J[..., MHX_LNM] += (cm * m * np.log(np.where(pos, c, 1.0)))[..., None] * ks
+        J[:, :, rgb, rgb + mhx_ks(k).start] = cm[..., None]
+        st, ct, sp, cp = np.sin(th), np.cos(th), np.sin(ph), np.cos(ph)
+        dth = np.stack([ct * cp, ct * sp, -st], -1)
+        dph = np.stack([-st * sp, st * cp, np.zeros_like(st)], -1)
+        for col, dd in ((mhx_theta(k), dth), (mhx_phi(k), dph)):
+            J[..., col] = (dcm * np.einsum("nvc,nc->nv", V, dd))[..., None] * ks
+    return J
 
 
 def _linearised(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
@@ -48,17 +92,9 @@ def _linearised(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
     n = P.shape[0]
     nx = mhx_size(mh_lobes(P.shape[1]))
     w = (np.ones(W.shape) if weights is None else np.asarray(weights, float)) * W
-    ones = np.ones(n)
-    X = _params_to_x_batch(P, ones)
     base = mh_eval(P, V)
     r = np.where(W[..., None], base - L, 0.0)
-    J = np.empty((n,) + base.shape[1:] + (nx,))
-    for j in range(nx):
-        h = STEP * np.maximum(np.abs(X[:, j]), 1.0)
-        Xh = X.copy()
-        Xh[:, j] += h
-        J[..., j] = (mh_eval(_x_to_params_batch(Xh, ones), V) - base) / h[:, None, None]
-    J = np.where(W[..., None, None], J, 0.0)
+    J = np.where(W[..., None, None], jacobian_x(P, V), 0.0)
     present = _lobes_present(P)
     free = np.ones((n, nx), bool)
     for k in range(mh_lobes(P.shape[1])):
@@ -95,8 +131,13 @@ def loo_residuals(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
     alone determines a parameter).
     """
     P = np.asarray(P, float)
-    n, N = W.shape
     J, _, r, w, free, A, _ = _linearised(P, V, L, W, weights)
+    return _loo(J, r, w, free, A, W)
+
+
+def _loo(J, r, w, free, A, W) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`loo_residuals` from the pieces of :func:`_linearised`."""
+    n, N = W.shape
     nx = J.shape[-1]
     sw = np.sqrt(w).repeat(3, axis=1)[..., None]
     Jw = np.where(free[:, None, :], J * sw, 0.0).reshape(n, N, 3, nx)
@@ -149,16 +190,16 @@ def parameter_sd(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
     K = mh_lobes(P.shape[1])
     X = _params_to_x_batch(P, np.ones(n))
     J, JW, r, w, free, A, mask = _linearised(P, V, L, W, weights)
-    # the sandwich (A^-1 B A^-1, B from the squared residuals): the noise of a capture
-    # grows with the radiance, so the highlight's views are noisier than the rest and
-    # the textbook s^2 A^-1 would understate the lobe's uncertainty
-    Jr = JW * r.reshape(n, -1)[..., None]
+    # the sandwich A^-1 B A^-1 with B from the leave-one-view-out residuals (HC3): the
+    # noise of a capture grows with the radiance, and the few views near a highlight
+    # pull the fit to themselves, so their own residuals understate their noise
+    loo, _ = _loo(J, r, w, free, A, W)
+    Jr = JW * loo.reshape(n, -1)[..., None]
     Bm = np.where(mask, np.matmul(Jr.transpose(0, 2, 1), Jr), 0.0)
     dof = 3 * W.sum(1) - free.sum(1)
-    scale = 3 * W.sum(1) / np.maximum(dof, 1)
     with np.errstate(invalid="ignore", divide="ignore"):
         Ai = np.linalg.pinv(A)
-        cov = Ai @ Bm @ Ai * scale[:, None, None]
+        cov = Ai @ Bm @ Ai
         var = np.where(free, np.diagonal(cov, axis1=1, axis2=2), np.nan)
     var = np.where(dof[:, None] > 0, var, np.nan)
     sd_x = np.sqrt(np.clip(var, 0, None))
