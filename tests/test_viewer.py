@@ -49,6 +49,70 @@ def viewer_dir(tiny_processed, tmp_path_factory):
     return cap, out, vdir
 
 
+def _payloads(vdir, m: dict) -> list[bytes]:
+    return [read_payload_script((vdir / f).read_bytes()) for f in m["files"]]
+
+
+@pytest.fixture(scope="module")
+def tiled_viewer_dir(viewer_dir, tmp_path_factory):
+    """viewer_dir's maps written in tiles of 16 x 16 texels (the edge tiles smaller)."""
+    from parammap.paths import read_poses
+    from parammap.viewer import write_viewer
+
+    _, out, _ = viewer_dir
+    maps = {n: read_param_map(out / "params" / f"{n}.exr") for n in ("mh-2", "sh-wls-16",
+                                                                      "diffuse")}
+    views = [r for r in read_poses(out / "camera" / "poses.yaml")["views"] if r["kept"]]
+    vdir = tmp_path_factory.mktemp("tiled")
+    write_viewer(vdir, "tiled", maps, load_intrinsics(out / "camera" / "intrinsics.yaml"),
+                 views, 2.0, tile=16)
+    return vdir
+
+
+def test_page_assembles_tiles_and_reduces_sh_tile_by_tile(viewer_dir, tiled_viewer_dir):
+    """A map in tiles decodes to the same layers as in one payload (the quantisation is
+    the map's, not the tile's), in numpy and in the page; an SH map above the page's
+    float-layer budget (here set small by the address) is reduced tile by tile as they
+    arrive, to the block average of the full decoding."""
+    import json
+
+    from parammap.viewer.compact import decode_layers
+
+    _, _, vdir = viewer_dir
+    whole = {m["name"]: m for m in json.loads((vdir / "manifest.json").read_text())["models"]}
+    tiled = json.loads((tiled_viewer_dir / "manifest.json").read_text())["models"]
+    budget_mb = 0.02
+    with playwright.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        page = browser.new_page()
+        errors = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto((tiled_viewer_dir / "index.html").as_uri() + f"?budget={budget_mb}")
+        page.wait_for_function("window.viewer && window.viewer.ready", timeout=30000)
+        for m in tiled:
+            shape = (m["nlayers"], m["T"], m["S"])
+            assert len(m["files"]) == len(m["compact"]["tiles"]) \
+                == -(-m["T"] // 16) * -(-m["S"] // 16) > 1
+            want = decode_layers(m["compact"], _payloads(tiled_viewer_dir, m), shape)
+            if m["model"] != "sh":  # (SH's steps depend on the gamma, 2 here)
+                one = whole[m["name"]]
+                np.testing.assert_array_equal(
+                    want, decode_layers(one["compact"], _payloads(vdir, one), shape))
+            got = page.evaluate(f"(async () => {{ await viewer.setModel('{m['name']}');"
+                                f" return viewer.shown('{m['name']}'); }})()")
+            f, L, T, S = got["f"], *shape
+            if m["model"] == "sh":
+                assert f > 1 and (T // f) * (S // f) * L * 16 <= budget_mb * 2 ** 20
+                want = want[:, :T // f * f, :S // f * f].reshape(L, T // f, f, S // f, f, 4) \
+                    .mean((2, 4))
+            else:
+                assert f == 1
+            np.testing.assert_allclose(np.array(got["data"], np.float32).reshape(want.shape)
+                                       [..., :3], want[..., :3], rtol=1e-4, atol=1e-5)
+        browser.close()
+    assert not errors, errors
+
+
 def _canvas(page) -> np.ndarray:
     from PIL import Image
 
@@ -118,8 +182,7 @@ def test_page_decodes_payloads_as_python_does(viewer_dir):
             got = np.array(page.evaluate(
                 f"(async () => {{ await viewer.setModel('{m['name']}');"
                 f" return Array.from(viewer.layers('{m['name']}')); }})()"), np.float32)
-            payload = read_payload_script((vdir / m["file"]).read_bytes())
-            want = decode_layers(m["compact"], payload, (m["nlayers"], m["T"], m["S"]))
+            want = decode_layers(m["compact"], _payloads(vdir, m), (m["nlayers"], m["T"], m["S"]))
             np.testing.assert_allclose(got, want.ravel(), rtol=1e-5, atol=1e-6)
         browser.close()
 
@@ -136,8 +199,7 @@ def test_page_reduces_sh_maps_by_averaging_their_weights(viewer_dir):
     _, _, vdir = viewer_dir
     m = next(x for x in json.loads((vdir / "manifest.json").read_text())["models"]
              if x["name"] == "sh-wls-16")
-    full = decode_layers(m["compact"], read_payload_script((vdir / m["file"]).read_bytes()),
-                         (m["nlayers"], m["T"], m["S"]))
+    full = decode_layers(m["compact"], _payloads(vdir, m), (m["nlayers"], m["T"], m["S"]))
     with playwright.sync_playwright() as p:
         browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
         page = browser.new_page()

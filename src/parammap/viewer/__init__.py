@@ -49,8 +49,8 @@ from ..errors import InputError
 from ..geometry import Intrinsics, undistort_normalized
 from ..params import ParamMap
 
-__all__ = ["glsl_constants", "payload_script", "read_payload_script", "undistortion_grid",
-           "viewer_layers", "write_surface_viewer", "write_viewer"]
+__all__ = ["glsl_constants", "layer_info", "payload_script", "read_payload_script",
+           "undistortion_grid", "viewer_layers", "write_surface_viewer", "write_viewer"]
 
 SH_MAX_BANDS = 10  # the shader's loops are unrolled up to this many bands
 MH_MAX_LOBES = 8
@@ -129,77 +129,97 @@ logger = logging.getLogger(__name__)
 TEMPLATE = Path(__file__).with_name("index.html")
 
 
-def viewer_layers(pm: ParamMap) -> tuple[np.ndarray, dict]:
-    """(L, T, S, 4) float32 texture layers of a map and its model description."""
-    T, S, P = pm.params.shape
-    p = np.nan_to_num(pm.params.astype(np.float32))
+def layer_info(pm: ParamMap) -> tuple[dict, int]:
+    """A map's model description for the viewer and its number of texture layers
+    (:func:`viewer_layers`); refuses what the shader cannot evaluate."""
+    P = pm.params.shape[-1]
     if pm.model == "mh":
         K = mh_lobes(P)
         if K > MH_MAX_LOBES:
             raise InputError(f"the viewer evaluates up to {MH_MAX_LOBES} MH lobes")
-        layers = [p[..., :MH_HEAD]]
-        for k in range(K):  # MH_LAYERS_PER_LOBE layers per lobe
-            z = np.zeros((T, S, 1), np.float32)
-            layers += [np.concatenate([p[..., mh_ks(k)], z], -1),  # layer 1 + 2k
-                       np.concatenate([p[..., mh_dir(k)], z], -1)]  # layer 2 + 2k
-        info = {"model": "mh", "lobes": K}
-    elif pm.model == "sh":
-        nc = P // 3
-        n = sh_bands(nc)
+        return {"model": "mh", "lobes": K}, 1 + MH_LAYERS_PER_LOBE * K
+    if pm.model == "sh":
+        n = sh_bands(P // 3)
         if n > SH_MAX_BANDS:
             raise InputError(f"the viewer evaluates SH up to {SH_MAX_BANDS} bands "
                              f"({SH_MAX_BANDS ** 2} coefficients)")
+        return {"model": "sh", "bands": n}, P // 3
+    if pm.model == "diffuse":
+        return {"model": "diffuse"}, 1
+    raise InputError(f"unknown model {pm.model!r}")
+
+
+def viewer_layers(pm: ParamMap) -> tuple[np.ndarray, dict]:
+    """(L, T, S, 4) float32 texture layers of a map and its model description."""
+    info, _ = layer_info(pm)
+    T, S, P = pm.params.shape
+    p = np.nan_to_num(pm.params.astype(np.float32))
+    if pm.model == "mh":
+        layers = [p[..., :MH_HEAD]]
+        for k in range(info["lobes"]):  # MH_LAYERS_PER_LOBE layers per lobe
+            z = np.zeros((T, S, 1), np.float32)
+            layers += [np.concatenate([p[..., mh_ks(k)], z], -1),  # layer 1 + 2k
+                       np.concatenate([p[..., mh_dir(k)], z], -1)]  # layer 2 + 2k
+    elif pm.model == "sh":
+        nc = P // 3
         c = p.reshape(T, S, 3, nc).transpose(3, 0, 1, 2)
         layers = list(np.concatenate([c, np.zeros((nc, T, S, 1), np.float32)], -1))
-        info = {"model": "sh", "bands": n}
-    elif pm.model == "diffuse":
-        layers = [np.concatenate([p[..., MH_KD], np.zeros((T, S, 1), np.float32)], -1)]
-        info = {"model": "diffuse"}
     else:
-        raise InputError(f"unknown model {pm.model!r}")
+        layers = [np.concatenate([p[..., MH_KD], np.zeros((T, S, 1), np.float32)], -1)]
     return np.stack(layers).astype("<f4"), info
 
 
 def write_viewer(out_dir: str | Path, surface_id: str, maps: dict[str, ParamMap],
                  intr: Intrinsics, views: list[dict], gamma: float,
-                 quantisation: dict[str, float] | None = None,
-                 inspector: tuple[dict, bytes] | None = None) -> Path:
-    """Write ``index.html``, ``data.js``, ``manifest.json`` and one payload script per
-    model into ``out_dir``.
+                 error_poses: list | None = None,
+                 inspector: tuple[dict, bytes] | None = None, tile: int | None = None) -> Path:
+    """Write ``index.html``, ``data.js``, ``manifest.json`` and the payload scripts of
+    every model into ``out_dir``.
 
     Each model's texture layers travel in 8 bits per plane
-    (:func:`parammap.viewer.compact.encode_layers`) in ``payload-<model>.js``, which the
-    page loads when the model is first shown (a script, so that the page also works
+    (:func:`parammap.viewer.compact.encode_map`) in ``payload-<model>.js`` (maps wider
+    or taller than ``tile`` texels: one ``payload-<model>-<i>.js`` per tile), which the
+    page loads when the model is first shown (scripts, so that the page also works
     from the file system). ``manifest.json`` (also inside ``data.js``) describes the
-    surface, the models, their planes and quantisation, payload sizes and, where given,
-    the measured ``quantisation`` error (mean 8-bit levels) per model.
+    surface, the models, their planes, tiles and quantisation, payload sizes and, where
+    ``error_poses`` are given, the quantisation error (mean 8-bit levels) per model.
 
     Parameters
     ----------
     maps : model name -> parameter map (all of one surface).
     views : dicts with ``id``, ``holdout``, ``R`` (3x3), ``t`` (3,) for every posed view.
     gamma : initial tone-mapping gamma (also the SH payload's error budget).
+    error_poses : (R, t) pairs whose renders measure each payload's quantisation error
+        (:func:`parammap.viewer.compact.quantisation_error`).
     inspector : the texel inspector's entry and payload
         (:func:`parammap.viewer.inspect.inspector_payload`), written as ``inspect.js``.
+    tile : tile size in texels (default :data:`parammap.viewer.compact.TILE`).
     """
-    from .compact import encode_layers
+    from .compact import TILE, encode_map, quantisation_error
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     any_map = next(iter(maps.values()))
     models = []
     for name, pm in maps.items():
-        layers, info = viewer_layers(pm)
-        entry, payload = encode_layers(layers, info, gamma)
-        file = f"payload-{name}.js"
-        text = payload_script("(window.PARAMMAP_PAYLOAD = window.PARAMMAP_PAYLOAD || {})"
-                              f"[{json.dumps(name)}]", payload)
-        _write_atomic(out_dir / file, text)
+        info, nlayers = layer_info(pm)
+        entry, payloads = encode_map(pm, gamma, tile or TILE)
+        files, size = [], 0
+        for i, payload in enumerate(payloads):
+            files.append(f"payload-{name}.js" if len(payloads) == 1
+                         else f"payload-{name}-{i}.js")
+            text = payload_script("(window.PARAMMAP_PAYLOAD = window.PARAMMAP_PAYLOAD || {})"
+                                  f"[{json.dumps(f'{name}#{i}')}]", payload)
+            _write_atomic(out_dir / files[-1], text)
+            size += len(text)
+        err = None
+        if error_poses is not None:
+            err = quantisation_error(pm, entry, payloads, intr, error_poses, gamma)
+            logger.info(f"viewer: {name} payload quantisation error {err:.3f} 8-bit levels")
         T, S = pm.shape
-        models.append({"name": name, "S": S, "T": T, "nlayers": len(layers), "file": file,
-                       "bytes": len(text), "bytes_per_texel": len(text) / (S * T),
-                       "quantisation_error_8bit": (quantisation or {}).get(name),
-                       "compact": entry, **info})
+        models.append({"name": name, "S": S, "T": T, "nlayers": nlayers, "files": files,
+                       "bytes": size, "bytes_per_texel": size / (S * T),
+                       "quantisation_error_8bit": err, "compact": entry, **info})
     manifest = {"surface": {"id": surface_id, "width_mm": any_map.width_mm,
                             "height_mm": any_map.height_mm},
                 "models": models}
@@ -241,7 +261,6 @@ def write_surface_viewer(cap: Capture, processed: str | Path, models: list[str],
     from ..metrics import read_metrics
     from ..params import read_param_map
     from ..paths import Processed, read_poses
-    from .compact import quantisation_error
 
     proc = Processed(processed)
     maps = {name: read_param_map(proc.params(name)) for name in models}
@@ -255,11 +274,6 @@ def write_surface_viewer(cap: Capture, processed: str | Path, models: list[str],
     # held-out views (else three captured views) at the report's gamma
     shown = [v for v in views if v.get("holdout")] or views[:: max(1, len(views) // 3)][:3]
     poses = [(np.asarray(v["R"], float), np.asarray(v["t"], float)) for v in shown]
-    quant = {}
-    for name, pm in maps.items():
-        layers, info = viewer_layers(pm)
-        quant[name] = quantisation_error(pm, layers, info, intr, poses, gamma)
-        logger.info(f"viewer: {name} payload quantisation error {quant[name]:.3f} 8-bit levels")
     from ..observation import open_observation_map
     from .inspect import inspector_payload
 
@@ -267,6 +281,6 @@ def write_surface_viewer(cap: Capture, processed: str | Path, models: list[str],
     inspector = inspector_payload(maps, g["radiance"], g["direction"], g["valid"])
     logger.info(f"viewer: inspector every {inspector[0]['step']} texel(s), "
                 f"{len(inspector[1]) / 1e6:.1f} MB")
-    path = write_viewer(out_dir, cap.surface_id, maps, intr, views, gamma, quant, inspector)
+    path = write_viewer(out_dir, cap.surface_id, maps, intr, views, gamma, poses, inspector)
     logger.info(f"viewer: open {path}")
     return path

@@ -41,8 +41,8 @@ import numpy as np
 from ..conventions import MH_HEAD, mh_dir, mh_ks, mh_size
 from . import MH_LAYERS_PER_LOBE  # the viewer's texture layout (viewer_layers)
 
-__all__ = ["SH_ERROR_LEVELS", "decode_layers", "encode_layers", "layers_to_params",
-           "quantisation_error"]
+__all__ = ["SH_ERROR_LEVELS", "TILE", "decode_layers", "encode_layers", "encode_map",
+           "layers_to_params", "quantisation_error", "tile_grid"]
 
 LEVELS = 255  # 8 bits per plane
 # SH: the mean error, in 8-bit levels at the report's tone mapping, that the components
@@ -79,7 +79,12 @@ def _dequantise(q: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return lo + q.astype(np.float64) * ((hi - lo) / LEVELS)
 
 
-PCA_CHUNK = 1 << 18  # texels per chunk of the SH PCA's sums
+PCA_CHUNK = 1 << 18  # texels per block of the SH PCA's sums
+PCA_SAMPLE = 4096  # texels on which the SH weights' steps are chosen
+# maps wider or taller than this many texels travel in tiles of this size, one payload
+# script each: a 4096 x 4096 SH-64 map in one script would pass the length a browser
+# allows a string; the page decodes tile after tile (and reduces as it goes)
+TILE = 1024
 FILTER_LEFT, FILTER_UP = 1, 2  # filter codes are bit sets: 3 = both (the plane predictor)
 FILTER_SAMPLE_BYTES = 1 << 20  # bytes of a plane on which its filter is chosen
 
@@ -126,15 +131,17 @@ def _render_directions(count: int = 128, max_zenith_deg: float = 80.0) -> np.nda
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], -1)
 
 
-def _weight_steps(X: np.ndarray, V: np.ndarray, W: np.ndarray, gamma: float,
-                  budget: float = SH_ERROR_LEVELS, sample: int = 4096) -> np.ndarray:
+def _weight_steps(Xs: np.ndarray, V: np.ndarray, Ws: np.ndarray, span: np.ndarray,
+                  gamma: float, budget: float = SH_ERROR_LEVELS) -> np.ndarray:
     """Quantisation step for each principal component's weights (inf: left out), such
     that renders change by ``budget`` mean 8-bit levels.
 
     Parameters
     ----------
-    X : (n, 3 c) the map's SH coefficients per texel (coefficient-major, RGB inside).
-    V : (3 c, k) the PCA basis; W : (n, k) the texels' weights.
+    Xs : (t, 3 c) the SH coefficients of a sample of the map's texels
+        (coefficient-major, RGB inside).
+    V : (3 c, k) the PCA basis (same row order); Ws : (t, k) the sample's weights.
+    span : (k,) each component's range of weights over the whole map.
     gamma : the tone curve ``1 - exp(-gamma L)``.
 
     Notes
@@ -148,22 +155,20 @@ def _weight_steps(X: np.ndarray, V: np.ndarray, W: np.ndarray, gamma: float,
     weight; quantisation errors shrink under the renders' bilinear interpolation).
     The errors of many components add up to a Gaussian of variance
     ``sigma^2(t, w, c)``, whose mean absolute value ``sqrt(2 / pi) sigma``, averaged over
-    a sample of ``sample`` texels and the directions of :func:`_render_directions`, is
-    brought to ``budget`` by bisection on theta. Deflate's Huffman codes then spend few
-    bits on a component whose weights span few steps (texel noise).
+    the sample and the directions of :func:`_render_directions`, is brought to
+    ``budget`` by bisection on theta. Deflate's Huffman codes then spend few bits on a
+    component whose weights span few steps (texel noise).
     """
     from ..models.sh import sh_basis
 
-    n, k = W.shape
-    nc = X.shape[1] // 3
-    take = np.unique(np.linspace(0, n - 1, min(n, sample)).astype(int))
+    k = V.shape[1]
+    nc = Xs.shape[1] // 3
     Y = sh_basis(_render_directions(64), int(round(np.sqrt(nc))))  # (M, c)
-    Lr = np.einsum("tic,wi->twc", X[take].reshape(-1, nc, 3), Y)
-    slope2 = ((255.0 * gamma * np.exp(-gamma * np.maximum(Lr, 0.0))) ** 2).reshape(len(take), -1)
+    Lr = np.einsum("tic,wi->twc", Xs.reshape(-1, nc, 3), Y)
+    slope2 = ((255.0 * gamma * np.exp(-gamma * np.maximum(Lr, 0.0))) ** 2).reshape(len(Xs), -1)
     g2 = (np.einsum("ick,wi->kwc", V.reshape(nc, 3, k), Y) ** 2).reshape(k, -1)
     h = np.maximum((slope2 @ g2.T).mean(0) / g2.shape[1], 1e-300)  # mean s^2 g_j^2
-    span = np.ptp(W, 0) if n else np.zeros(k)
-    Wt2 = W[take] ** 2
+    Wt2 = Ws ** 2
 
     def steps(theta: float) -> np.ndarray:
         st = np.sqrt(12 * theta / h)
@@ -212,8 +217,31 @@ def _mh_role(layer: int, channel: int) -> str:
     return "ks" if (layer - 1) % MH_LAYERS_PER_LOBE == 0 else "dir"
 
 
-def encode_layers(layers: np.ndarray, info: dict[str, Any],
-                  gamma: float = 1.0) -> tuple[dict, bytes]:
+def tile_grid(T: int, S: int, tile: int = TILE) -> list[tuple[int, int, int, int]]:
+    """The tiles of a T x S map, row-major: (first row, first column, rows, columns)."""
+    return [(r, c, min(tile, T - r), min(tile, S - c))
+            for r in range(0, T, tile) for c in range(0, S, tile)]
+
+
+def encode_map(pm, gamma: float = 1.0, tile: int = TILE) -> tuple[dict, list[bytes]]:
+    """A parameter map's compact payload (:func:`encode_layers`); SH maps are encoded
+    straight from their parameters, a few row blocks at a time, so that a 4096 x 4096
+    SH-64 map needs little more memory than its own parameters."""
+    from . import layer_info, viewer_layers
+
+    if pm.model == "sh":
+        info, L = layer_info(pm)
+        T, S, P = pm.params.shape
+        nc = P // 3
+        # parameters are RGB-major (conventions.md), the layers coefficient-major
+        perm = np.array([(i % 3) * nc + i // 3 for i in range(P)])
+        return _encode_sh(pm.params, perm, gamma, tile)
+    layers, info = viewer_layers(pm)
+    return encode_layers(layers, info, gamma, tile)
+
+
+def encode_layers(layers: np.ndarray, info: dict[str, Any], gamma: float = 1.0,
+                  tile: int = TILE) -> tuple[dict, list[bytes]]:
     """Quantise a map's texture layers.
 
     Parameters
@@ -221,97 +249,166 @@ def encode_layers(layers: np.ndarray, info: dict[str, Any],
     layers : (L, T, S, 4) float32, :func:`parammap.viewer.viewer_layers` (NaN-free).
     info : its model description (``model``: mh, sh or diffuse).
     gamma : the report's tone-mapping gamma (SH: sets the error budget in radiance).
+    tile : maps wider or taller than this travel in tiles of ``tile`` x ``tile`` texels
+        (:func:`tile_grid`), one payload each, quantised alike.
 
     Returns
     -------
-    (manifest entry, payload): the entry lists the planes in payload order (``layer``,
+    (manifest entry, payloads): the entry lists the planes in payload order (``layer``,
     ``channel``, ``transfer``, ``lo``, ``hi``; or ``const``; or ``derived``) and, for
     SH, the PCA's ``components`` (kept) and ``values``, each kept component's plane
-    with its ``bits`` (8 or 16), ``lo`` and ``step`` (weight = lo + level x step); the
-    payload is the deflated 8-bit planes (a 16-bit weight as its
-    high-byte plane, then its low-byte plane), each filtered by its code in the
-    entry's ``filters`` (:func:`_filter`), then (SH) at the next multiple of 4
-    bytes the PCA mean and the kept components' basis rows as little-endian float32
-    (``values`` x (1 + ``components``)).
+    with its ``bits`` (8 or 16), ``lo`` and ``step`` (weight = lo + level x step), and
+    its ``tiles`` (``r``, ``c``, ``T``, ``S`` and the per-plane ``filters``). A tile's
+    payload is its deflated 8-bit planes (a 16-bit weight as its high-byte plane, then
+    its low-byte plane), each filtered by its code (:func:`_filter`); the first tile's
+    then carries (SH) at the next multiple of 4 bytes the PCA mean (``values``
+    little-endian float32), each kept component's scale (float32) and its basis row
+    as int16 multiples of that scale (``components`` x ``values``).
     """
     L, T, S, _ = layers.shape
-    planes, data, tail = [], [], []
-    entry: dict[str, Any] = {"encoding": "u8-planes+deflate", "planes": planes}
     if info["model"] == "sh":
-        # float32 texels and chunked float64 sums: a 4096 x 4096 map stays within a few
-        # copies of its own size
-        X = np.ascontiguousarray(layers[..., :3].transpose(1, 2, 0, 3), np.float32) \
-            .reshape(T * S, L * 3)
-        mean = X.mean(0, dtype=np.float64)
-        chunks = [slice(i, min(i + PCA_CHUNK, len(X))) for i in range(0, len(X), PCA_CHUNK)]
-        cov = np.zeros((L * 3, L * 3))
-        for sl in chunks:
-            Xc = X[sl] - mean
-            cov += Xc.T @ Xc
-        w, V = np.linalg.eigh(cov)
-        V = V[:, ::-1]
-        W = np.empty(X.shape, np.float32)
-        for sl in chunks:
-            W[sl] = (X[sl] - mean) @ V
-        step = _weight_steps(X, V, W, gamma)
-        keep = np.flatnonzero(np.isfinite(step))
-        for j in keep:
-            lo = float(W[:, j].min())
-            q = np.round((W[:, j].astype(np.float64) - lo) / step[j]).astype(np.int64)
-            bits = 8 if q.max() <= 255 else 16
+        A = layers[..., :3].transpose(1, 2, 0, 3).reshape(T, S, L * 3)
+        return _encode_sh(A, np.arange(L * 3), gamma, tile)
+    planes, data = [], []
+    x = np.asarray(layers, np.float64)
+    mh = info["model"] == "mh"
+    for layer in range(L):
+        if mh and _mh_role(layer, 0) == "dir":
+            x[layer, ..., :2] = _hemioct(x[layer, ..., :3])
+        for ch in range(4):
+            y = x[layer, ..., ch]
+            role = _mh_role(layer, ch) if mh else "kd"
+            spec: dict[str, Any] = {"layer": layer, "channel": ch}
+            if mh and role == "dir" and ch == 2:
+                planes.append({**spec, "derived": "hemioct"})
+                continue
+            if (y == y.flat[0]).all():
+                planes.append({**spec, "const": float(y.flat[0])})
+                continue
+            transfer = {"m": "log", "dir": "linear"}.get(role, "sqrt")
+            if transfer == "sqrt" and (y < 0).any():
+                transfer = "linear"
+            q, lo, hi = _quantise(_forward(y, transfer))
+            data.append(q)
+            planes.append({**spec, "transfer": transfer, "lo": lo, "hi": hi})
+    entry: dict[str, Any] = {"encoding": "u8-planes+deflate", "planes": planes, "tiles": []}
+    payloads = [_tile_payload(entry, [a[r:r + h, c:c + w] for a in data], (r, c, h, w))
+                for r, c, h, w in tile_grid(T, S, tile)]
+    return entry, payloads
+
+
+def _tile_payload(entry: dict, planes: list[np.ndarray], rect: tuple[int, int, int, int],
+                  tail: bytes = b"") -> bytes:
+    """Filter a tile's (rows, cols) uint8 planes, deflate them (and ``tail`` at the next
+    multiple of 4 bytes), and record the tile in ``entry``."""
+    r, c, h, w = rect
+    filters = [_best_filter(a) for a in planes]
+    z = zlib.compressobj(9)
+    out = [z.compress(_filter(a, f).tobytes()) for a, f in zip(planes, filters, strict=True)]
+    if tail:
+        out.append(z.compress(bytes(-sum(a.size for a in planes) % 4) + tail))
+    out.append(z.flush())
+    entry["tiles"].append({"r": r, "c": c, "T": h, "S": w, "filters": filters})
+    return b"".join(out)
+
+
+def _encode_sh(A: np.ndarray, perm: np.ndarray, gamma: float,
+               tile: int) -> tuple[dict, list[bytes]]:
+    """The SH payload of coefficients ``A`` (T, S, 3 c), whose column ``perm[i]`` is
+    the layers' value i (coefficient-major, RGB inside); float32 row blocks with
+    float64 sums, so that memory stays near the size of ``A``."""
+    T, S, P = A.shape
+    n = T * S
+    rows = max(1, PCA_CHUNK // max(S, 1))
+
+    def block(r0: int, r1: int, c0: int = 0, c1: int = S) -> np.ndarray:
+        return np.nan_to_num(np.asarray(A[r0:r1, c0:c1], np.float32)).reshape(-1, P)
+
+    mean, cov = np.zeros(P), np.zeros((P, P))
+    for r0 in range(0, T, rows):
+        b = block(r0, r0 + rows)
+        mean += b.sum(0, dtype=np.float64)
+    mean /= max(n, 1)
+    for r0 in range(0, T, rows):
+        b = block(r0, r0 + rows) - mean
+        cov += b.T @ b
+    V = np.linalg.eigh(cov)[1][:, ::-1]
+    lo, hi = np.full(P, np.inf), np.full(P, -np.inf)
+    for r0 in range(0, T, rows):
+        Wb = (block(r0, r0 + rows) - mean) @ V
+        lo, hi = np.minimum(lo, Wb.min(0)), np.maximum(hi, Wb.max(0))
+    take = np.unique(np.linspace(0, n - 1, min(n, PCA_SAMPLE)).astype(int))
+    Xs = np.nan_to_num(np.asarray(A.reshape(n, P)[take], np.float64))
+    step = _weight_steps(Xs[:, perm], V[perm], (Xs - mean) @ V, hi - lo, gamma)
+    keep = np.flatnonzero(np.isfinite(step))
+    planes = []
+    for j in keep:
+        top = int(np.round((hi[j] - lo[j]) / step[j]))
+        planes.append({"component": int(j), "bits": 8 if top <= 255 else 16,
+                       "lo": float(lo[j]), "step": float(step[j])})
+    entry: dict[str, Any] = {"encoding": "u8-planes+deflate", "planes": planes,
+                             "pca": {"components": len(keep), "values": P}, "tiles": []}
+    Vk = V[perm][:, keep]  # (values, components), coefficient-major rows
+    scale = np.maximum(np.abs(Vk).max(0), 1e-30) / 32767
+    tail = (mean[perm].astype("<f4").tobytes() + scale.astype("<f4").tobytes()
+            + np.round(Vk / scale).T.astype("<i2").tobytes())
+    payloads = []
+    for r, c, h, w in tile_grid(T, S, tile):
+        data = []
+        Wt = np.empty((h * w, len(keep)), np.float32)
+        sub = max(1, PCA_CHUNK // max(w, 1))
+        for r0 in range(r, r + h, sub):
+            r1 = min(r0 + sub, r + h)
+            Wt[(r0 - r) * w:(r1 - r) * w] = (block(r0, r1, c, c + w) - mean) @ V[:, keep]
+        for j, p in enumerate(planes):
+            q = np.round((Wt[:, j].astype(np.float64) - p["lo"]) / p["step"]).astype(np.int64)
+            q = np.clip(q, 0, 255 if p["bits"] == 8 else 65535).reshape(h, w)
             # a 16-bit weight as its high-byte plane, then its low-byte plane (the high
             # bytes of a smooth map deflate well)
             data += [(q >> 8).astype(np.uint8), (q & 255).astype(np.uint8)] \
-                if bits == 16 else [q.astype(np.uint8)]
-            planes.append({"component": int(j), "bits": bits, "lo": lo,
-                           "step": float(step[j])})
-        entry["pca"] = {"components": len(keep), "values": L * 3}
-        pad = -sum(len(a) for a in data) % 4
-        tail = [np.zeros(pad, np.uint8),
-                np.r_[mean, V[:, keep].T.ravel()].astype("<f4").view(np.uint8)]
-    else:
-        x = np.asarray(layers, np.float64)
-        mh = info["model"] == "mh"
-        for layer in range(L):
-            if mh and _mh_role(layer, 0) == "dir":
-                x[layer, ..., :2] = _hemioct(x[layer, ..., :3])
-            for ch in range(4):
-                y = x[layer, ..., ch]
-                role = _mh_role(layer, ch) if mh else "kd"
-                spec: dict[str, Any] = {"layer": layer, "channel": ch}
-                if mh and role == "dir" and ch == 2:
-                    planes.append({**spec, "derived": "hemioct"})
-                    continue
-                if (y == y.flat[0]).all():
-                    planes.append({**spec, "const": float(y.flat[0])})
-                    continue
-                transfer = {"m": "log", "dir": "linear"}.get(role, "sqrt")
-                if transfer == "sqrt" and (y < 0).any():
-                    transfer = "linear"
-                q, lo, hi = _quantise(_forward(y, transfer))
-                data.append(q.ravel())
-                planes.append({**spec, "transfer": transfer, "lo": lo, "hi": hi})
-    entry["filters"] = [_best_filter(a.reshape(T, S)) for a in data]
-    data = [_filter(a.reshape(T, S), c).ravel() for a, c in zip(data, entry["filters"],
-                                                                strict=True)]
-    data += tail
-    payload = zlib.compress(np.concatenate(data).tobytes() if data else b"", 9)
-    return entry, payload
+                if p["bits"] == 16 else [q.astype(np.uint8)]
+        payloads.append(_tile_payload(entry, data, (r, c, h, w), tail if not payloads else b""))
+    return entry, payloads
 
 
-def decode_layers(entry: dict, payload: bytes, shape: tuple[int, int, int]) -> np.ndarray:
-    """The float layers (L, T, S, 4) of a manifest entry and its payload (``shape`` =
-    L, T, S); what the page does, in numpy."""
+def _pca_tail(entry: dict, raw: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The PCA mean (values,) and basis (components, values) from the first tile's raw
+    bytes (``n`` texels)."""
+    k, nv = entry["pca"]["components"], entry["pca"]["values"]
+    pos = sum(n * p.get("bits", 8) // 8 for p in entry["planes"])
+    pos += -pos % 4
+    f = raw[pos:pos + 4 * (nv + k)].view("<f4").astype(np.float64)
+    b = raw[pos + 4 * (nv + k):pos + 4 * (nv + k) + 2 * k * nv].view("<i2")
+    return f[:nv], b.reshape(k, nv) * f[nv:, None]
+
+
+def decode_layers(entry: dict, payloads: list[bytes],
+                  shape: tuple[int, int, int]) -> np.ndarray:
+    """The float layers (L, T, S, 4) of a manifest entry and its tiles' payloads
+    (``shape`` = L, T, S); what the page does, in numpy."""
     L, T, S = shape
-    raw = np.frombuffer(zlib.decompress(payload), np.uint8).copy()
-    n = T * S
-    for i, code in enumerate(entry.get("filters", [])):
-        raw[i * n:(i + 1) * n] = _unfilter(raw[i * n:(i + 1) * n].reshape(T, S), code).ravel()
+    out = np.zeros((L, T, S, 4), np.float32)
+    pca = None
+    for t, payload in zip(entry["tiles"], payloads, strict=True):
+        h, w = t["T"], t["S"]
+        n = h * w
+        raw = np.frombuffer(zlib.decompress(payload), np.uint8).copy()
+        for i, code in enumerate(t["filters"]):
+            raw[i * n:(i + 1) * n] = _unfilter(raw[i * n:(i + 1) * n].reshape(h, w),
+                                               code).ravel()
+        if "pca" in entry and pca is None:
+            pca = _pca_tail(entry, raw, n)
+        out[:, t["r"]:t["r"] + h, t["c"]:t["c"] + w] = _decode_tile(entry, raw, (L, h, w), pca)
+    return out
+
+
+def _decode_tile(entry: dict, raw: np.ndarray, shape: tuple[int, int, int],
+                 pca: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+    L, T, S = shape
     out = np.zeros((L, T, S, 4))
     n, pos = T * S, 0
-    if "pca" in entry:
-        k, nv = entry["pca"]["components"], entry["pca"]["values"]
-        W = np.empty((n, k))
+    if pca is not None:
+        W = np.empty((n, len(entry["planes"])))
         for j, p in enumerate(entry["planes"]):
             b = p.get("bits", 8)
             q = raw[pos:pos + n].astype(np.int64)
@@ -319,11 +416,9 @@ def decode_layers(entry: dict, payload: bytes, shape: tuple[int, int, int]) -> n
                 q = q * 256 + raw[pos + n:pos + 2 * n]
             W[:, j] = p["lo"] + q * p["step"]
             pos += n * b // 8
-        pos += -pos % 4
-        f = raw[pos:pos + 4 * nv * (k + 1)].view("<f4").astype(np.float64)
-        X = f[:nv] + W @ f[nv:].reshape(k, nv)
+        X = pca[0] + W @ pca[1]
         out[..., :3] = X.reshape(T, S, L, 3).transpose(2, 0, 1, 3)
-        return out.astype(np.float32)
+        return out
     derived = []
     for p in entry["planes"]:
         if "derived" in p:
@@ -336,7 +431,7 @@ def decode_layers(entry: dict, payload: bytes, shape: tuple[int, int, int]) -> n
             pos += n
     for p in derived:  # lobe directions from their hemi-octahedral coordinates
         out[p["layer"], ..., :3] = _from_hemioct(out[p["layer"], ..., :2])
-    return out.astype(np.float32)
+    return out
 
 
 def layers_to_params(layers: np.ndarray, info: dict[str, Any]) -> np.ndarray:
@@ -356,16 +451,18 @@ def layers_to_params(layers: np.ndarray, info: dict[str, Any]) -> np.ndarray:
     return layers[0, ..., :3].copy()
 
 
-def quantisation_error(pm, layers: np.ndarray, info: dict, intr, poses, gamma: float) -> float:
+def quantisation_error(pm, entry: dict, payloads: list[bytes], intr, poses,
+                       gamma: float) -> float:
     """Mean 8-bit difference, at the report's tone mapping ``gamma``, of renders of the
-    map from its compact payload against renders of the float map, over ``poses``
-    (R, t) pairs and the surface pixels of each."""
+    map from its compact payload (:func:`encode_map`) against renders of the float map,
+    over ``poses`` (R, t) pairs and the surface pixels of each."""
     from dataclasses import replace
 
     from ..render import render, tone_map
+    from . import layer_info
 
-    entry, payload = encode_layers(layers, info, gamma)
-    back = decode_layers(entry, payload, layers.shape[:3])
+    info, L = layer_info(pm)
+    back = decode_layers(entry, payloads, (L, *pm.shape))
     q = replace(pm, params=layers_to_params(back, info))
     diffs = []
     for R, t in poses:
