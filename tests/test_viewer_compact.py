@@ -159,3 +159,19 @@ def test_sh_map_in_tiles_decodes_as_in_one_payload():
     # each coefficient within the summed half steps of the weights that build it
     half = sum(0.5 * p["step"] for p in one["planes"])
     assert np.abs(x1[..., :3] - layers[..., :3]).max() < half
+
+
+def test_decoding_every_nth_texel_matches_the_full_decoding():
+    """``decode_layers(..., every=s)`` (how a map above ERROR_TEXELS is judged) keeps
+    exactly the full decoding's every s-th row and column, across tile edges that are
+    not multiples of s."""
+    from parammap.params import ParamMap
+    from parammap.viewer.compact import encode_map
+
+    rng = np.random.default_rng(4)
+    pm = ParamMap("diffuse", rng.uniform(0, 1, (37, 45, 3)).astype(np.float32), 90.0, 74.0)
+    entry, payloads = encode_map(pm, 1.0, tile=10)
+    full = decode_layers(entry, payloads, (1, 37, 45))
+    for s in (2, 3, 7):
+        np.testing.assert_array_equal(decode_layers(entry, payloads, (1, 37, 45), s),
+                                      full[:, ::s, ::s])

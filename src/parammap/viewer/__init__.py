@@ -3,8 +3,9 @@
 ``write_viewer`` writes ``index.html`` (the shaders and controls, from this package),
 ``data.js`` (surface size, camera intrinsics, the pose of every captured and held-out
 view, and the manifest of the models), ``manifest.json`` (the same manifest), one
-``payload-<model>.js`` per model, which the page loads when the model is first shown,
-and ``inspect.js`` (:mod:`parammap.viewer.inspect`), loaded at the first click on a
+``payload-<model>.js`` per model (maps above 1024 texels a side: one
+``payload-<model>-<i>.js`` per tile of 1024 x 1024), which the page loads when the model
+is first shown, and ``inspect.js`` (:mod:`parammap.viewer.inspect`), loaded at the first click on a
 texel.
 All are plain scripts (not fetched), so the page opens from the file system with no
 server and works offline.

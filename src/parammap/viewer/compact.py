@@ -27,12 +27,19 @@ Kd, m and the leading SH components shrink several times; noise stays unfiltered
 The planes are concatenated (plane after plane, texel row 0 first) and deflated
 (zlib), which the browser inflates natively (``DecompressionStream("deflate")``); the
 page rebuilds the float layers from the manifest entry :func:`encode_layers` returns.
+Maps above :data:`TILE` texels a side travel in tiles (:func:`tile_grid`), each its
+own payload with its own filters, all quantised as one map (one set of levels, one
+PCA), so that no payload script passes what a browser allows a string and the page
+can decode (and, for SH, reduce) tile after tile; SH maps are encoded straight from
+their parameters in row blocks (:func:`encode_map`: a 4096 x 4096 SH-64 map in little
+more memory than its 12.9 GB of float32 parameters).
 :func:`decode_layers` is the same decoding in Python, for tests and for measuring the
 quantisation error (:func:`quantisation_error`).
 """
 
 from __future__ import annotations
 
+import math
 import zlib
 from typing import Any
 
@@ -85,8 +92,9 @@ PCA_SAMPLE = 4096  # texels on which the SH weights' steps are chosen
 # script each: a 4096 x 4096 SH-64 map in one script would pass the length a browser
 # allows a string; the page decodes tile after tile (and reduces as it goes)
 TILE = 1024
+ERROR_TEXELS = 1 << 22  # texels on which quantisation_error renders at most
 FILTER_LEFT, FILTER_UP = 1, 2  # filter codes are bit sets: 3 = both (the plane predictor)
-FILTER_SAMPLE_BYTES = 1 << 20  # bytes of a plane on which its filter is chosen
+FILTER_SAMPLE_BYTES = 1 << 18  # bytes of a plane on which its filter is chosen
 
 
 def _filter(q: np.ndarray, code: int) -> np.ndarray:
@@ -322,20 +330,25 @@ def _encode_sh(A: np.ndarray, perm: np.ndarray, gamma: float,
     rows = max(1, PCA_CHUNK // max(S, 1))
 
     def block(r0: int, r1: int, c0: int = 0, c1: int = S) -> np.ndarray:
-        return np.nan_to_num(np.asarray(A[r0:r1, c0:c1], np.float32)).reshape(-1, P)
+        b = np.asarray(A[r0:r1, c0:c1], np.float32).reshape(-1, P)
+        fin = np.isfinite(b)
+        return b if fin.all() else np.where(fin, b, np.float32(0))
 
-    mean, cov = np.zeros(P), np.zeros((P, P))
+    # one pass for the covariance: second moments about a shift (the first block's
+    # mean; float32 products summed per block, float64 across blocks)
+    shift = block(0, min(rows, T)).mean(0, dtype=np.float64).astype(np.float32)
+    s1, s2 = np.zeros(P), np.zeros((P, P))
     for r0 in range(0, T, rows):
-        b = block(r0, r0 + rows)
-        mean += b.sum(0, dtype=np.float64)
-    mean /= max(n, 1)
-    for r0 in range(0, T, rows):
-        b = block(r0, r0 + rows) - mean
-        cov += b.T @ b
-    V = np.linalg.eigh(cov)[1][:, ::-1]
+        b = block(r0, r0 + rows) - shift
+        s1 += b.sum(0, dtype=np.float64)
+        s2 += b.T @ b
+    d = s1 / max(n, 1)
+    mean = shift + d
+    V = np.linalg.eigh(s2 - n * np.outer(d, d))[1][:, ::-1]
+    V32, mean32 = V.astype(np.float32), mean.astype(np.float32)
     lo, hi = np.full(P, np.inf), np.full(P, -np.inf)
     for r0 in range(0, T, rows):
-        Wb = (block(r0, r0 + rows) - mean) @ V
+        Wb = (block(r0, r0 + rows) - mean32) @ V32
         lo, hi = np.minimum(lo, Wb.min(0)), np.maximum(hi, Wb.max(0))
     take = np.unique(np.linspace(0, n - 1, min(n, PCA_SAMPLE)).astype(int))
     Xs = np.nan_to_num(np.asarray(A.reshape(n, P)[take], np.float64))
@@ -352,17 +365,21 @@ def _encode_sh(A: np.ndarray, perm: np.ndarray, gamma: float,
     scale = np.maximum(np.abs(Vk).max(0), 1e-30) / 32767
     tail = (mean[perm].astype("<f4").tobytes() + scale.astype("<f4").tobytes()
             + np.round(Vk / scale).T.astype("<i2").tobytes())
+    VkT = np.ascontiguousarray(V32[:, keep].T)  # (components, values) in A's order
+    lo_k = lo[keep].astype(np.float32)[:, None]
+    inv_k = (1 / step[keep]).astype(np.float32)[:, None]
+    top_k = np.array([255 if p["bits"] == 8 else 65535 for p in planes], np.float32)[:, None]
     payloads = []
     for r, c, h, w in tile_grid(T, S, tile):
-        data = []
-        Wt = np.empty((h * w, len(keep)), np.float32)
+        Q = np.empty((len(keep), h * w), np.uint16)  # levels, component-major
         sub = max(1, PCA_CHUNK // max(w, 1))
         for r0 in range(r, r + h, sub):
             r1 = min(r0 + sub, r + h)
-            Wt[(r0 - r) * w:(r1 - r) * w] = (block(r0, r1, c, c + w) - mean) @ V[:, keep]
-        for j, p in enumerate(planes):
-            q = np.round((Wt[:, j].astype(np.float64) - p["lo"]) / p["step"]).astype(np.int64)
-            q = np.clip(q, 0, 255 if p["bits"] == 8 else 65535).reshape(h, w)
+            Wt = VkT @ (block(r0, r1, c, c + w) - mean32).T
+            Q[:, (r0 - r) * w:(r1 - r) * w] = np.clip(np.rint((Wt - lo_k) * inv_k), 0, top_k)
+        data = []
+        for q, p in zip(Q, planes, strict=True):
+            q = q.reshape(h, w)
             # a 16-bit weight as its high-byte plane, then its low-byte plane (the high
             # bytes of a smooth map deflate well)
             data += [(q >> 8).astype(np.uint8), (q & 255).astype(np.uint8)] \
@@ -382,12 +399,14 @@ def _pca_tail(entry: dict, raw: np.ndarray, n: int) -> tuple[np.ndarray, np.ndar
     return f[:nv], b.reshape(k, nv) * f[nv:, None]
 
 
-def decode_layers(entry: dict, payloads: list[bytes],
-                  shape: tuple[int, int, int]) -> np.ndarray:
+def decode_layers(entry: dict, payloads: list[bytes], shape: tuple[int, int, int],
+                  every: int = 1) -> np.ndarray:
     """The float layers (L, T, S, 4) of a manifest entry and its tiles' payloads
-    (``shape`` = L, T, S); what the page does, in numpy."""
+    (``shape`` = L, T, S); what the page does, in numpy. ``every`` > 1 keeps only the
+    texels of every ``every``-th row and column (L, ceil(T / every), ceil(S / every), 4),
+    decoding tile by tile, so that a map larger than memory can still be checked."""
     L, T, S = shape
-    out = np.zeros((L, T, S, 4), np.float32)
+    out = np.zeros((L, -(-T // every), -(-S // every), 4), np.float32)
     pca = None
     for t, payload in zip(entry["tiles"], payloads, strict=True):
         h, w = t["T"], t["S"]
@@ -398,7 +417,11 @@ def decode_layers(entry: dict, payloads: list[bytes],
                                                code).ravel()
         if "pca" in entry and pca is None:
             pca = _pca_tail(entry, raw, n)
-        out[:, t["r"]:t["r"] + h, t["c"]:t["c"] + w] = _decode_tile(entry, raw, (L, h, w), pca)
+        x = _decode_tile(entry, raw, (L, h, w), pca)
+        r0, c0 = -t["r"] % every, -t["c"] % every  # the tile's first kept row, column
+        x = x[:, r0::every, c0::every]
+        R, C = (t["r"] + r0) // every, (t["c"] + c0) // every
+        out[:, R:R + x.shape[1], C:C + x.shape[2]] = x
     return out
 
 
@@ -455,14 +478,20 @@ def quantisation_error(pm, entry: dict, payloads: list[bytes], intr, poses,
                        gamma: float) -> float:
     """Mean 8-bit difference, at the report's tone mapping ``gamma``, of renders of the
     map from its compact payload (:func:`encode_map`) against renders of the float map,
-    over ``poses`` (R, t) pairs and the surface pixels of each."""
+    over ``poses`` (R, t) pairs and the surface pixels of each (a map above
+    :data:`ERROR_TEXELS` texels: both maps' every s-th texel, s the smallest that fits)."""
     from dataclasses import replace
 
     from ..render import render, tone_map
     from . import layer_info
 
     info, L = layer_info(pm)
-    back = decode_layers(entry, payloads, (L, *pm.shape))
+    T, S = pm.shape
+    # a map above ERROR_TEXELS is judged on every s-th texel of it (both renders alike):
+    # a 4096 x 4096 SH-64 map decoded whole would be a second 13 GB
+    every = max(1, math.ceil(math.sqrt(T * S / ERROR_TEXELS)))
+    back = decode_layers(entry, payloads, (L, T, S), every)
+    pm = replace(pm, params=pm.params[::every, ::every])
     q = replace(pm, params=layers_to_params(back, info))
     diffs = []
     for R, t in poses:
