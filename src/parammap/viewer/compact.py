@@ -335,12 +335,12 @@ def _encode_sh(A: np.ndarray, perm: np.ndarray, gamma: float,
         return b if fin.all() else np.where(fin, b, np.float32(0))
 
     # one pass for the covariance: second moments about a shift (the first block's
-    # mean; float32 products summed per block, float64 across blocks)
-    shift = block(0, min(rows, T)).mean(0, dtype=np.float64).astype(np.float32)
+    # mean), in float64 (float32 sums blur the weak components' directions)
+    shift = block(0, min(rows, T)).mean(0, dtype=np.float64)
     s1, s2 = np.zeros(P), np.zeros((P, P))
     for r0 in range(0, T, rows):
         b = block(r0, r0 + rows) - shift
-        s1 += b.sum(0, dtype=np.float64)
+        s1 += b.sum(0)
         s2 += b.T @ b
     d = s1 / max(n, 1)
     mean = shift + d
