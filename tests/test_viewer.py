@@ -109,6 +109,19 @@ def test_page_assembles_tiles_and_reduces_sh_tile_by_tile(viewer_dir, tiled_view
                 assert f == 1
             np.testing.assert_allclose(np.array(got["data"], np.float32).reshape(want.shape)
                                        [..., :3], want[..., :3], rtol=1e-4, atol=1e-5)
+        # MH's 8-bit texture assembled from tiles renders as the one-payload page's
+        held = next(v["id"] for v in json.loads(
+            (tiled_viewer_dir / "data.js").read_text().split("=", 1)[1].rstrip(";\n"))["views"]
+            if v["holdout"])
+        shots = []
+        for d in (tiled_viewer_dir, vdir):
+            page.goto(d.joinpath("index.html").as_uri())
+            page.wait_for_function("window.viewer && window.viewer.ready", timeout=30000)
+            page.evaluate(f"(async () => {{ await viewer.setModel('mh-2');"
+                          f" viewer.setView('{held}'); viewer.setGamma(2); viewer.draw(); }})()")
+            shots.append(_canvas(page))
+        assert shots[0].max() > 0
+        np.testing.assert_array_equal(shots[0], shots[1])
         browser.close()
     assert not errors, errors
 
