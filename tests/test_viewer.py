@@ -65,50 +65,68 @@ def tiled_viewer_dir(viewer_dir, tmp_path_factory):
     views = [r for r in read_poses(out / "camera" / "poses.yaml")["views"] if r["kept"]]
     vdir = tmp_path_factory.mktemp("tiled")
     write_viewer(vdir, "tiled", maps, load_intrinsics(out / "camera" / "intrinsics.yaml"),
-                 views, 2.0, tile=16)
+                 views, 2.0, tile=16, budget_mb=TILED_BUDGET_MB)
     return vdir
+
+
+TILED_BUDGET_MB = 0.02  # the tiled page's float-layer budget: its SH map is reduced
 
 
 def test_page_assembles_tiles_and_reduces_sh_tile_by_tile(viewer_dir, tiled_viewer_dir):
     """A map in tiles decodes to the same layers as in one payload (the quantisation is
-    the map's, not the tile's), in numpy and in the page; an SH map above the page's
-    float-layer budget (here set small by the address) is reduced tile by tile as they
-    arrive, to the block average of the full decoding."""
+    the map's, not the tile's), in numpy and in the page. An SH map above the page's
+    float-layer budget (set small) is shown from its stored level where the page's
+    reduction is the one it was written for (only that is loaded), else reduced tile by
+    tile as the tiles arrive; both equal the block average of the full decoding (the
+    level to within its weights' quantisation)."""
     import json
 
-    from parammap.viewer.compact import decode_layers
+    from parammap.viewer.compact import decode_layers, page_reduction
 
     _, _, vdir = viewer_dir
     whole = {m["name"]: m for m in json.loads((vdir / "manifest.json").read_text())["models"]}
     tiled = json.loads((tiled_viewer_dir / "manifest.json").read_text())["models"]
-    budget_mb = 0.02
     with playwright.sync_playwright() as p:
         browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
         page = browser.new_page()
         errors = []
         page.on("pageerror", lambda e: errors.append(str(e)))
-        page.goto((tiled_viewer_dir / "index.html").as_uri() + f"?budget={budget_mb}")
-        page.wait_for_function("window.viewer && window.viewer.ready", timeout=30000)
-        for m in tiled:
-            shape = (m["nlayers"], m["T"], m["S"])
-            assert len(m["files"]) == len(m["compact"]["tiles"]) \
-                == -(-m["T"] // 16) * -(-m["S"] // 16) > 1
-            want = decode_layers(m["compact"], _payloads(tiled_viewer_dir, m), shape)
-            if m["model"] != "sh":  # (SH's steps depend on the gamma, 2 here)
-                one = whole[m["name"]]
-                np.testing.assert_array_equal(
-                    want, decode_layers(one["compact"], _payloads(vdir, one), shape))
-            got = page.evaluate(f"(async () => {{ await viewer.setModel('{m['name']}');"
-                                f" return viewer.shown('{m['name']}'); }})()")
-            f, L, T, S = got["f"], *shape
-            if m["model"] == "sh":
-                assert f > 1 and (T // f) * (S // f) * L * 16 <= budget_mb * 2 ** 20
-                want = want[:, :T // f * f, :S // f * f].reshape(L, T // f, f, S // f, f, 4) \
-                    .mean((2, 4))
-            else:
-                assert f == 1
-            np.testing.assert_allclose(np.array(got["data"], np.float32).reshape(want.shape)
-                                       [..., :3], want[..., :3], rtol=1e-4, atol=1e-5)
+        for budget in (TILED_BUDGET_MB, TILED_BUDGET_MB / 4):
+            page.goto((tiled_viewer_dir / "index.html").as_uri() + f"?budget={budget}")
+            page.wait_for_function("window.viewer && window.viewer.ready", timeout=30000)
+            for m in tiled:
+                shape = (m["nlayers"], m["T"], m["S"])
+                L, T, S = shape
+                assert len(m["compact"]["tiles"]) == -(-T // 16) * -(-S // 16) > 1
+                payloads = _payloads(tiled_viewer_dir, m)
+                want = decode_layers(m["compact"], payloads, shape)
+                if m["model"] != "sh":  # (SH's steps depend on the gamma, 2 here)
+                    one = whole[m["name"]]
+                    np.testing.assert_array_equal(
+                        want, decode_layers(one["compact"], _payloads(vdir, one), shape))
+                got = page.evaluate(f"(async () => {{ await viewer.setModel('{m['name']}');"
+                                    f" return viewer.shown('{m['name']}'); }})()")
+                f, tol = got["f"], 1e-5
+                if m["model"] == "sh":
+                    assert f == page_reduction(T, S, L, budget) > 1
+                    stored = m["compact"]["level"]["f"]
+                    assert got["level"] == (f == stored)
+                    assert stored == page_reduction(T, S, L, TILED_BUDGET_MB) != \
+                        page_reduction(T, S, L, TILED_BUDGET_MB / 4)
+                    want = want[:, :T // f * f, :S // f * f] \
+                        .reshape(L, T // f, f, S // f, f, 4).mean((2, 4))
+                    if got["level"]:
+                        # the level's weights were averaged before quantisation
+                        tol = sum(0.5 * q["step"] for q in m["compact"]["planes"])
+                        lv = decode_layers(m["compact"], payloads, shape, level=True)
+                        np.testing.assert_allclose(np.array(got["data"], np.float32)
+                                                   .reshape(lv.shape)[..., :3], lv[..., :3],
+                                                   rtol=1e-4, atol=1e-5)
+                else:
+                    assert f == 1
+                np.testing.assert_allclose(np.array(got["data"], np.float32)
+                                           .reshape(want.shape)[..., :3], want[..., :3],
+                                           rtol=1e-4, atol=tol)
         # MH's 8-bit texture assembled from tiles renders as the one-payload page's
         held = next(v["id"] for v in json.loads(
             (tiled_viewer_dir / "data.js").read_text().split("=", 1)[1].rstrip(";\n"))["views"]

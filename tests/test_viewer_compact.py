@@ -175,3 +175,32 @@ def test_decoding_every_nth_texel_matches_the_full_decoding():
     for s in (2, 3, 7):
         np.testing.assert_array_equal(decode_layers(entry, payloads, (1, 37, 45), s),
                                       full[:, ::s, ::s])
+
+
+def test_sh_map_stores_the_level_the_page_shows():
+    """An SH map whose float layers pass the page's budget also carries the page's
+    reduction (:func:`page_reduction`), each block's mean weights quantised with the
+    map's steps: its decoding is the block average of the full decoding to within
+    those steps, and far closer than the map's own quantisation allows."""
+    from parammap.params import ParamMap
+    from parammap.viewer.compact import encode_map, page_reduction
+
+    rng = np.random.default_rng(5)
+    T, S, nc = 40, 50, 16
+    r, c = np.mgrid[0:T, 0:S] / 10.0
+    a, b, d = rng.normal(size=(3, 3 * nc))
+    params = (a + b * np.sin(r)[..., None] + d * np.cos(c)[..., None]
+              + 0.01 * rng.normal(size=(T, S, 3 * nc))).astype(np.float32)
+    pm = ParamMap("sh", params, 100.0, 80.0)
+    assert "level" not in encode_map(pm, 2.0, tile=16)[0]  # fits the default budget
+    f = page_reduction(T, S, nc, 0.1)
+    entry, payloads = encode_map(pm, 2.0, tile=16, budget_mb=0.1)
+    lvl = entry["level"]
+    assert (lvl["f"], lvl["T"], lvl["S"]) == (f, T // f, S // f) and f > 1
+    assert len(payloads) == len(entry["tiles"]) + len(lvl["tiles"])
+    full = decode_layers(entry, payloads, (nc, T, S))
+    want = full[:, :T // f * f, :S // f * f].reshape(nc, T // f, f, S // f, f, 4).mean((2, 4))
+    got = decode_layers(entry, payloads, (nc, T, S), level=True)
+    half = sum(0.5 * p["step"] for p in entry["planes"])
+    err = np.abs(got - want)[..., :3]
+    assert err.max() < half and err.mean() < 0.1 * half

@@ -173,7 +173,8 @@ def viewer_layers(pm: ParamMap) -> tuple[np.ndarray, dict]:
 def write_viewer(out_dir: str | Path, surface_id: str, maps: dict[str, ParamMap],
                  intr: Intrinsics, views: list[dict], gamma: float,
                  error_poses: list | None = None,
-                 inspector: tuple[dict, bytes] | None = None, tile: int | None = None) -> Path:
+                 inspector: tuple[dict, bytes] | None = None, tile: int | None = None,
+                 budget_mb: float | None = None) -> Path:
     """Write ``index.html``, ``data.js``, ``manifest.json`` and the payload scripts of
     every model into ``out_dir``.
 
@@ -195,8 +196,14 @@ def write_viewer(out_dir: str | Path, surface_id: str, maps: dict[str, ParamMap]
     inspector : the texel inspector's entry and payload
         (:func:`parammap.viewer.inspect.inspector_payload`), written as ``inspect.js``.
     tile : tile size in texels (default :data:`parammap.viewer.compact.TILE`).
+    budget_mb : the page's float-layer budget (default
+        :data:`parammap.viewer.compact.FLOAT_LAYER_BUDGET_MB`): an SH map shown reduced
+        under it also travels at that reduction (``payload-<model>-f<f>.js``), which is
+        all the page then loads.
     """
-    from .compact import TILE, encode_map, quantisation_error
+    from .compact import FLOAT_LAYER_BUDGET_MB, TILE, encode_map, quantisation_error
+
+    budget_mb = budget_mb or FLOAT_LAYER_BUDGET_MB
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -204,22 +211,27 @@ def write_viewer(out_dir: str | Path, surface_id: str, maps: dict[str, ParamMap]
     models = []
     for name, pm in maps.items():
         info, nlayers = layer_info(pm)
-        entry, payloads = encode_map(pm, gamma, tile or TILE)
-        files, size = [], 0
+        entry, payloads = encode_map(pm, gamma, tile or TILE, budget_mb)
+        files, sizes, n = [], [], len(entry["tiles"])
         for i, payload in enumerate(payloads):
-            files.append(f"payload-{name}.js" if len(payloads) == 1
-                         else f"payload-{name}-{i}.js")
+            stem = f"payload-{name}" if i < n else f"payload-{name}-f{entry['level']['f']}"
+            count = n if i < n else len(payloads) - n
+            files.append(f"{stem}.js" if count == 1 else f"{stem}-{i if i < n else i - n}.js")
             text = payload_script("(window.PARAMMAP_PAYLOAD = window.PARAMMAP_PAYLOAD || {})"
                                   f"[{json.dumps(f'{name}#{i}')}]", payload)
             _write_atomic(out_dir / files[-1], text)
-            size += len(text)
+            sizes.append(len(text))
+        size = sum(sizes[:n])
         err = None
         if error_poses is not None:
             err = quantisation_error(pm, entry, payloads, intr, error_poses, gamma)
             logger.info(f"viewer: {name} payload quantisation error {err:.3f} 8-bit levels")
         T, S = pm.shape
+        # the page loads the stored level where it shows the map at that reduction
+        shown = sum(sizes[n:]) if "level" in entry else size
         models.append({"name": name, "S": S, "T": T, "nlayers": nlayers, "files": files,
                        "bytes": size, "bytes_per_texel": size / (S * T),
+                       "bytes_loaded": shown,
                        "quantisation_error_8bit": err, "compact": entry, **info})
     manifest = {"surface": {"id": surface_id, "width_mm": any_map.width_mm,
                             "height_mm": any_map.height_mm},
@@ -237,7 +249,7 @@ def write_viewer(out_dir: str | Path, surface_id: str, maps: dict[str, ParamMap]
             "views": [{"id": v["id"], "holdout": bool(v["holdout"]),
                        "R": np.asarray(v["R"]).tolist(), "t": np.asarray(v["t"]).tolist()}
                       for v in views],
-            "gamma": gamma}
+            "gamma": gamma, "float_layer_budget_mb": budget_mb}
     _write_atomic(out_dir / "manifest.json", json.dumps(manifest, indent=1))
     _write_atomic(out_dir / "data.js", "window.PARAMMAP_DATA = " + json.dumps(data) + ";\n")
     shutil.copyfile(TEMPLATE, out_dir / "index.html")

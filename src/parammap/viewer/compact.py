@@ -48,8 +48,9 @@ import numpy as np
 from ..conventions import MH_HEAD, mh_dir, mh_ks, mh_size
 from . import MH_LAYERS_PER_LOBE  # the viewer's texture layout (viewer_layers)
 
-__all__ = ["SH_ERROR_LEVELS", "TILE", "decode_layers", "encode_layers", "encode_map",
-           "layers_to_params", "quantisation_error", "tile_grid"]
+__all__ = ["FLOAT_LAYER_BUDGET_MB", "SH_ERROR_LEVELS", "TILE", "decode_layers",
+           "encode_layers", "encode_map", "layers_to_params", "page_reduction",
+           "quantisation_error", "tile_grid"]
 
 LEVELS = 255  # 8 bits per plane
 # SH: the mean error, in 8-bit levels at the report's tone mapping, that the components
@@ -92,6 +93,9 @@ PCA_SAMPLE = 4096  # texels on which the SH weights' steps are chosen
 # script each: a 4096 x 4096 SH-64 map in one script would pass the length a browser
 # allows a string; the page decodes tile after tile (and reduces as it goes)
 TILE = 1024
+# the page shows an SH map reduced where its float layers would pass this (index.html
+# reads it from data.js; ?budget=<MB> in the page's address overrides it)
+FLOAT_LAYER_BUDGET_MB = 512
 ERROR_TEXELS = 1 << 22  # texels on which quantisation_error renders at most
 FILTER_LEFT, FILTER_UP = 1, 2  # filter codes are bit sets: 3 = both (the plane predictor)
 FILTER_SAMPLE_BYTES = 1 << 18  # bytes of a plane on which its filter is chosen
@@ -231,10 +235,24 @@ def tile_grid(T: int, S: int, tile: int = TILE) -> list[tuple[int, int, int, int
             for r in range(0, T, tile) for c in range(0, S, tile)]
 
 
-def encode_map(pm, gamma: float = 1.0, tile: int = TILE) -> tuple[dict, list[bytes]]:
+def page_reduction(T: int, S: int, nlayers: int, budget_mb: float = FLOAT_LAYER_BUDGET_MB
+                   ) -> int:
+    """The power-of-two reduction at which the page shows an SH map: the smallest whose
+    float layers (16 bytes per texel and layer) fit ``budget_mb`` (the page's
+    ``minReduction``)."""
+    f = 1
+    while (S // f) * (T // f) * nlayers * 16 > budget_mb * 2 ** 20 and f < min(S, T):
+        f *= 2
+    return f
+
+
+def encode_map(pm, gamma: float = 1.0, tile: int = TILE,
+               budget_mb: float = FLOAT_LAYER_BUDGET_MB) -> tuple[dict, list[bytes]]:
     """A parameter map's compact payload (:func:`encode_layers`); SH maps are encoded
     straight from their parameters, a few row blocks at a time, so that a 4096 x 4096
-    SH-64 map needs little more memory than its own parameters."""
+    SH-64 map needs little more memory than its own parameters, and those the page shows
+    reduced (:func:`page_reduction` at ``budget_mb``) also carry that level (see
+    :func:`_encode_sh`)."""
     from . import layer_info, viewer_layers
 
     if pm.model == "sh":
@@ -243,7 +261,7 @@ def encode_map(pm, gamma: float = 1.0, tile: int = TILE) -> tuple[dict, list[byt
         nc = P // 3
         # parameters are RGB-major (conventions.md), the layers coefficient-major
         perm = np.array([(i % 3) * nc + i // 3 for i in range(P)])
-        return _encode_sh(pm.params, perm, gamma, tile)
+        return _encode_sh(pm.params, perm, gamma, tile, page_reduction(T, S, L, budget_mb))
     layers, info = viewer_layers(pm)
     return encode_layers(layers, info, gamma, tile)
 
@@ -320,11 +338,18 @@ def _tile_payload(entry: dict, planes: list[np.ndarray], rect: tuple[int, int, i
     return b"".join(out)
 
 
-def _encode_sh(A: np.ndarray, perm: np.ndarray, gamma: float,
-               tile: int) -> tuple[dict, list[bytes]]:
+def _encode_sh(A: np.ndarray, perm: np.ndarray, gamma: float, tile: int,
+               level: int = 1) -> tuple[dict, list[bytes]]:
     """The SH payload of coefficients ``A`` (T, S, 3 c), whose column ``perm[i]`` is
     the layers' value i (coefficient-major, RGB inside); float32 row blocks with
-    float64 sums, so that memory stays near the size of ``A``."""
+    float64 sums, so that memory stays near the size of ``A``.
+
+    ``level`` > 1 (a power of two dividing ``tile``): the map is also stored at that
+    reduction, each f x f block's mean weights quantised with the same steps, as
+    ``entry["level"]`` (``f``, ``T``, ``S``, ``tiles``; its payloads after the map's,
+    its first tile carrying the PCA too), so that a page that shows the map reduced
+    loads only that (the remainder rows and columns left out, as the page's reduction
+    does)."""
     T, S, P = A.shape
     n = T * S
     rows = max(1, PCA_CHUNK // max(S, 1))
@@ -369,23 +394,46 @@ def _encode_sh(A: np.ndarray, perm: np.ndarray, gamma: float,
     lo_k = lo[keep].astype(np.float32)[:, None]
     inv_k = (1 / step[keep]).astype(np.float32)[:, None]
     top_k = np.array([255 if p["bits"] == 8 else 65535 for p in planes], np.float32)[:, None]
+    f = level if level > 1 and tile % level == 0 else 1
+    T2, S2 = T // f, S // f
+    wsum = np.zeros((len(keep), T2, S2), np.float32) if f > 1 else None
     payloads = []
     for r, c, h, w in tile_grid(T, S, tile):
         Q = np.empty((len(keep), h * w), np.uint16)  # levels, component-major
-        sub = max(1, PCA_CHUNK // max(w, 1))
+        sub = max(f, PCA_CHUNK // max(w, 1) // f * f)  # whole blocks of the level
         for r0 in range(r, r + h, sub):
             r1 = min(r0 + sub, r + h)
             Wt = VkT @ (block(r0, r1, c, c + w) - mean32).T
             Q[:, (r0 - r) * w:(r1 - r) * w] = np.clip(np.rint((Wt - lo_k) * inv_k), 0, top_k)
-        data = []
-        for q, p in zip(Q, planes, strict=True):
-            q = q.reshape(h, w)
-            # a 16-bit weight as its high-byte plane, then its low-byte plane (the high
-            # bytes of a smooth map deflate well)
-            data += [(q >> 8).astype(np.uint8), (q & 255).astype(np.uint8)] \
-                if p["bits"] == 16 else [q.astype(np.uint8)]
-        payloads.append(_tile_payload(entry, data, (r, c, h, w), tail if not payloads else b""))
+            if wsum is not None:  # this chunk's whole f x f blocks, summed
+                nr, nc = min(r1, T2 * f) - r0, min(c + w, S2 * f) - c
+                if nr > 0 and nc > 0:
+                    Wb = Wt.reshape(len(keep), r1 - r0, w)[:, :nr, :nc]
+                    wsum[:, r0 // f:r0 // f + nr // f, c // f:c // f + nc // f] += \
+                        Wb.reshape(len(keep), nr // f, f, nc // f, f).sum((2, 4))
+        payloads.append(_tile_payload(entry, _level_planes(Q, planes, h, w), (r, c, h, w),
+                                      tail if not payloads else b""))
+    if wsum is not None:
+        lvl = {"f": f, "T": T2, "S": S2, "tiles": []}
+        Ql = np.clip(np.rint((wsum.reshape(len(keep), -1) / (f * f) - lo_k) * inv_k), 0, top_k)
+        for i, (r, c, h, w) in enumerate(tile_grid(T2, S2, tile)):
+            q = Ql.reshape(len(keep), T2, S2)[:, r:r + h, c:c + w].reshape(len(keep), -1)
+            payloads.append(_tile_payload(lvl, _level_planes(q, planes, h, w), (r, c, h, w),
+                                          b"" if i else tail))
+        entry["level"] = lvl
     return entry, payloads
+
+
+def _level_planes(Q: np.ndarray, planes: list[dict], h: int, w: int) -> list[np.ndarray]:
+    """(h, w) byte planes of weight levels Q (components, h w): a 16-bit weight as its
+    high-byte plane, then its low-byte plane (the high bytes of a smooth map deflate
+    well)."""
+    data = []
+    for q, p in zip(Q.astype(np.uint16), planes, strict=True):
+        q = q.reshape(h, w)
+        data += [(q >> 8).astype(np.uint8), (q & 255).astype(np.uint8)] \
+            if p["bits"] == 16 else [q.astype(np.uint8)]
+    return data
 
 
 def _pca_tail(entry: dict, raw: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -400,15 +448,21 @@ def _pca_tail(entry: dict, raw: np.ndarray, n: int) -> tuple[np.ndarray, np.ndar
 
 
 def decode_layers(entry: dict, payloads: list[bytes], shape: tuple[int, int, int],
-                  every: int = 1) -> np.ndarray:
+                  every: int = 1, level: bool = False) -> np.ndarray:
     """The float layers (L, T, S, 4) of a manifest entry and its tiles' payloads
     (``shape`` = L, T, S); what the page does, in numpy. ``every`` > 1 keeps only the
     texels of every ``every``-th row and column (L, ceil(T / every), ceil(S / every), 4),
-    decoding tile by tile, so that a map larger than memory can still be checked."""
+    decoding tile by tile, so that a map larger than memory can still be checked.
+    ``level``: the stored reduced level instead (L, level T, level S, 4)."""
     L, T, S = shape
+    n = len(entry["tiles"])
+    tiles, payloads = (entry["level"]["tiles"], payloads[n:]) if level else \
+        (entry["tiles"], payloads[:n])
+    if level:
+        T, S = entry["level"]["T"], entry["level"]["S"]
     out = np.zeros((L, -(-T // every), -(-S // every), 4), np.float32)
     pca = None
-    for t, payload in zip(entry["tiles"], payloads, strict=True):
+    for t, payload in zip(tiles, payloads, strict=True):
         h, w = t["T"], t["S"]
         n = h * w
         raw = np.frombuffer(zlib.decompress(payload), np.uint8).copy()
