@@ -50,8 +50,9 @@ def main() -> None:
             write_viewer(tmp, "bench", maps, intr, views, 1.0)
             written = time.perf_counter() - t0
             man = json.loads((Path(tmp) / "manifest.json").read_text())
-            print(f"{size}x{size} payload bytes per texel: " + ", ".join(
-                f"{m['name']} {m['bytes_per_texel']:.2f}" for m in man["models"]))
+            print(f"{size}x{size} payload bytes per texel (the page loads): " + ", ".join(
+                f"{m['name']} {m['bytes_per_texel']:.2f} ({m['bytes_loaded'] / size ** 2:.2f})"
+                for m in man["models"]))
             browser = p.chromium.launch(executable_path=a.chromium, args=ARGS)
             page = browser.new_page()
             t0 = time.perf_counter()
