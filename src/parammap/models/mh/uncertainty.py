@@ -135,22 +135,34 @@ def loo_residuals(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
     return _loo(J, r, w, free, A, W)
 
 
-def _loo(J, r, w, free, A, W) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`loo_residuals` from the pieces of :func:`_linearised`."""
+def _loo(J, r, w, free, A, W, Ai=None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`loo_residuals` from the pieces of :func:`_linearised` (``Ai``: the
+    pseudo-inverse of A, where already known)."""
     n, N = W.shape
     nx = J.shape[-1]
     sw = np.sqrt(w).repeat(3, axis=1)[..., None]
-    Jw = np.where(free[:, None, :], J * sw, 0.0).reshape(n, N, 3, nx)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        Ai = np.linalg.pinv(A)
-        H = np.einsum("nvik,nkl,nvjl->nvij", Jw, Ai, Jw, optimize=True)
+    Jw = np.where(free[:, None, :], J * sw, 0.0)  # (n, 3N, nx)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        if Ai is None:
+            Ai = np.linalg.pinv(A)
+        # each view's 3 x 3 block of the hat matrix, by batched matmuls (einsum's
+        # contraction is several times slower for these small shapes)
+        M = np.matmul(Jw, Ai).reshape(n, N, 3, nx)
+        H = np.matmul(M, Jw.reshape(n, N, 3, nx).transpose(0, 1, 3, 2))
         IH = np.eye(3) - H
-        # a view whose block is (nearly) singular is predicted only by itself
-        det = np.linalg.det(IH)
+        # 3 x 3 inverses by cofactors, vectorised (LAPACK's per-matrix calls dominate at
+        # this size); a view whose block is (nearly) singular is predicted only by itself
+        a, b, c = IH[..., 0, 0], IH[..., 0, 1], IH[..., 0, 2]
+        d, e, f = IH[..., 1, 0], IH[..., 1, 1], IH[..., 1, 2]
+        g, h, i = IH[..., 2, 0], IH[..., 2, 1], IH[..., 2, 2]
+        co = np.stack([e * i - f * h, c * h - b * i, b * f - c * e,
+                       f * g - d * i, a * i - c * g, c * d - a * f,
+                       d * h - e * g, b * g - a * h, a * e - b * d], -1)
+        det = a * co[..., 0] + b * co[..., 3] + c * co[..., 6]
         bad = ~(np.abs(det) > 1e-9) & W
-        IH = np.where(bad[..., None, None], np.eye(3), IH)
+        inv = co.reshape(n, N, 3, 3) / np.where(bad, 1.0, det)[..., None, None]
         # H acts on the weighted residuals; a view of weight 0 has H_vv = 0
-        loo = np.linalg.solve(IH, r[..., None])[..., 0]
+        loo = np.where(bad[..., None], r, np.matmul(inv, r[..., None])[..., 0])
     return np.where(W[..., None], loo, 0.0), bad.any(1)
 
 
@@ -193,12 +205,13 @@ def parameter_sd(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
     # the sandwich A^-1 B A^-1 with B from the leave-one-view-out residuals (HC3): the
     # noise of a capture grows with the radiance, and the few views near a highlight
     # pull the fit to themselves, so their own residuals understate their noise
-    loo, _ = _loo(J, r, w, free, A, W)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        Ai = np.linalg.pinv(A)
+    loo, _ = _loo(J, r, w, free, A, W, Ai)
     Jr = JW * loo.reshape(n, -1)[..., None]
     Bm = np.where(mask, np.matmul(Jr.transpose(0, 2, 1), Jr), 0.0)
     dof = 3 * W.sum(1) - free.sum(1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        Ai = np.linalg.pinv(A)
         cov = Ai @ Bm @ Ai
         var = np.where(free, np.diagonal(cov, axis1=1, axis2=2), np.nan)
     var = np.where(dof[:, None] > 0, var, np.nan)
