@@ -43,9 +43,11 @@ def viewer_dir(tiny_processed, tmp_path_factory):
                  "--workers", "1"]) == 0
     assert main(["export", str(cap), "--out", str(out), "--model", "mh-2", "--model",
                  "sh-wls-16", "--model", "diffuse"]) == 0
+    assert main(["best", str(cap), "--out", str(out), "--model", "mh-2", "--model",
+                 "sh-wls-16", "--model", "diffuse"]) == 0
     vdir = tmp_path_factory.mktemp("viewer")
     assert main(["viewer", str(cap), "--out", str(out), "--figures", str(vdir), "--model",
-                 "mh-2", "--model", "sh-wls-16", "--model", "diffuse"]) == 0
+                 "mh-2", "--model", "sh-wls-16", "--model", "diffuse", "--model", "best"]) == 0
     return cap, out, vdir
 
 
@@ -166,7 +168,7 @@ def test_held_out_view_matches_python_renderer(viewer_dir, exact):
         page.on("pageerror", lambda e: errors.append(str(e)))
         page.goto((vdir / "index.html").as_uri())
         page.wait_for_function("window.viewer && window.viewer.ready", timeout=30000)
-        for model in ("mh-2", "sh-wls-16", "diffuse"):
+        for model in ("mh-2", "sh-wls-16", "diffuse", "best"):
             page.evaluate(f"(async () => {{ viewer.setExact({str(exact).lower()});"
                           f" await viewer.setModel('{model}');"
                           f" viewer.setView('{held['id']}'); viewer.setGamma({gamma});"

@@ -301,14 +301,14 @@ rule viewer:
         capture=capture_dir,
         poses=f"{PROC}/{{sid}}/camera/poses.yaml",
         holdout=f"{PROC}/{{sid}}/metrics/holdout.json",
-        params=lambda wc: expand(f"{PROC}/{wc.sid}/params/{{m}}.exr", m=models() + ["diffuse"]),
+        params=lambda wc: expand(f"{PROC}/{wc.sid}/params/{{m}}.exr", m=compared_models()),
         obs=f"{PROC}/{{sid}}/observation.zarr",  # the texel inspector's observations
     output:
         directory(f"{REPORTS}/{{sid}}/viewer"),
     params:
         cli=PARAMMAP,
         out=lambda wc: f"{PROC}/{wc.sid}",
-        models=" ".join(f"--model {m}" for m in models() + ["diffuse"]),
+        models=" ".join(f"--model {m}" for m in compared_models()),
     log:
         "logs/figures/{sid}/viewer.log",
     conda:

@@ -147,6 +147,8 @@ def layer_info(pm: ParamMap) -> tuple[dict, int]:
         return {"model": "sh", "bands": n}, P // 3
     if pm.model == "diffuse":
         return {"model": "diffuse"}, 1
+    if pm.model == "best":  # a choice map: its candidates are models of the page too
+        return {"model": "best", "parts": list(pm.parts or {})}, 1
     raise InputError(f"unknown model {pm.model!r}")
 
 
@@ -165,6 +167,8 @@ def viewer_layers(pm: ParamMap) -> tuple[np.ndarray, dict]:
         nc = P // 3
         c = p.reshape(T, S, 3, nc).transpose(3, 0, 1, 2)
         layers = list(np.concatenate([c, np.zeros((nc, T, S, 1), np.float32)], -1))
+    elif pm.model == "best":
+        layers = [np.concatenate([p[..., :1], np.zeros((T, S, 3), np.float32)], -1)]
     else:
         layers = [np.concatenate([p[..., MH_KD], np.zeros((T, S, 1), np.float32)], -1)]
     return np.stack(layers).astype("<f4"), info
@@ -277,6 +281,9 @@ def write_surface_viewer(cap: Capture, processed: str | Path, models: list[str],
 
     proc = Processed(processed)
     maps = {name: read_param_map(proc.params(name)) for name in models}
+    for pm in list(maps.values()):  # the best map's candidates are shown by it
+        for name, part in (pm.parts or {}).items():
+            maps.setdefault(name, part)
     views = [r for r in read_poses(proc.poses)["views"] if r["kept"]]
     gamma = 1.0
     if proc.metrics("holdout").is_file():

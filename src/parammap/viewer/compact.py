@@ -312,7 +312,7 @@ def encode_layers(layers: np.ndarray, info: dict[str, Any], gamma: float = 1.0,
                 planes.append({**spec, "const": float(y.flat[0])})
                 continue
             transfer = {"m": "log", "dir": "linear"}.get(role, "sqrt")
-            if transfer == "sqrt" and (y < 0).any():
+            if transfer == "sqrt" and ((y < 0).any() or info["model"] == "best"):
                 transfer = "linear"
             q, lo, hi = _quantise(_forward(y, transfer))
             data.append(q)
@@ -525,6 +525,8 @@ def layers_to_params(layers: np.ndarray, info: dict[str, Any]) -> np.ndarray:
         return p
     if info["model"] == "sh":
         return layers[..., :3].transpose(1, 2, 3, 0).reshape(T, S, 3 * L)
+    if info["model"] == "best":  # candidate indices
+        return np.rint(layers[0, ..., :1])
     return layers[0, ..., :3].copy()
 
 

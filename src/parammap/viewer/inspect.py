@@ -71,11 +71,19 @@ def inspector_payload(maps: dict[str, ParamMap], radiance: np.ndarray, direction
     models = []
     t, s = len(rows), len(cols)
     dd = np.where(ok[..., None], d, [0.0, 0.0, 1.0]).reshape(-1, 3)
-    for name, pm in maps.items():
-        from ..render import evaluate
+    from ..render import evaluate
 
+    def predict(pm) -> np.ndarray:
         P = np.nan_to_num(np.asarray(pm.params[sel], float))  # (t, s, P)
-        pred = evaluate(pm.model, np.repeat(P.reshape(t * s, -1), N, axis=0), dd)
+        if pm.model == "best":  # each texel's chosen candidate
+            choice = np.rint(P[..., 0]).astype(int).reshape(-1, 1)
+            return sum(np.where(np.repeat(choice == j, N, axis=0), predict(part), 0.0)
+                       for j, part in enumerate((pm.parts or {}).values()))
+        return evaluate(pm.model, np.repeat(P.reshape(t * s, -1), N, axis=0), dd)
+
+    for name, pm in maps.items():
+        P = np.nan_to_num(np.asarray(pm.params[sel], float))  # (t, s, P)
+        pred = predict(pm)
         arrays += [np.where(ok, (pred @ LUMINANCE).reshape(t, s, N), 0).astype("<f2"),
                    P.astype("<f4")]
         models.append({"name": name, "params": channel_names(pm.model, P.shape[-1])})
