@@ -29,7 +29,7 @@ from ...conventions import (
 from ..residuals import mean_percentage_residual
 from ..weights import noise_weights, reduced_chi2
 from .initial import initial_guess_batch, initial_guess_published
-from .kernel import LOSSES, cost_grad, gram
+from .kernel import LOSSES, cost_grad, gram, lm_batch
 from .model import (
     LN_M_MAX,
     M_MIN,
@@ -56,6 +56,10 @@ ALGORITHMS = {
 }
 
 BATCH_EVALS = 25  # evaluations of the stacked-texel polish before the per-texel fallback
+# compiled LM: steps per texel at most, and the relative gain below which it stops (the
+# nlopt polish's own tolerance, so the polish starts where it would stop)
+LM_ITERS = 60
+LM_FTOL = 1e-7
 KS_CAP = 20.0  # Ks <= KS_CAP x the texel's brightest observation (scaled units)
 
 
@@ -135,7 +139,7 @@ def _normal_equations(X, V, Ls, W, K, LL=None, need_A: bool = True):
 
 
 def refine_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, P0: np.ndarray,
-                 iters: int = 8) -> np.ndarray:
+                 iters: int | None = None) -> np.ndarray:
     """Projected Levenberg-Marquardt steps on a batch of texels at once (vectorised),
     in the bounded x-space of the nlopt fit. Brings an initial guess close to the
     optimum so the per-texel nlopt fit only polishes. (B, N, 3) inputs, (B, 4 + 6K)."""
@@ -149,6 +153,11 @@ def refine_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, P0: np.ndarray,
     for k in range(K):
         ub[:, mhx_ks(k)] = ksmax[:, None]
     X = np.clip(X, lb, ub)
+    if lm_batch is not None:
+        lm_batch(X, np.ascontiguousarray(V, float), np.ascontiguousarray(Ls, float),
+                 np.ascontiguousarray(W, float), K, lb, ub, iters or LM_ITERS, LM_FTOL)
+        return _x_to_params_batch(X, s)
+    iters = iters or 8
     lam = np.full(len(X), 1e-3)
     LL = (W[..., None] * Ls * Ls).sum(1)
     cost, A, g = _normal_equations(X, V, Ls, W, K, LL)
@@ -374,6 +383,13 @@ def fit_texel(V: np.ndarray, L: np.ndarray, p0: np.ndarray,
     nx = len(x0)
     lb, ub = _bounds(K, KS_CAP * float(np.max(Ls)))
     x0 = np.clip(x0, lb, ub)
+    if lm_batch is not None and cfg.loss == "linear" and K > 0:
+        # compiled LM steps first (cheap, and quadratic near the optimum): nlopt polishes
+        X = x0[None].copy()
+        lm_batch(X, np.ascontiguousarray(V, float)[None], np.ascontiguousarray(Ls, float)[None],
+                 (np.ones(len(V)) if w is None else np.asarray(w, float))[None], K, lb,
+                 ub[None], LM_ITERS, LM_FTOL)
+        x0 = X[0]
     opt = nlopt.opt(ALGORITHMS[cfg.algorithm], nx)
     opt.set_lower_bounds(lb)
     opt.set_upper_bounds(ub)

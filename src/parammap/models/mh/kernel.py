@@ -166,3 +166,235 @@ def gram(A: np.ndarray, Y: np.ndarray, w: np.ndarray):
     if _gram_compiled is None or A.shape[2] > GRAM_LOOP_MAX_P:
         return _gram_numpy(A, Y, w)
     return _gram_compiled(A, Y, w.astype(A.dtype, copy=False))
+
+
+LM_CONVERGED, LM_DAMPED, LM_CAPPED = 0, 1, 2
+
+
+def _normal_texel(x: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K: int,
+                  A: np.ndarray, g: np.ndarray, Q: np.ndarray, QR: np.ndarray,
+                  want: bool) -> float:
+    """Weighted least-squares cost of one texel in x-space; with ``want`` also the
+    Gauss-Newton matrix J^T W J into ``A`` (nx, nx) and J^T W r into ``g`` (nx,).
+
+    Every Jacobian column of channel c is a multiple of one of the 1 + 4K vectors
+    q = (1, and per lobe p, m p ln(cos), dp/dtheta, dp/dphi) over the observations (the
+    ln m column: a sum over lobes), so the weighted Gram matrix of q (``Q``, (1 + 4K)^2)
+    and q^T W r (``QR``, (1 + 4K, 3)) give A and g: no (3N, nx) Jacobian is formed."""
+    n = V.shape[0]
+    nx = x.shape[0]
+    nb = 1 + 4 * K
+    m = math.exp(x[MHX_LNM])
+    d = np.empty((K, 3))
+    dth = np.empty((K, 3))
+    dph = np.empty((K, 3))
+    for k in range(K):
+        b = MH_HEAD + MHX_LOBE * k
+        st, ct = math.sin(x[b + 3]), math.cos(x[b + 3])
+        sp, cp = math.sin(x[b + 4]), math.cos(x[b + 4])
+        d[k, 0], d[k, 1], d[k, 2] = st * cp, st * sp, ct
+        dth[k, 0], dth[k, 1], dth[k, 2] = ct * cp, ct * sp, -st
+        dph[k, 0], dph[k, 1], dph[k, 2] = -st * sp, st * cp, 0.0
+    if want:
+        for a in range(nb):
+            for c in range(3):
+                QR[a, c] = 0.0
+            for b in range(nb):
+                Q[a, b] = 0.0
+    q = np.empty(nb)
+    q[0] = 1.0
+    val = 0.0
+    for i in range(n):
+        wt = Wt[i]
+        if wt == 0.0:
+            continue
+        v0, v1, v2 = V[i, 0], V[i, 1], V[i, 2]
+        r0, r1, r2 = x[0] - L[i, 0], x[1] - L[i, 1], x[2] - L[i, 2]
+        for k in range(K):
+            c = v0 * d[k, 0] + v1 * d[k, 1] + v2 * d[k, 2]
+            j = 1 + 4 * k
+            if c > 0.0:
+                lc = math.log(c)
+                p = math.exp(m * lc)
+                dpdc = p * m / c
+                q[j] = p
+                q[j + 1] = p * lc * m
+                q[j + 2] = dpdc * (v0 * dth[k, 0] + v1 * dth[k, 1] + v2 * dth[k, 2])
+                q[j + 3] = dpdc * (v0 * dph[k, 0] + v1 * dph[k, 1])
+                b = MH_HEAD + MHX_LOBE * k
+                r0 += x[b] * p
+                r1 += x[b + 1] * p
+                r2 += x[b + 2] * p
+            else:
+                q[j] = 0.0
+                q[j + 1] = 0.0
+                q[j + 2] = 0.0
+                q[j + 3] = 0.0
+        val += wt * (r0 * r0 + r1 * r1 + r2 * r2)
+        if want:
+            for a in range(nb):
+                wq = wt * q[a]
+                if wq == 0.0:
+                    continue
+                QR[a, 0] += wq * r0
+                QR[a, 1] += wq * r1
+                QR[a, 2] += wq * r2
+                for b in range(a, nb):
+                    Q[a, b] += wq * q[b]
+    if not want:
+        return val
+    for a in range(nb):
+        for b in range(a):
+            Q[a, b] = Q[b, a]
+    for i in range(nx):
+        g[i] = 0.0
+        for j in range(nx):
+            A[i, j] = 0.0
+    # per channel: rows with one q (Kd_c, Ks_kc, theta_k, phi_k) as (x index, q index,
+    # factor), and the ln m row, sum_k Ks_kc q_(2 + 4k)
+    nz = 1 + 3 * K
+    xi = np.empty(nz, np.int64)
+    qi = np.empty(nz, np.int64)
+    sc = np.empty(nz)
+    u = np.empty(nb)  # the ln m row's combination of q, per channel
+    for ch in range(3):
+        xi[0], qi[0], sc[0] = ch, 0, 1.0
+        for a in range(nb):
+            u[a] = 0.0
+        for k in range(K):
+            b = MH_HEAD + MHX_LOBE * k
+            ks = x[b + ch]
+            xi[1 + 3 * k], qi[1 + 3 * k], sc[1 + 3 * k] = b + ch, 1 + 4 * k, 1.0
+            xi[2 + 3 * k], qi[2 + 3 * k], sc[2 + 3 * k] = b + 3, 3 + 4 * k, ks
+            xi[3 + 3 * k], qi[3 + 3 * k], sc[3 + 3 * k] = b + 4, 4 + 4 * k, ks
+            u[2 + 4 * k] = ks
+        for a in range(nz):
+            g[xi[a]] += sc[a] * QR[qi[a], ch]
+            for b in range(nz):
+                A[xi[a], xi[b]] += sc[a] * sc[b] * Q[qi[a], qi[b]]
+            t = 0.0
+            for k in range(K):
+                t += u[2 + 4 * k] * Q[2 + 4 * k, qi[a]]
+            A[MHX_LNM, xi[a]] += sc[a] * t
+            A[xi[a], MHX_LNM] += sc[a] * t
+        t = 0.0
+        gl = 0.0
+        for k in range(K):
+            gl += u[2 + 4 * k] * QR[2 + 4 * k, ch]
+            for l2 in range(K):
+                t += u[2 + 4 * k] * u[2 + 4 * l2] * Q[2 + 4 * k, 2 + 4 * l2]
+        A[MHX_LNM, MHX_LNM] += t
+        g[MHX_LNM] += gl
+    return val
+
+
+def _chol_solve(M: np.ndarray, rhs: np.ndarray, out: np.ndarray) -> bool:
+    """Solve the symmetric positive definite system M out = rhs by Cholesky, in place
+    of M's lower triangle; False if M is not positive definite."""
+    n = M.shape[0]
+    for j in range(n):
+        s = M[j, j]
+        for k in range(j):
+            s -= M[j, k] * M[j, k]
+        if not s > 0.0:
+            return False
+        s = math.sqrt(s)
+        M[j, j] = s
+        for i in range(j + 1, n):
+            t = M[i, j]
+            for k in range(j):
+                t -= M[i, k] * M[j, k]
+            M[i, j] = t / s
+    for i in range(n):
+        t = rhs[i]
+        for k in range(i):
+            t -= M[i, k] * out[k]
+        out[i] = t / M[i, i]
+    for i in range(n - 1, -1, -1):
+        t = out[i]
+        for k in range(i + 1, n):
+            t -= M[k, i] * out[k]
+        out[i] = t / M[i, i]
+    return True
+
+
+def _lm_batch(X: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K: int,
+              lb: np.ndarray, ub: np.ndarray, iters: int, ftol: float) -> np.ndarray:
+    """Bounded Levenberg-Marquardt for each texel of a batch, in place on ``X``
+    (B, nx) x-space starts (scaled radiance L (B, N, 3), weights Wt (B, N), bounds
+    lb (nx,) and ub (B, nx)). A variable at a bound whose gradient pushes outward is
+    held for the step (active set), so the others keep converging; a texel stops when
+    a step lowers its cost by less than ``ftol`` (relative) or the damping saturates.
+    Returns why each texel stopped (B,): :data:`LM_CONVERGED`, :data:`LM_DAMPED` (no
+    step lowers the cost) or :data:`LM_CAPPED` (``iters`` steps)."""
+    B, nx = X.shape
+    nb = 1 + 4 * K
+    Q = np.empty((nb, nb))
+    QR = np.empty((nb, 3))
+    A = np.empty((nx, nx))
+    An = np.empty((nx, nx))
+    M = np.empty((nx, nx))
+    g = np.empty(nx)
+    gn = np.empty(nx)
+    rhs = np.empty(nx)
+    step = np.empty(nx)
+    xn = np.empty(nx)
+    fixed = np.empty(nx, np.bool_)
+    why = np.full(B, 2, np.int64)
+    for b in range(B):
+        x = X[b]
+        for i in range(nx):
+            x[i] = min(max(x[i], lb[i]), ub[b, i])
+        cost = _normal_texel(x, V[b], L[b], Wt[b], K, A, g, Q, QR, True)
+        lam = 1e-3
+        it = 0
+        while it < iters:
+            it += 1
+            for i in range(nx):
+                fixed[i] = (x[i] <= lb[i] and g[i] > 0.0) or (x[i] >= ub[b, i] and g[i] < 0.0)
+            for i in range(nx):
+                for j in range(nx):
+                    M[i, j] = 0.0 if (fixed[i] or fixed[j]) else A[i, j]
+                if fixed[i]:
+                    M[i, i] = 1.0
+                    rhs[i] = 0.0
+                else:
+                    M[i, i] = A[i, i] + lam * max(A[i, i], 1e-12)
+                    rhs[i] = -g[i]
+            if not _chol_solve(M, rhs, step):
+                lam *= 10.0
+                if lam > 1e10:
+                    why[b] = 1
+                    break
+                continue
+            for i in range(nx):
+                xn[i] = min(max(x[i] + step[i], lb[i]), ub[b, i])
+            cn = _normal_texel(xn, V[b], L[b], Wt[b], K, An, gn, Q, QR, True)
+            if cn < cost:
+                gain = (cost - cn) / max(cost, 1e-300)
+                for i in range(nx):
+                    x[i] = xn[i]
+                    g[i] = gn[i]
+                    for j in range(nx):
+                        A[i, j] = An[i, j]
+                cost = cn
+                # a small gain means convergence only for a step near Gauss-Newton's:
+                # a heavily damped step gains little anywhere
+                if gain < ftol and lam < 1.0:
+                    why[b] = 0
+                    break
+                lam = max(lam * 0.3, 1e-12)
+            else:
+                lam *= 10.0
+                if lam > 1e10:
+                    why[b] = 1
+                    break
+    return why
+
+
+if njit is not None:
+    _normal_texel = njit(cache=True, nogil=True)(_normal_texel)
+    _chol_solve = njit(cache=True, nogil=True)(_chol_solve)
+    lm_batch = njit(cache=True, nogil=True)(_lm_batch)
+else:  # pragma: no cover - exercised only without numba
+    lm_batch = None

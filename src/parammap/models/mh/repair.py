@@ -72,7 +72,11 @@ def _rescaled_starts(P: np.ndarray, V: np.ndarray, L: np.ndarray, k: int) -> tup
     for j in range(k):
         A[..., 1 + j] = np.clip(np.einsum("nc,ic->in", V, P[:, mh_dir(j)]), 0, None) \
             ** P[:, MH_M, None]
-    x = np.stack([np.linalg.lstsq(a, L, rcond=None)[0] for a in A]).clip(min=0)  # (c, 1+k, 3)
+    # least squares by the normal equations of all candidates at once (a ridge of
+    # 1e-12 of the trace for a lobe that no observation reaches), clipped at zero
+    G = np.matmul(A.transpose(0, 2, 1), A)
+    G += 1e-12 * np.trace(G, axis1=1, axis2=2)[:, None, None] * np.eye(1 + k)
+    x = np.linalg.solve(G, np.matmul(A.transpose(0, 2, 1), L)).clip(min=0)  # (c, 1+k, 3)
     Q = np.array(P[:, : mh_size(k)], float, copy=True)
     Q[:, MH_KD] = x[:, 0]
     for j in range(k):
@@ -165,13 +169,18 @@ def repair_mh_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
             out["status"][i, j] = status[i + oy, j + ox] = FitStatus.OK
             out["rmse"][i, j] = rmse[i + oy, j + ox] = np.sqrt(((fitted - L) ** 2).mean(0))
             out["mpr"][i, j] = mean_percentage_residual(L, fitted)
-            if "sd" in out:
-                out["sd"][i, j] = parameter_sd(p[None], V[None], L[None],
-                                               np.ones((1, len(V)), bool))[0]
             out["changed"][i, j] = 1
             fresh[i + oy, j + ox] = True
         if not fresh.any():
             break
+    if "sd" in out and out["changed"].any():
+        # the uncertainties of every repaired texel at once (nothing above reads them)
+        ci, cj = np.nonzero(out["changed"])
+        W = valid[ci, cj] & np.isfinite(radiance[ci, cj]).all(-1) \
+            & np.isfinite(direction[ci, cj]).all(-1)
+        V = np.where(W[..., None], direction[ci, cj], [0.0, 0.0, 1.0]).astype(float)
+        L = np.where(W[..., None], radiance[ci, cj], 0.0).astype(float)
+        out["sd"][ci, cj] = parameter_sd(out["params"][ci, cj].astype(float), V, L, W)
     return out if out["changed"].any() or tried.any() else None
 
 
