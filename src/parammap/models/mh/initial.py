@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from ...conventions import MH_KD, MH_M, mh_dir, mh_ks, mh_size
-from .kernel import gram
+from .kernel import gram, initial_batch
 from .model import LN_M_MAX
 
 
@@ -63,12 +63,16 @@ def _lobe_terms(V: np.ndarray, D: np.ndarray, m: np.ndarray) -> np.ndarray:
     return np.exp(_log_cos(V, D) * m[:, None, None])
 
 
-def _search_m(V, L, W, D, iters: int = 3) -> np.ndarray:
+M_GRID = 8  # points of the grid over ln m in [0, ln M_MAX]
+M_GOLDEN = 3  # golden-section steps in the best grid bracket
+
+
+def _search_m(V, L, W, D, iters: int = M_GOLDEN) -> np.ndarray:
     """Shininess per texel minimising the RSS after the linear solve: a coarse grid over
     ln m, then golden-section search in the best bracket (001)."""
     B = V.shape[0]
     lnc = _log_cos(V, D)
-    grid = np.linspace(0.0, LN_M_MAX, 8)
+    grid = np.linspace(0.0, LN_M_MAX, M_GRID)
     rss = np.stack([_solve_linear_lc(lnc, L, W, np.full(B, math.exp(u)))[1] for u in grid], 1)
     k = np.argmin(rss, axis=1)
     lo = grid[np.maximum(k - 1, 0)]
@@ -113,6 +117,12 @@ def initial_guess_batch(
     (B, 4 + 6K) parameter vectors (conventions.md layout).
     """
     B, N, _ = V.shape
+    if initial_batch is not None:
+        out = np.zeros((B, mh_size(K)))
+        initial_batch(np.ascontiguousarray(V, float), np.ascontiguousarray(L, float),
+                      np.ascontiguousarray(W, float), K, math.cos(math.radians(min_sep_deg)),
+                      LN_M_MAX, M_GRID, M_GOLDEN, out)
+        return out
     D = np.zeros((B, 0, 3))
     Y = L.mean(-1)
     resid = np.where(W > 0, Y, -np.inf)

@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from ...conventions import MH_HEAD, MHX_LNM, MHX_LOBE
+from ...conventions import MH_HEAD, MH_LOBE, MHX_LNM, MHX_LOBE
 
 try:
     from numba import njit
@@ -398,3 +398,327 @@ if njit is not None:
     lm_batch = njit(cache=True, nogil=True)(_lm_batch)
 else:  # pragma: no cover - exercised only without numba
     lm_batch = None
+
+
+def _sandwich_batch(X: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
+                    w: np.ndarray, K: np.ndarray, nlobes: np.ndarray, want_cov: bool,
+                    loo: np.ndarray, bad: np.ndarray, var: np.ndarray) -> None:
+    """Leave-one-view-out residuals and the HC3 sandwich of many texels (the compiled
+    :func:`parammap.models.mh.uncertainty.loo_residuals` and ``parameter_sd``).
+
+    X : (n, nx) x-space parameters (Kd, ln m, per lobe Ks, theta, phi; unscaled);
+    V, L : (n, N, 3); W : (n, N) bool; w : (n, N) weights; nlobes : (n,) lobes used
+    (the others' columns are not free). Writes ``loo`` (n, N, 3), ``bad`` (n,) (a
+    view's leave-one-out block singular) and, with ``want_cov``, the variances of the
+    free x-space parameters into ``var`` (n, nx) (NaN elsewhere).
+    """
+    n, N = W.shape
+    nx = X.shape[1]
+    Kx = (nx - MH_HEAD) // MHX_LOBE
+    J = np.zeros((N, 3, nx))
+    r = np.zeros((N, 3))
+    A = np.zeros((nx, nx))
+    free = np.zeros(nx, np.bool_)
+    d = np.empty((Kx, 3))
+    dth = np.empty((Kx, 3))
+    dph = np.empty((Kx, 3))
+    M = np.empty((3, nx))
+    for t in range(n):
+        x = X[t]
+        m = math.exp(x[MHX_LNM])
+        nl = nlobes[t]
+        for i in range(nx):
+            free[i] = True
+        for k in range(nl, Kx):
+            b = MH_HEAD + MHX_LOBE * k
+            for i in range(5):
+                free[b + i] = False
+        if nl == 0:
+            free[MHX_LNM] = False
+        for k in range(Kx):
+            b = MH_HEAD + MHX_LOBE * k
+            st, ct = math.sin(x[b + 3]), math.cos(x[b + 3])
+            sp, cp = math.sin(x[b + 4]), math.cos(x[b + 4])
+            d[k, 0], d[k, 1], d[k, 2] = st * cp, st * sp, ct
+            dth[k, 0], dth[k, 1], dth[k, 2] = ct * cp, ct * sp, -st
+            dph[k, 0], dph[k, 1], dph[k, 2] = -st * sp, st * cp, 0.0
+        for i in range(nx):
+            for j in range(nx):
+                A[i, j] = 0.0
+        for v in range(N):
+            for c in range(3):
+                r[v, c] = 0.0
+                for i in range(nx):
+                    J[v, c, i] = 0.0
+            if not W[t, v]:
+                continue
+            v0, v1, v2 = V[t, v, 0], V[t, v, 1], V[t, v, 2]
+            for c in range(3):
+                r[v, c] = x[c] - L[t, v, c]
+                J[v, c, c] = 1.0
+            for k in range(Kx):
+                b = MH_HEAD + MHX_LOBE * k
+                cs = v0 * d[k, 0] + v1 * d[k, 1] + v2 * d[k, 2]
+                if cs <= 0.0:
+                    continue
+                lc = math.log(cs)
+                p = math.exp(m * lc)
+                dpdc = m * p / cs
+                a_th = dpdc * (v0 * dth[k, 0] + v1 * dth[k, 1] + v2 * dth[k, 2])
+                a_ph = dpdc * (v0 * dph[k, 0] + v1 * dph[k, 1])
+                for c in range(3):
+                    ks = x[b + c]
+                    r[v, c] += ks * p
+                    J[v, c, MHX_LNM] += ks * p * m * lc
+                    J[v, c, b + c] = p
+                    J[v, c, b + 3] = ks * a_th
+                    J[v, c, b + 4] = ks * a_ph
+            wv = w[t, v]
+            for c in range(3):
+                for i in range(nx):
+                    if not free[i]:
+                        J[v, c, i] = 0.0
+                for i in range(nx):
+                    a = wv * J[v, c, i]
+                    if a == 0.0:
+                        continue
+                    for j in range(nx):
+                        A[i, j] += a * J[v, c, j]
+        for i in range(nx):
+            if not free[i]:
+                A[i, i] = 1.0
+        Ai = np.linalg.pinv(A)
+        bad[t] = False
+        for v in range(N):
+            if not W[t, v]:
+                for c in range(3):
+                    loo[t, v, c] = 0.0
+                continue
+            sw = math.sqrt(w[t, v])
+            # the view's 3 x 3 block of the hat matrix, H = Jw Ai Jw^T
+            for c in range(3):
+                for j in range(nx):
+                    s = 0.0
+                    for i in range(nx):
+                        s += J[v, c, i] * Ai[i, j]
+                    M[c, j] = s * sw
+            h = np.empty((3, 3))
+            for a in range(3):
+                for c in range(3):
+                    s = 0.0
+                    for j in range(nx):
+                        s += M[a, j] * J[v, c, j]
+                    h[a, c] = (1.0 if a == c else 0.0) - s * sw
+            co00 = h[1, 1] * h[2, 2] - h[1, 2] * h[2, 1]
+            co01 = h[0, 2] * h[2, 1] - h[0, 1] * h[2, 2]
+            co02 = h[0, 1] * h[1, 2] - h[0, 2] * h[1, 1]
+            co10 = h[1, 2] * h[2, 0] - h[1, 0] * h[2, 2]
+            co11 = h[0, 0] * h[2, 2] - h[0, 2] * h[2, 0]
+            co12 = h[0, 2] * h[1, 0] - h[0, 0] * h[1, 2]
+            co20 = h[1, 0] * h[2, 1] - h[1, 1] * h[2, 0]
+            co21 = h[0, 1] * h[2, 0] - h[0, 0] * h[2, 1]
+            co22 = h[0, 0] * h[1, 1] - h[0, 1] * h[1, 0]
+            det = h[0, 0] * co00 + h[0, 1] * co10 + h[0, 2] * co20
+            if not abs(det) > 1e-9:
+                bad[t] = True
+                for c in range(3):
+                    loo[t, v, c] = r[v, c]
+                continue
+            r0, r1, r2 = r[v, 0], r[v, 1], r[v, 2]
+            loo[t, v, 0] = (co00 * r0 + co01 * r1 + co02 * r2) / det
+            loo[t, v, 1] = (co10 * r0 + co11 * r1 + co12 * r2) / det
+            loo[t, v, 2] = (co20 * r0 + co21 * r1 + co22 * r2) / det
+        if not want_cov:
+            continue
+        dof = 0  # residuals minus free parameters
+        for v in range(N):
+            if W[t, v]:
+                dof += 3
+        for i in range(nx):
+            if free[i]:
+                dof -= 1
+        # B = sum over rows of (w J loo)^T (w J loo); cov = Ai B Ai
+        Bm = np.zeros((nx, nx))
+        for v in range(N):
+            if not W[t, v]:
+                continue
+            for c in range(3):
+                f = w[t, v] * loo[t, v, c]
+                for i in range(nx):
+                    a = f * J[v, c, i]
+                    if a == 0.0:
+                        continue
+                    for j in range(nx):
+                        Bm[i, j] += a * f * J[v, c, j]
+        T = Ai @ Bm
+        for i in range(nx):
+            if not free[i] or dof <= 0:
+                var[t, i] = np.nan
+                continue
+            s = 0.0
+            for j in range(nx):
+                s += T[i, j] * Ai[j, i]
+            var[t, i] = s
+
+
+sandwich_batch = njit(cache=True, nogil=True)(_sandwich_batch) if njit is not None else None
+
+
+def _nnls_texel(A: np.ndarray, Y: np.ndarray, w: np.ndarray, P: int, x: np.ndarray) -> float:
+    """Non-negative weighted least squares of one texel, the three channels sharing the
+    design ``A`` (N, P) (the compiled counterpart of ``initial._nnls_batch``: active set
+    by pinning the most negative coefficient, on the normal equations). Writes x (P, 3);
+    returns the RSS."""
+    N = A.shape[0]
+    G = np.zeros((P, P))
+    R = np.zeros((P, 3))
+    yy = 0.0
+    for n in range(N):
+        wn = w[n]
+        if wn == 0.0:
+            continue
+        for c in range(3):
+            yy += wn * Y[n, c] * Y[n, c]
+        for a in range(P):
+            wa = wn * A[n, a]
+            for c in range(3):
+                R[a, c] += wa * Y[n, c]
+            for b in range(a, P):
+                G[a, b] += wa * A[n, b]
+    tr = 0.0
+    for a in range(P):
+        tr += G[a, a]
+        for b in range(a):
+            G[a, b] = G[b, a]
+    M = np.empty((P, P))
+    rhs = np.empty(P)
+    sol = np.empty(P)
+    active = np.empty(P, np.bool_)
+    rss = 0.0
+    for c in range(3):
+        for a in range(P):
+            active[a] = True
+        for _ in range(P + 1):
+            for a in range(P):
+                for b in range(P):
+                    M[a, b] = G[a, b] if (active[a] and active[b]) else 0.0
+                M[a, a] = (G[a, a] if active[a] else 1.0) + 1e-12 * tr
+                rhs[a] = R[a, c] if active[a] else 0.0
+            if not _chol_solve(M, rhs, sol):
+                for a in range(P):
+                    sol[a] = 0.0
+                break
+            worst, wv = -1, -1e-15
+            for a in range(P):
+                if sol[a] < wv:
+                    worst, wv = a, sol[a]
+            if worst < 0:
+                break
+            active[worst] = False
+        for a in range(P):
+            x[a, c] = max(sol[a], 0.0) if active[a] else 0.0
+        # rss of this channel from the normal equations
+        s = 0.0
+        for a in range(P):
+            s -= 2.0 * x[a, c] * R[a, c]
+            for b in range(P):
+                s += x[a, c] * G[a, b] * x[b, c]
+        rss += s
+    return max(rss + yy, 0.0)
+
+
+def _design(V: np.ndarray, D: np.ndarray, nd: int, lnm: float, A: np.ndarray) -> None:
+    """A[:, 0] = 1, A[:, 1 + k] = max(0, d_k . v)^m for the first ``nd`` lobes."""
+    m = math.exp(lnm)
+    for n in range(V.shape[0]):
+        A[n, 0] = 1.0
+        for k in range(nd):
+            c = V[n, 0] * D[k, 0] + V[n, 1] * D[k, 1] + V[n, 2] * D[k, 2]
+            A[n, 1 + k] = math.exp(m * math.log(c)) if c > 0.0 else 0.0
+
+
+def _initial_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, K: int, cos_sep: float,
+                   ln_m_max: float, grid: int, golden: int, out: np.ndarray) -> None:
+    """The better initial guess of many texels (compiled counterpart of
+    ``initial.initial_guess_batch``, same steps): each lobe at the direction of the
+    largest remaining residual, m by a grid over ln m then golden-section search, Kd
+    and Ks by non-negative least squares. Writes ``out`` (B, 4 + 6K) parameters."""
+    B, N = W.shape
+    D = np.zeros((K, 3))
+    A = np.empty((N, 1 + K))
+    x = np.empty((1 + K, 3))
+    resid = np.empty(N)
+    gr = (math.sqrt(5.0) - 1.0) / 2.0
+    for t in range(B):
+        Vt, Lt, wt = V[t], L[t], W[t]
+        for n in range(N):
+            resid[n] = (Lt[n, 0] + Lt[n, 1] + Lt[n, 2]) / 3.0 if wt[n] > 0 else -np.inf
+        lnm = math.log(10.0)
+        for k in range(K):
+            if k > 0:
+                for n in range(N):
+                    for j in range(k):
+                        if Vt[n, 0] * D[j, 0] + Vt[n, 1] * D[j, 1] + Vt[n, 2] * D[j, 2] > cos_sep:
+                            resid[n] = -np.inf
+            best_n = 0
+            for n in range(N):
+                if resid[n] > resid[best_n]:
+                    best_n = n
+            for c in range(3):
+                D[k, c] = Vt[best_n, c]
+            # ln m: the best of a grid, then golden-section search in its bracket
+            bi, bf = 0, np.inf
+            for i in range(grid):
+                u = ln_m_max * i / (grid - 1)
+                _design(Vt, D, k + 1, u, A)
+                f = _nnls_texel(A, Lt, wt, k + 2, x)
+                if f < bf:
+                    bi, bf = i, f
+            a = ln_m_max * max(bi - 1, 0) / (grid - 1)
+            b = ln_m_max * min(bi + 1, grid - 1) / (grid - 1)
+            c1, d1 = b - gr * (b - a), a + gr * (b - a)
+            _design(Vt, D, k + 1, c1, A)
+            fc = _nnls_texel(A, Lt, wt, k + 2, x)
+            _design(Vt, D, k + 1, d1, A)
+            fd = _nnls_texel(A, Lt, wt, k + 2, x)
+            for _ in range(golden):
+                if fc < fd:
+                    b, d1, fd = d1, c1, fc
+                    c1 = b - gr * (b - a)
+                    _design(Vt, D, k + 1, c1, A)
+                    fc = _nnls_texel(A, Lt, wt, k + 2, x)
+                else:
+                    a, c1, fc = c1, d1, fd
+                    d1 = a + gr * (b - a)
+                    _design(Vt, D, k + 1, d1, A)
+                    fd = _nnls_texel(A, Lt, wt, k + 2, x)
+            lnm = (a + b) / 2.0
+            _design(Vt, D, k + 1, lnm, A)
+            _nnls_texel(A, Lt, wt, k + 2, x)
+            for n in range(N):
+                if wt[n] > 0:
+                    s = 0.0
+                    for c in range(3):
+                        mod = x[0, c]
+                        for j in range(k + 1):
+                            mod += A[n, 1 + j] * x[1 + j, c]
+                        s += Lt[n, c] - mod
+                    resid[n] = s / 3.0
+                else:
+                    resid[n] = -np.inf
+        for c in range(3):
+            out[t, c] = x[0, c]
+        out[t, 3] = math.exp(lnm)
+        for k in range(K):
+            b0 = MH_HEAD + MH_LOBE * k
+            for c in range(3):
+                out[t, b0 + c] = x[1 + k, c]
+                out[t, b0 + 3 + c] = D[k, c]
+
+
+if njit is not None:
+    _nnls_texel = njit(cache=True, nogil=True)(_nnls_texel)
+    _design = njit(cache=True, nogil=True)(_design)
+    initial_batch = njit(cache=True, nogil=True)(_initial_batch)
+else:  # pragma: no cover - exercised only without numba
+    initial_batch = None

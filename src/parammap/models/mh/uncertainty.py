@@ -36,6 +36,7 @@ from ...conventions import (
     mhx_size,
     mhx_theta,
 )
+from .kernel import sandwich_batch
 from .model import M_MAX, M_MIN, _lobes_present, _params_to_x_batch, mh_eval
 
 __all__ = ["jacobian_x", "loo_error", "loo_residuals", "parameter_sd"]
@@ -131,8 +132,27 @@ def loo_residuals(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
     alone determines a parameter).
     """
     P = np.asarray(P, float)
+    if sandwich_batch is not None:
+        loo, bad, _ = _compiled(P, V, L, W, weights, False)
+        return loo, bad
     J, _, r, w, free, A, _ = _linearised(P, V, L, W, weights)
     return _loo(J, r, w, free, A, W)
+
+
+def _compiled(P, V, L, W, weights, want_cov: bool):
+    """:func:`loo_residuals` and the sandwich's variances in x space, by the compiled
+    kernel (:func:`.kernel.sandwich_batch`): (n, N, 3), (n,) bool, (n, nx)."""
+    n, N = W.shape
+    X = _params_to_x_batch(P, np.ones(n))
+    w = (np.ones(W.shape) if weights is None else np.asarray(weights, float)) * W
+    loo = np.zeros((n, N, 3))
+    bad = np.zeros(n, bool)
+    var = np.full(X.shape, np.nan)
+    sandwich_batch(np.ascontiguousarray(X), np.ascontiguousarray(V, float),
+                   np.ascontiguousarray(L, float), np.ascontiguousarray(W, bool),
+                   np.ascontiguousarray(w, float), mh_lobes(P.shape[1]),
+                   _lobes_present(P).astype(np.int64), want_cov, loo, bad, var)
+    return loo, bad, var
 
 
 def _loo(J, r, w, free, A, W, Ai=None) -> tuple[np.ndarray, np.ndarray]:
@@ -201,20 +221,23 @@ def parameter_sd(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
     n = P.shape[0]
     K = mh_lobes(P.shape[1])
     X = _params_to_x_batch(P, np.ones(n))
-    J, JW, r, w, free, A, mask = _linearised(P, V, L, W, weights)
-    # the sandwich A^-1 B A^-1 with B from the leave-one-view-out residuals (HC3): the
-    # noise of a capture grows with the radiance, and the few views near a highlight
-    # pull the fit to themselves, so their own residuals understate their noise
-    with np.errstate(invalid="ignore", divide="ignore"):
-        Ai = np.linalg.pinv(A)
-    loo, _ = _loo(J, r, w, free, A, W, Ai)
-    Jr = JW * loo.reshape(n, -1)[..., None]
-    Bm = np.where(mask, np.matmul(Jr.transpose(0, 2, 1), Jr), 0.0)
-    dof = 3 * W.sum(1) - free.sum(1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cov = Ai @ Bm @ Ai
-        var = np.where(free, np.diagonal(cov, axis1=1, axis2=2), np.nan)
-    var = np.where(dof[:, None] > 0, var, np.nan)
+    if sandwich_batch is not None:
+        var = _compiled(P, V, L, W, weights, True)[2]
+    else:
+        J, JW, r, w, free, A, mask = _linearised(P, V, L, W, weights)
+        # the sandwich A^-1 B A^-1 with B from the leave-one-view-out residuals (HC3):
+        # the noise of a capture grows with the radiance, and the few views near a
+        # highlight pull the fit to themselves, so their own residuals understate it
+        with np.errstate(invalid="ignore", divide="ignore"):
+            Ai = np.linalg.pinv(A)
+        loo, _ = _loo(J, r, w, free, A, W, Ai)
+        Jr = JW * loo.reshape(n, -1)[..., None]
+        Bm = np.where(mask, np.matmul(Jr.transpose(0, 2, 1), Jr), 0.0)
+        dof = 3 * W.sum(1) - free.sum(1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cov = Ai @ Bm @ Ai
+            var = np.where(free, np.diagonal(cov, axis1=1, axis2=2), np.nan)
+        var = np.where(dof[:, None] > 0, var, np.nan)
     sd_x = np.sqrt(np.clip(var, 0, None))
     out = np.full((n, mh_sd_size(K)), np.nan)
     out[:, MH_KD] = sd_x[:, MHX_KD]
