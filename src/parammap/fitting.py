@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import shutil
 import sys
 import time
@@ -152,7 +153,28 @@ def _show_progress() -> bool:
     return sys.stderr.isatty() and logger.isEnabledFor(logging.INFO)
 
 
-def _compute(x, scheduler: str, workers: int):
+@contextlib.contextmanager
+def _process_pool(scheduler: str, workers: int):
+    """One process pool for every pass of a fit (tiles, then the repair phases): each new
+    pool would import the package and load the compiled kernels again in every worker
+    (about a second each). None for the other schedulers."""
+    if scheduler != "processes":
+        yield None
+        return
+    from concurrent.futures import ProcessPoolExecutor
+
+    from dask.multiprocessing import get_context, initialize_worker_process
+
+    os.environ.setdefault("PYTHONHASHSEED", "6640")  # as dask's own pools (dask#6640)
+    pool = ProcessPoolExecutor(workers, mp_context=get_context(), initializer=partial(
+        initialize_worker_process, user_initializer=worker_initializer()))
+    try:
+        yield pool
+    finally:
+        pool.shutdown(cancel_futures=True)
+
+
+def _compute(x, scheduler: str, workers: int, pool=None):
     if scheduler.startswith(("tcp://", "tls://", "inproc://", "ucx://")):
         from dask.distributed import Client, progress
 
@@ -161,7 +183,10 @@ def _compute(x, scheduler: str, workers: int):
             if _show_progress():
                 progress(fut)
             return fut.result()
-    kw = {"processes": {"num_workers": workers, "initializer": worker_initializer()},
+    # chunksize 1: a tile is seconds of work, and dask's default (6 tasks a dispatch)
+    # hands a map of a few tiles to one worker
+    kw = {"processes": {"pool": pool, "chunksize": 1} if pool is not None else
+          {"num_workers": workers, "initializer": worker_initializer(), "chunksize": 1},
           "threads": {"num_workers": workers}, "synchronous": {}}
     if scheduler not in kw:
         raise FitError(f"fit.scheduler: unknown scheduler {scheduler!r} (processes, threads, "
@@ -235,8 +260,9 @@ def fit_map(
         done_dir=str(done), drop_axis=2, dtype=np.int8, meta=np.array((), np.int8),
         chunks=valid.chunks[:2])
     t0 = time.perf_counter()
-    with dask.config.set({"optimization.fuse.active": False}):
-        status = np.asarray(_compute(status, scheduler, workers))
+    with dask.config.set({"optimization.fuse.active": False}), \
+            _process_pool(scheduler, workers) as pool:
+        status = np.asarray(_compute(status, scheduler, workers, pool))
         repaired = 0
         if repair_fn is not None:
             for phase in ((0, 0), (0, 1), (1, 0), (1, 1)):
@@ -245,7 +271,7 @@ def fit_map(
                     repair_fn=repair_fn, halo=halo, phase=phase, done_dir=str(done),
                     drop_axis=2, dtype=np.int8, meta=np.array((), np.int8),
                     chunks=valid.chunks[:2])
-                repaired += int(np.asarray(_compute(ch, scheduler, workers)).sum())
+                repaired += int(np.asarray(_compute(ch, scheduler, workers, pool)).sum())
             status = g["status"][:]
             logger.info(f"fit: repair pass refitted {repaired} texels from their neighbours")
     seconds = time.perf_counter() - t0

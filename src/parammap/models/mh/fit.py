@@ -362,8 +362,11 @@ def _objective(V: np.ndarray, L: np.ndarray, K: int, loss: str, f: float,
 
 
 def fit_texel(V: np.ndarray, L: np.ndarray, p0: np.ndarray,
-              cfg: MhFitConfig = MhFitConfig(), w: np.ndarray | None = None) -> FitResult:
-    """Bounded nlopt fit of one texel from initial parameters ``p0`` (4 + 6K).
+              cfg: MhFitConfig = MhFitConfig(), w: np.ndarray | None = None,
+              polish: bool = True) -> FitResult:
+    """Bounded nlopt fit of one texel from initial parameters ``p0`` (4 + 6K), after
+    compiled Levenberg-Marquardt steps (where numba is present; ``polish=False``: those
+    steps only, to rank several starts before polishing the best).
 
     Parameters
     ----------
@@ -390,6 +393,11 @@ def fit_texel(V: np.ndarray, L: np.ndarray, p0: np.ndarray,
                  (np.ones(len(V)) if w is None else np.asarray(w, float))[None], K, lb,
                  ub[None], LM_ITERS, LM_FTOL)
         x0 = X[0]
+    if not polish:
+        p = _sort_lobes(_from_x(x0, s))
+        rss = float(np.sum((1.0 if w is None else w[:, None]) * (mh_eval(p, V) - L) ** 2))
+        ok = np.all(np.isfinite(p)) and math.isfinite(rss)
+        return FitResult(p, rss, 0, FitStatus.OK if ok else FitStatus.FAILED, 0)
     opt = nlopt.opt(ALGORITHMS[cfg.algorithm], nx)
     opt.set_lower_bounds(lb)
     opt.set_upper_bounds(ub)

@@ -384,6 +384,11 @@ def _lm_batch(X: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K: in
                     why[b] = 0
                     break
                 lam = max(lam * 0.3, 1e-12)
+            elif lam < 1.0 and cn - cost <= ftol * cost:
+                # a near Gauss-Newton step that changes the cost by less than the
+                # tolerance either way: at the optimum (round-off decides the sign)
+                why[b] = 0
+                break
             else:
                 lam *= 10.0
                 if lam > 1e10:
@@ -722,3 +727,68 @@ if njit is not None:
     initial_batch = njit(cache=True, nogil=True)(_initial_batch)
 else:  # pragma: no cover - exercised only without numba
     initial_batch = None
+
+
+def _rescaled_batch(P: np.ndarray, V: np.ndarray, L: np.ndarray, k: int, Q: np.ndarray,
+                    rss: np.ndarray) -> None:
+    """Compiled ``repair._rescaled_starts``: each candidate's shininess and first ``k``
+    lobe directions kept, Kd and Ks by least squares on the texel's data V, L (N, 3)
+    (a ridge of 1e-12 of the trace), clipped at zero. P (c, 4 + 6K) in, Q (c, 4 + 6k)
+    and rss (c,) out."""
+    c, N = P.shape[0], V.shape[0]
+    nb = 1 + k
+    A = np.empty((N, nb))
+    D = np.empty((max(k, 1), 3))
+    G = np.empty((nb, nb))
+    M = np.empty((nb, nb))
+    R = np.empty((nb, 3))
+    rhs = np.empty(nb)
+    sol = np.empty(nb)
+    x = np.empty((nb, 3))
+    for i in range(c):
+        for j in range(k):
+            for a in range(3):
+                D[j, a] = P[i, MH_HEAD + MH_LOBE * j + 3 + a]
+        _design(V, D, k, math.log(P[i, 3]), A)
+        for a in range(nb):
+            for ch in range(3):
+                R[a, ch] = 0.0
+            for b in range(nb):
+                G[a, b] = 0.0
+        for n in range(N):
+            for a in range(nb):
+                for ch in range(3):
+                    R[a, ch] += A[n, a] * L[n, ch]
+                for b in range(nb):
+                    G[a, b] += A[n, a] * A[n, b]
+        tr = 0.0
+        for a in range(nb):
+            tr += G[a, a]
+        for ch in range(3):
+            for a in range(nb):
+                for b in range(nb):
+                    M[a, b] = G[a, b]
+                M[a, a] += 1e-12 * tr
+                rhs[a] = R[a, ch]
+            if not _chol_solve(M, rhs, sol):
+                for a in range(nb):
+                    sol[a] = 0.0
+            for a in range(nb):
+                x[a, ch] = max(sol[a], 0.0)
+        s = 0.0
+        for n in range(N):
+            for ch in range(3):
+                f = -L[n, ch]
+                for a in range(nb):
+                    f += A[n, a] * x[a, ch]
+                s += f * f
+        rss[i] = s
+        for a in range(Q.shape[1]):
+            Q[i, a] = P[i, a]
+        for ch in range(3):
+            Q[i, ch] = x[0, ch]
+            for j in range(k):
+                Q[i, MH_HEAD + MH_LOBE * j + ch] = x[1 + j, ch]
+
+
+rescaled_batch = njit(cache=True, nogil=True)(_rescaled_batch) if njit is not None else None

@@ -11,6 +11,7 @@ from scipy.ndimage import maximum_filter
 from ...conventions import MH_KD, MH_M, FitStatus, mh_dir, mh_dir_z, mh_ks, mh_lobes, mh_size
 from ..residuals import mean_percentage_residual
 from .fit import MhFitConfig, fit_texel
+from .kernel import rescaled_batch
 from .model import bic, mh_eval
 from .uncertainty import parameter_sd
 
@@ -68,6 +69,11 @@ def _rescaled_starts(P: np.ndarray, V: np.ndarray, L: np.ndarray, k: int) -> tup
     (c, 4 + 6k) starts and (c,) their residual sums of squares.
     """
     c = len(P)
+    if rescaled_batch is not None:
+        Q, rss = np.empty((c, mh_size(k))), np.empty(c)
+        rescaled_batch(np.ascontiguousarray(P, float), np.ascontiguousarray(V, float),
+                       np.ascontiguousarray(L, float), k, Q, rss)
+        return Q, rss
     A = np.ones((c, len(V), 1 + k))
     for j in range(k):
         A[..., 1 + j] = np.clip(np.einsum("nc,ic->in", V, P[:, mh_dir(j)]), 0, None) \
@@ -254,14 +260,20 @@ def _refit_from_neighbours(radiance: np.ndarray, direction: np.ndarray, valid: n
                 for x in score]
         cands += [(crit[q], int(k), Q[q]) for q in range(len(Q))]
     cands.sort(key=lambda c: c[0])
+    # every start converged by the compiled LM steps, the best of them polished by nlopt
     for _, k, q in cands[:starts]:
-        r = fit_texel(V, L, q, cfg)
-        evals += r.evals
+        r = fit_texel(V, L, q, cfg, polish=False)
         if r.status != FitStatus.OK:
             continue
         crit = bic(r.rss, L.size, k, floor) if K == "auto" else r.rss
         if best is None or crit < best[0]:
             best = (crit, r, k)
+    if best is not None:
+        _, r, k = best
+        r = fit_texel(V, L, r.params, cfg)
+        evals += r.evals
+        best = None if r.status != FitStatus.OK else (
+            bic(r.rss, L.size, k, floor) if K == "auto" else r.rss, r, k)
     margin = cfg.bic_margin if K == "auto" else 0.0
     if best is None or not best[0] < crit0 - margin:
         return None, 0, evals, V, L
