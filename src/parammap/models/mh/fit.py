@@ -499,57 +499,73 @@ def fit_mh_tile(
     Wf = NW[todo]
     # the initial guesses in float32 (twice as fast; LM and nlopt then work in float64)
     V32, L32, W32 = V[todo].astype(np.float32), L[todo].astype(np.float32), Wf.astype(np.float32)
-    inits = {k: init(V32, L32, W32, k).astype(float) for k in Ks}
-    if cfg.init == "better":
-        inits = {k: refine_batch(V[todo], L[todo], Wf, p0) for k, p0 in inits.items()}
+
+    def starts(k: int, sel: np.ndarray) -> np.ndarray:
+        """Initial guesses (and LM steps) with k lobes for the texels todo[sel]."""
+        p0 = init(V32[sel], L32[sel], W32[sel], k).astype(float)
+        return refine_batch(V[todo[sel]], L[todo[sel]], Wf[sel], p0) \
+            if cfg.init == "better" else p0
+
     polished = {}
     if cfg.polish == "batch" and cfg.loss == "linear" and cfg.algorithm != "bobyqa":
+        everyone = np.arange(len(todo))
         for k in Ks:
-            P, rss, ev, conv, code = polish_batch(V[todo], L[todo], Wf, inits[k], cfg)
+            P, rss, ev, conv, code = polish_batch(V[todo], L[todo], Wf, starts(k, everyone),
+                                                  cfg)
             polished[k] = (P, rss, ev, conv & np.isfinite(P).all(1) & np.isfinite(rss), code)
+    # per texel: its data, best fit so far (result, lobes), its BIC, evaluations, and
+    # whether BIC stopped adding lobes (``auto``)
+    data, best, best_bic, evals = [], [None] * len(todo), [math.inf] * len(todo), \
+        np.zeros(len(todo), int)
+    stopped = np.zeros(len(todo), bool)
     for j, b in enumerate(todo):
         w = W[b]
         v, y, wt = V[b][w], L[b][w], NW[b][w]
-        best, best_bic, evals = None, math.inf, 0
+        data.append((v, y, wt, (cfg.bic_floor * float(np.mean(np.abs(y)))) ** 2))
         if K == "auto":
             # K = 0 first: a lobe must pay for itself against a diffuse texel
             kd = (wt[:, None] * y).sum(0) / wt.sum()
-            p0 = np.r_[kd, M_MIN]
-            floor = (cfg.bic_floor * float(np.mean(np.abs(y)))) ** 2
             rss0 = float(np.sum(wt[:, None] * (y - kd) ** 2))
-            best, best_bic = (FitResult(p0, rss0, 0, FitStatus.OK, 0), 0), bic(rss0, y.size, 0,
-                                                                            floor)
-        stopped = False
-        for k in Ks:
-            if stopped:
-                # past BIC's choice: only the batch fits, for _select_lobes to compare
-                if select and k in polished and polished[k][3][j]:
-                    alts[k][b] = _padded(polished[k][0][j], k, Kmax)
-                continue
+            best[j] = (FitResult(np.r_[kd, M_MIN], rss0, 0, FitStatus.OK, 0), 0)
+            best_bic[j] = bic(rss0, y.size, 0, data[j][3])
+    for k in Ks:
+        # one number of lobes for every texel still adding lobes: the starts of texels
+        # that BIC already stopped are never computed
+        run = np.flatnonzero(~stopped)
+        start = polished[k][0] if k in polished else None
+        if start is None and len(run):
+            start = np.full((len(todo), mh_size(k)), np.nan)
+            start[run] = starts(k, run)
+        for j in np.flatnonzero(stopped):
+            # past BIC's choice: only the batch fits, for _select_lobes to compare
+            if select and k in polished and polished[k][3][j]:
+                alts[k][todo[j]] = _padded(polished[k][0][j], k, Kmax)
+        for j in run:
+            b = todo[j]
+            v, y, wt, floor = data[j]
             if k in polished and polished[k][3][j]:
                 P, rss, ev, _, code = polished[k]
                 r = FitResult(P[j], float(rss[j]), ev, FitStatus.OK, code)
             else:
-                start = polished[k][0][j] if k in polished else inits[k][j]
                 try:
-                    r = fit_texel(v, y, start, cfg, w=wt)
+                    r = fit_texel(v, y, start[j], cfg, w=wt)
                 except Exception:  # noqa: BLE001 - a failed texel is flagged, never fatal
                     r = FitResult(np.full(mh_size(k), np.nan), math.inf, 0, FitStatus.FAILED,
                                   -1)
-            evals += r.evals
+            evals[j] += r.evals
             if select and r.status == FitStatus.OK:
                 alts[k][b] = _padded(r.params, k, Kmax)
-            floor = (cfg.bic_floor * float(np.mean(np.abs(y)))) ** 2
             crit = bic(r.rss, y.size, k, floor) if r.status == FitStatus.OK else math.inf
-            if best is None or (K != "auto" and r.status == FitStatus.OK) or \
-                    crit < best_bic - cfg.bic_margin:
-                best, best_bic = (r, k), crit
+            if best[j] is None or (K != "auto" and r.status == FitStatus.OK) or \
+                    crit < best_bic[j] - cfg.bic_margin:
+                best[j], best_bic[j] = (r, k), crit
             elif K == "auto":
-                stopped = True
-        r, k = best
+                stopped[j] = True
+    for j, b in enumerate(todo):
+        r, k = best[j]
         flat["params"][b] = _padded(r.params, k, Kmax)
         flat["k_used"][b] = k
-        flat["evals"][b] = evals
+        flat["evals"][b] = evals[j]
         flat["status"][b] = r.status
     # residual diagnostics for the whole tile at once
     ok = todo[flat["status"][todo] == FitStatus.OK]

@@ -369,8 +369,10 @@ def _lm_batch(X: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K: in
                 continue
             for i in range(nx):
                 xn[i] = min(max(x[i] + step[i], lb[i]), ub[b, i])
-            cn = _normal_texel(xn, V[b], L[b], Wt[b], K, An, gn, Q, QR, True)
+            # the cost alone first: A and g only for a step that is taken
+            cn = _normal_texel(xn, V[b], L[b], Wt[b], K, An, gn, Q, QR, False)
             if cn < cost:
+                cn = _normal_texel(xn, V[b], L[b], Wt[b], K, An, gn, Q, QR, True)
                 gain = (cost - cn) / max(cost, 1e-300)
                 for i in range(nx):
                     x[i] = xn[i]
