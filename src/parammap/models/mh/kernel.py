@@ -22,6 +22,31 @@ except ImportError:  # pragma: no cover - exercised only without numba
 LOSSES = {"linear": 0, "soft_l1": 1, "huber": 2}
 
 
+def _jit(f, fallback=None):
+    """``f`` compiled by numba (cached on disk, GIL released), or ``fallback`` where numba
+    is missing (None for the entry points: callers then take their numpy paths)."""
+    return njit(cache=True, nogil=True)(f) if njit is not None else fallback
+
+
+def _lobe_frames(x: np.ndarray, K: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each lobe's unit direction and its derivatives by theta and phi, (K, 3) each,
+    from the x-space angles."""
+    d = np.empty((K, 3))
+    dth = np.empty((K, 3))
+    dph = np.empty((K, 3))
+    for k in range(K):
+        b = MH_HEAD + MHX_LOBE * k
+        st, ct = math.sin(x[b + 3]), math.cos(x[b + 3])
+        sp, cp = math.sin(x[b + 4]), math.cos(x[b + 4])
+        d[k, 0], d[k, 1], d[k, 2] = st * cp, st * sp, ct
+        dth[k, 0], dth[k, 1], dth[k, 2] = ct * cp, ct * sp, -st
+        dph[k, 0], dph[k, 1], dph[k, 2] = -st * sp, st * cp, 0.0
+    return d, dth, dph
+
+
+_lobe_frames = _jit(_lobe_frames, _lobe_frames)
+
+
 def _cost_grad(x: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K: int,
                loss: int, f: float, grad: np.ndarray, want_grad: bool) -> float:
     """Cost of x-space parameters ``x`` (``conventions.mhx_size(K)``) on directions
@@ -30,17 +55,7 @@ def _cost_grad(x: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K: i
     :mod:`parammap.models.mh.fit`."""
     n = V.shape[0]
     m = math.exp(x[MHX_LNM])
-    d = np.empty((K, 3))
-    dth = np.empty((K, 3))
-    dph = np.empty((K, 3))
-    for k in range(K):
-        b = MH_HEAD + MHX_LOBE * k
-        th = x[b + 3]
-        ph = x[b + 4]
-        st, ct, sp, cp = math.sin(th), math.cos(th), math.sin(ph), math.cos(ph)
-        d[k, 0], d[k, 1], d[k, 2] = st * cp, st * sp, ct
-        dth[k, 0], dth[k, 1], dth[k, 2] = ct * cp, ct * sp, -st
-        dph[k, 0], dph[k, 1], dph[k, 2] = -st * sp, st * cp, 0.0
+    d, dth, dph = _lobe_frames(x, K)
     if want_grad:
         for j in range(grad.shape[0]):
             grad[j] = 0.0
@@ -102,7 +117,7 @@ def _cost_grad(x: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K: i
     return val
 
 
-cost_grad = njit(cache=True, nogil=True)(_cost_grad) if njit is not None else None
+cost_grad = _jit(_cost_grad)
 
 
 def _gram_numpy(A: np.ndarray, Y: np.ndarray, w: np.ndarray):
@@ -185,16 +200,7 @@ def _normal_texel(x: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K
     nx = x.shape[0]
     nb = 1 + 4 * K
     m = math.exp(x[MHX_LNM])
-    d = np.empty((K, 3))
-    dth = np.empty((K, 3))
-    dph = np.empty((K, 3))
-    for k in range(K):
-        b = MH_HEAD + MHX_LOBE * k
-        st, ct = math.sin(x[b + 3]), math.cos(x[b + 3])
-        sp, cp = math.sin(x[b + 4]), math.cos(x[b + 4])
-        d[k, 0], d[k, 1], d[k, 2] = st * cp, st * sp, ct
-        dth[k, 0], dth[k, 1], dth[k, 2] = ct * cp, ct * sp, -st
-        dph[k, 0], dph[k, 1], dph[k, 2] = -st * sp, st * cp, 0.0
+    d, dth, dph = _lobe_frames(x, K)
     if want:
         for a in range(nb):
             for c in range(3):
@@ -399,12 +405,9 @@ def _lm_batch(X: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K: in
     return why
 
 
-if njit is not None:
-    _normal_texel = njit(cache=True, nogil=True)(_normal_texel)
-    _chol_solve = njit(cache=True, nogil=True)(_chol_solve)
-    lm_batch = njit(cache=True, nogil=True)(_lm_batch)
-else:  # pragma: no cover - exercised only without numba
-    lm_batch = None
+_normal_texel = _jit(_normal_texel, _normal_texel)
+_chol_solve = _jit(_chol_solve, _chol_solve)
+lm_batch = _jit(_lm_batch)
 
 
 def _sandwich_batch(X: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
@@ -426,9 +429,6 @@ def _sandwich_batch(X: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
     r = np.zeros((N, 3))
     A = np.zeros((nx, nx))
     free = np.zeros(nx, np.bool_)
-    d = np.empty((Kx, 3))
-    dth = np.empty((Kx, 3))
-    dph = np.empty((Kx, 3))
     M = np.empty((3, nx))
     for t in range(n):
         x = X[t]
@@ -442,13 +442,7 @@ def _sandwich_batch(X: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
                 free[b + i] = False
         if nl == 0:
             free[MHX_LNM] = False
-        for k in range(Kx):
-            b = MH_HEAD + MHX_LOBE * k
-            st, ct = math.sin(x[b + 3]), math.cos(x[b + 3])
-            sp, cp = math.sin(x[b + 4]), math.cos(x[b + 4])
-            d[k, 0], d[k, 1], d[k, 2] = st * cp, st * sp, ct
-            dth[k, 0], dth[k, 1], dth[k, 2] = ct * cp, ct * sp, -st
-            dph[k, 0], dph[k, 1], dph[k, 2] = -st * sp, st * cp, 0.0
+        d, dth, dph = _lobe_frames(x, Kx)
         for i in range(nx):
             for j in range(nx):
                 A[i, j] = 0.0
@@ -568,7 +562,7 @@ def _sandwich_batch(X: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
             var[t, i] = s
 
 
-sandwich_batch = njit(cache=True, nogil=True)(_sandwich_batch) if njit is not None else None
+sandwich_batch = _jit(_sandwich_batch)
 
 
 def _nnls_texel(A: np.ndarray, Y: np.ndarray, w: np.ndarray, P: int, x: np.ndarray) -> float:
@@ -723,12 +717,9 @@ def _initial_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, K: int, cos_sep:
                 out[t, b0 + 3 + c] = D[k, c]
 
 
-if njit is not None:
-    _nnls_texel = njit(cache=True, nogil=True)(_nnls_texel)
-    _design = njit(cache=True, nogil=True)(_design)
-    initial_batch = njit(cache=True, nogil=True)(_initial_batch)
-else:  # pragma: no cover - exercised only without numba
-    initial_batch = None
+_nnls_texel = _jit(_nnls_texel, _nnls_texel)
+_design = _jit(_design, _design)
+initial_batch = _jit(_initial_batch)
 
 
 def _rescaled_batch(P: np.ndarray, V: np.ndarray, L: np.ndarray, k: int, Q: np.ndarray,
@@ -793,4 +784,4 @@ def _rescaled_batch(P: np.ndarray, V: np.ndarray, L: np.ndarray, k: int, Q: np.n
                 Q[i, MH_HEAD + MH_LOBE * j + ch] = x[1 + j, ch]
 
 
-rescaled_batch = njit(cache=True, nogil=True)(_rescaled_batch) if njit is not None else None
+rescaled_batch = _jit(_rescaled_batch)
