@@ -487,3 +487,74 @@ def test_second_lobe_kept_only_where_it_predicts_unseen_directions_better():
     assert (_fit(case, 2)["k_used"] == 2).all()
     # auto chooses among the lobe counts it fitted the same way: two where two are real
     assert (_fit(case, "auto")["k_used"] == 2).mean() > 0.9
+
+
+def test_compiled_kernels_agree_with_their_numpy_versions():
+    """The compiled initial guess, leave-one-out residuals and uncertainty sandwich
+    (numba) do what their numpy fallbacks do, on two-light texels with noise."""
+    import parammap.models.mh.initial as ini
+    import parammap.models.mh.uncertainty as unc
+
+    case = phong_case(lights=((1500, 1500, 2000), (-1500, -1500, 2000)),
+                      intensities=(1.0, 0.8), noise=0.01, texels=8)
+    n = 64
+    V = case.direction.reshape(n, -1, 3).astype(float)
+    L = case.radiance.reshape(n, -1, 3).astype(float)
+    W = case.valid.reshape(n, -1)
+    w = np.random.default_rng(1).uniform(0.5, 1.5, W.shape) * W
+    compiled = (ini.initial_batch, unc.sandwich_batch)
+    assert all(f is not None for f in compiled), "numba is a pinned dependency"
+    for K in (1, 2):
+        a = ini.initial_guess_batch(V, L, w, K)
+        ini.initial_batch = None
+        try:
+            b = ini.initial_guess_batch(V, L, w, K)
+        finally:
+            ini.initial_batch = compiled[0]
+        rel = np.abs(a - b).max(1) / np.abs(b).max(1)
+        assert np.mean(rel < 1e-9) >= 0.95, rel  # a tie may pick another view
+        P = fit_mh_tile(case.radiance, case.direction, case.valid, K)["params"]
+        P = P.reshape(n, -1).astype(float)
+        sd1, (loo1, bad1) = unc.parameter_sd(P, V, L, W, w), unc.loo_residuals(P, V, L, W, w)
+        unc.sandwich_batch = None
+        try:
+            sd0, (loo0, bad0) = unc.parameter_sd(P, V, L, W, w), unc.loo_residuals(P, V, L, W, w)
+        finally:
+            unc.sandwich_batch = compiled[1]
+        # both invert the same normal matrices; where they are ill-conditioned (a
+        # lobe few views see) the two pseudo-inverses differ in the last digits
+        np.testing.assert_array_equal(bad0, bad1)
+        np.testing.assert_allclose(loo1, loo0, rtol=1e-4, atol=1e-4 * np.abs(loo0).max())
+        close = np.isclose(sd1, sd0, rtol=1e-3, atol=1e-9) | (np.isnan(sd0) & np.isnan(sd1))
+        assert close.all(1).mean() >= 0.9, close.all(1).mean()
+
+
+def test_compiled_lm_reaches_the_truth_and_respects_bounds():
+    """The bounded LM (active set) recovers a noise-free texel's parameters from a start
+    far off (half the Kd, 2.2x the m, 3x the Ks, the lobe 15-20 deg away) and ends within
+    its bounds."""
+    from parammap.models.mh.fit import _bounds
+    from parammap.models.mh.kernel import LM_CONVERGED, lm_batch
+    from parammap.models.mh.model import _params_to_x_batch, _x_to_params_batch
+
+    case = phong_case(texels=4)
+    V = case.direction[1, 1].astype(float)
+    L = case.radiance[1, 1].astype(float)
+    ok = case.valid[1, 1]
+    V, L = V[ok], L[ok]
+    truth = case.truth[1, 1, :10].astype(float)
+    s = np.array([L.mean()])
+    X0 = _params_to_x_batch(truth[None], s)
+    start = X0.copy()
+    start[0, :3] *= 0.5  # Kd
+    start[0, 3] += 0.8  # ln m
+    start[0, 4:7] *= 3.0  # Ks
+    start[0, 7] += 0.25  # theta
+    start[0, 8] -= 0.3  # phi
+    lb, ub = _bounds(1, 20.0 * float(L.max() / s[0]))
+    why = lm_batch(start, np.ascontiguousarray(V)[None], np.ascontiguousarray(L / s[0])[None],
+                   np.ones((1, len(V))), 1, lb, ub[None], 200, 1e-12)
+    assert why[0] == LM_CONVERGED
+    assert (start >= lb - 1e-12).all() and (start <= ub + 1e-12).all()
+    p = _x_to_params_batch(start, s)[0]
+    np.testing.assert_allclose(p, truth, rtol=1e-5, atol=1e-6)
