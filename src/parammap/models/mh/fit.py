@@ -28,7 +28,7 @@ from ...conventions import (
 )
 from ..residuals import mean_percentage_residual
 from ..weights import noise_weights, reduced_chi2
-from .initial import initial_guess_batch, initial_guess_published
+from .initial import extend_guess_batch, initial_guess_batch, initial_guess_published
 from .kernel import LOSSES, cost_grad, gram, lm_batch
 from .model import (
     LN_M_MAX,
@@ -535,7 +535,20 @@ def fit_mh_tile(
         start = polished[k][0] if k in polished else None
         if start is None and len(run):
             start = np.full((len(todo), mh_size(k)), np.nan)
-            start[run] = starts(k, run)
+            # a texel whose best fit so far has k - 1 lobes starts from that fit with one
+            # lobe more (the lobes it found stay where they are); the others from the
+            # initial guess. On the demo: held-out mh-2 9.07 -> 7.63, mh-auto 7.34 -> 7.18
+            grow = np.array([j for j in run if k >= 2 and cfg.init == "better"
+                             and best[j] is not None and best[j][1] == k - 1
+                             and best[j][0].status == FitStatus.OK], int)
+            fresh = np.setdiff1d(run, grow)
+            if len(fresh):
+                start[fresh] = starts(k, fresh)
+            if len(grow):
+                P0 = np.stack([best[j][0].params for j in grow])
+                start[grow] = refine_batch(V[todo[grow]], L[todo[grow]], Wf[grow],
+                                           extend_guess_batch(V[todo[grow]], L[todo[grow]],
+                                                              Wf[grow], P0))
         for j in np.flatnonzero(stopped):
             # past BIC's choice: only the batch fits, for _select_lobes to compare
             if select and k in polished and polished[k][3][j]:

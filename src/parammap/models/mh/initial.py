@@ -170,3 +170,31 @@ def initial_guess_published(V: np.ndarray, L: np.ndarray, W: np.ndarray, K: int,
     return p
 
 
+
+
+def extend_guess_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, P: np.ndarray,
+                       min_sep_deg: float = 10.0) -> np.ndarray:
+    """A start with one lobe more than the fits ``P`` (B, 4 + 6K): their lobes and m
+    kept, the new lobe at the direction of the largest remaining residual (at least
+    ``min_sep_deg`` from theirs), Kd and every Ks solved again by non-negative least
+    squares. (B, N, 3) V, L; W (B, N) weights. Returns (B, 4 + 6(K + 1))."""
+    from .model import mh_eval
+
+    B, N, _ = V.shape
+    K = (P.shape[1] - 4) // 6
+    D = np.stack([P[:, mh_dir(k)] for k in range(K)], 1) if K else np.zeros((B, 0, 3))
+    resid = np.where(W > 0, (L - mh_eval(P, V)).mean(-1), -np.inf)
+    if K:
+        near = (np.matmul(V, D.transpose(0, 2, 1)) > math.cos(math.radians(min_sep_deg))).any(-1)
+        resid = np.where(near, -np.inf, resid)
+    i = np.argmax(resid, axis=1)
+    D = np.concatenate([D, V[np.arange(B), i][:, None, :]], axis=1)
+    m = P[:, MH_M] if K else np.full(B, 10.0)
+    coef, _ = _solve_linear(V, L, W, D, m)
+    p = np.zeros((B, mh_size(K + 1)))
+    p[:, MH_KD] = coef[:, 0]
+    p[:, MH_M] = m
+    for k in range(K + 1):
+        p[:, mh_ks(k)] = coef[:, k + 1]
+        p[:, mh_dir(k)] = D[:, k]
+    return p
