@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from ...conventions import MH_KD, MH_M, mh_dir, mh_ks, mh_size
+from ...conventions import MH_KD, MH_M, mh_dir, mh_ks, mh_lobes, mh_size
 from .kernel import gram, initial_batch
 from .model import LN_M_MAX
 
@@ -181,7 +181,7 @@ def extend_guess_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, P: np.ndarra
     from .model import mh_eval
 
     B, N, _ = V.shape
-    K = (P.shape[1] - 4) // 6
+    K = mh_lobes(P.shape[1])
     D = np.stack([P[:, mh_dir(k)] for k in range(K)], 1) if K else np.zeros((B, 0, 3))
     resid = np.where(W > 0, (L - mh_eval(P, V)).mean(-1), -np.inf)
     if K:
