@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import os
 import shutil
 import sys
@@ -153,21 +154,44 @@ def _show_progress() -> bool:
     return sys.stderr.isatty() and logger.isEnabledFor(logging.INFO)
 
 
+START_METHODS = ("auto", "fork", "forkserver", "spawn")
+
+
+def _mp_context(start_method: str = "auto"):
+    """The multiprocessing context of a fit's worker pool. ``auto``: ``fork`` on Linux,
+    where a forked worker starts with the driver's imports and compiled kernels (a
+    spawned one imports them again: about a second per fit on the demo, a sixth of its
+    mh-auto time); elsewhere dask's configured context (``spawn``: fork is unsafe on
+    macOS)."""
+    import multiprocessing
+
+    if start_method not in START_METHODS:
+        raise FitError(f"fit.start_method: unknown {start_method!r} "
+                       f"(one of {', '.join(START_METHODS)})")
+    if start_method == "auto":
+        if sys.platform.startswith("linux"):
+            return multiprocessing.get_context("fork")
+        from dask.multiprocessing import get_context
+
+        return get_context()
+    return multiprocessing.get_context(start_method)
+
+
 @contextlib.contextmanager
-def _process_pool(scheduler: str, workers: int):
+def _process_pool(scheduler: str, workers: int, start_method: str = "auto"):
     """One process pool for every pass of a fit (tiles, then the repair phases): each new
-    pool would import the package and load the compiled kernels again in every worker
-    (about a second each). None for the other schedulers."""
+    pool would start its workers again. None for the other schedulers."""
     if scheduler != "processes":
         yield None
         return
     from concurrent.futures import ProcessPoolExecutor
 
-    from dask.multiprocessing import get_context, initialize_worker_process
+    from dask.multiprocessing import initialize_worker_process
 
     os.environ.setdefault("PYTHONHASHSEED", "6640")  # as dask's own pools (dask#6640)
-    pool = ProcessPoolExecutor(workers, mp_context=get_context(), initializer=partial(
-        initialize_worker_process, user_initializer=worker_initializer()))
+    pool = ProcessPoolExecutor(workers, mp_context=_mp_context(start_method),
+                               initializer=partial(initialize_worker_process,
+                                                   user_initializer=worker_initializer()))
     try:
         yield pool
     finally:
@@ -210,6 +234,7 @@ def fit_map(
     workers: int = 2,
     repair_fn: RepairFn | None = None,
     halo: int = 4,
+    start_method: str = "auto",
 ) -> dict[str, Any]:
     """Apply ``tile_fn`` to every texel tile of an observation map into a zarr store.
 
@@ -226,6 +251,8 @@ def fit_map(
         dict of (t, u, ...) arrays, one per entry of ``outputs`` (``status`` included).
     outputs : name -> (trailing shape, dtype, fill value).
     attrs : model description stored as group attributes.
+    start_method : how the ``processes`` scheduler starts its workers
+        (:func:`_mp_context`).
 
     Returns
     -------
@@ -234,7 +261,7 @@ def fit_map(
     """
     obs = open_observation_map(obs_path)
     T, S, N = obs["valid"].shape
-    tile = obs.attrs["tile"]
+    tile = fit_tile_size(T, S, int(obs.attrs["tile"]), workers)
     out_path = Path(out_path)
     # A partial store under a fixed name, with a marker per finished tile beside it: a
     # killed run resumes where it stopped when the same fit of the same observation map
@@ -245,8 +272,8 @@ def fit_map(
                                               for k, v in outputs.items()},
                   "observation": dict(obs.attrs), "shape": [T, S, N],
                   "observation_mtime_ns": mtime_ns(Path(obs_path) / "zarr.json"),
-                  "repair": repair_fn is not None, "software": __version__})
-    valid = da.from_zarr(obs["valid"])
+                  "repair": repair_fn is not None, "tile": tile, "software": __version__})
+    valid = da.from_zarr(obs["valid"], chunks=(tile, tile, N))
     ntiles = len(valid.chunks[0]) * len(valid.chunks[1])
     g = _resume_or_create(tmp, done, key, ntiles, outputs, (T, S, tile))
     g.attrs.update({**attrs, "S": S, "T": T, "tile": tile,
@@ -261,7 +288,7 @@ def fit_map(
         chunks=valid.chunks[:2])
     t0 = time.perf_counter()
     with dask.config.set({"optimization.fuse.active": False}), \
-            _process_pool(scheduler, workers) as pool:
+            _process_pool(scheduler, workers, start_method) as pool:
         status = np.asarray(_compute(status, scheduler, workers, pool))
         repaired = 0
         if repair_fn is not None:
@@ -285,6 +312,19 @@ def fit_map(
     logger.info(f"fit: {T * S} texels in {seconds:.1f} s ({T * S / seconds:.1f} texels/s)")
     return {"texels": T * S, "seconds": seconds, "texels_per_second": T * S / seconds,
             "status": status, "repaired": repaired}
+
+
+def fit_tile_size(T: int, S: int, tile: int, workers: int, smallest: int = 8) -> int:
+    """Texels across a fit task: the observation map's tile, halved (down to
+    ``smallest``) while the map has fewer than four tasks per worker. A map of a few
+    tiles otherwise leaves workers idle behind the slowest tile, and the repair pass,
+    whose four checkerboard phases each take a quarter of the tiles, runs one tile at a
+    time (the demo's 64 x 64 map: four tiles of 32, 16 of 16)."""
+    b = tile
+    while (b // 2 >= smallest and b % 2 == 0
+           and math.ceil(T / b) * math.ceil(S / b) < 4 * max(workers, 1)):
+        b //= 2
+    return b
 
 
 def _resume_or_create(tmp: Path, done: Path, key: str, ntiles: int,
@@ -377,7 +417,8 @@ def _nanmedian(x: np.ndarray) -> float | None:
 
 
 def fit_mh_map(obs_path: str | Path, out_path: str | Path, K: int | str, cfg: dict,
-               scheduler: str = "processes", workers: int = 2) -> dict:
+               scheduler: str = "processes", workers: int = 2,
+               start_method: str = "auto") -> dict:
     """Fit the MH model with K lobes (or ``auto``) to every texel of an observation map
     into ``fit/mh-<K>.zarr``; returns the figures for ``metrics/fit-mh-<K>.json``."""
     K = parse_lobes(K)
@@ -395,7 +436,8 @@ def fit_mh_map(obs_path: str | Path, out_path: str | Path, K: int | str, cfg: di
                    "fit": {k: getattr(fcfg, k) for k in MhFitConfig.__dataclass_fields__},
                    "repair": {"factor": REPAIR_FACTOR, "radius": REPAIR_RADIUS,
                               "starts": REPAIR_STARTS} if repair else None},
-                  scheduler, workers, repair_fn=repair, halo=REPAIR_RADIUS)
+                  scheduler, workers, repair_fn=repair, halo=REPAIR_RADIUS,
+                  start_method=start_method)
     g = open_fit(out_path)
     ok = g["status"][:] == FitStatus.OK
     kused = g["k_used"][:][ok]
@@ -408,7 +450,8 @@ def fit_mh_map(obs_path: str | Path, out_path: str | Path, K: int | str, cfg: di
 
 
 def fit_sh_map(obs_path: str | Path, out_path: str | Path, hemisphere: str, n: int,
-               cfg: dict, scheduler: str = "processes", workers: int = 2) -> dict:
+               cfg: dict, scheduler: str = "processes", workers: int = 2,
+               start_method: str = "auto") -> dict:
     """Project every texel of an observation map onto n SH bands into
     ``fit/sh-<hemisphere>-<n^2>.zarr``; returns the figures for its metrics file."""
     reg = cfg.get("regularisation", "auto")
@@ -423,7 +466,7 @@ def fit_sh_map(obs_path: str | Path, out_path: str | Path, hemisphere: str, n: i
                    "solid_angles": cfg.get("solid_angles", "spherical"),
                    "regularisation": reg if hemisphere in ("rlsop", "wls") else None,
                    "layout": "sh.R.00 .. sh.R.(n^2-1), then G, then B; index l(l+1)+m"},
-                  scheduler, workers)
+                  scheduler, workers, start_method=start_method)
     extra = {}
     if cap:
         g = open_fit(out_path)
@@ -457,7 +500,8 @@ def run_fit(processed: str | Path, model: str, config: dict[str, Any],
     else:
         hemi, n = parse_sh_model(model)
         name, fit, args, family = f"sh-{hemi}-{n * n}", fit_sh_map, (hemi, n), "sh"
-    m = fit(proc.observation, proc.fit(name), *args, cfg[family], cfg["scheduler"], workers)
+    m = fit(proc.observation, proc.fit(name), *args, cfg[family], cfg["scheduler"], workers,
+            cfg["start_method"])
     write_metrics(proc.metrics(f"fit-{name}"), m)
     if figures:
         from .figures import mh_figures, sh_figures

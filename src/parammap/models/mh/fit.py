@@ -29,7 +29,7 @@ from ...conventions import (
 from ..residuals import mean_percentage_residual
 from ..weights import noise_weights, reduced_chi2
 from .initial import extend_guess_batch, initial_guess_batch, initial_guess_published
-from .kernel import LOSSES, cost_grad, gram, lm_batch
+from .kernel import LM_CONVERGED, LOSSES, cost_grad, gram, lm_batch
 from .model import (
     LN_M_MAX,
     M_MIN,
@@ -140,10 +140,13 @@ def _normal_equations(X, V, Ls, W, K, LL=None, need_A: bool = True):
 
 
 def refine_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, P0: np.ndarray,
-                 iters: int | None = None) -> np.ndarray:
+                 iters: int | None = None, why: bool = False,
+                 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Projected Levenberg-Marquardt steps on a batch of texels at once (vectorised),
     in the bounded x-space of the nlopt fit. Brings an initial guess close to the
-    optimum so the per-texel nlopt fit only polishes. (B, N, 3) inputs, (B, 4 + 6K)."""
+    optimum so the per-texel nlopt fit only polishes. (B, N, 3) inputs, (B, 4 + 6K).
+    With ``why``, also (B,) bool: the compiled LM converged there (the polish needs no
+    LM steps of its own)."""
     K = mh_lobes(P0.shape[1])
     s = np.maximum((L * W[..., None]).sum((1, 2)) / np.maximum(3 * W.sum(1), 1), 1e-12)
     Ls = L / s[:, None, None]
@@ -155,9 +158,10 @@ def refine_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, P0: np.ndarray,
         ub[:, mhx_ks(k)] = ksmax[:, None]
     X = np.clip(X, lb, ub)
     if lm_batch is not None:
-        lm_batch(X, np.ascontiguousarray(V, float), np.ascontiguousarray(Ls, float),
-                 np.ascontiguousarray(W, float), K, lb, ub, iters or LM_ITERS, LM_FTOL)
-        return _x_to_params_batch(X, s)
+        stop = lm_batch(X, np.ascontiguousarray(V, float), np.ascontiguousarray(Ls, float),
+                        np.ascontiguousarray(W, float), K, lb, ub, iters or LM_ITERS, LM_FTOL)
+        P = _x_to_params_batch(X, s)
+        return (P, stop == LM_CONVERGED) if why else P
     iters = iters or 8
     lam = np.full(len(X), 1e-3)
     LL = (W[..., None] * Ls * Ls).sum(1)
@@ -182,7 +186,8 @@ def refine_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, P0: np.ndarray,
         act = act[(gain > 1e-8) | (~better & (lam[act] < 1e6))]
         if len(act) == 0:
             break
-    return _x_to_params_batch(X, s)
+    P = _x_to_params_batch(X, s)
+    return (P, np.zeros(len(P), bool)) if why else P
 
 
 
@@ -368,10 +373,11 @@ def _objective(V: np.ndarray, L: np.ndarray, K: int, loss: str, f: float,
 
 def fit_texel(V: np.ndarray, L: np.ndarray, p0: np.ndarray,
               cfg: MhFitConfig = MhFitConfig(), w: np.ndarray | None = None,
-              polish: bool = True) -> FitResult:
+              polish: bool = True, lm: bool = True) -> FitResult:
     """Bounded nlopt fit of one texel from initial parameters ``p0`` (4 + 6K), after
     compiled Levenberg-Marquardt steps (where numba is present; ``polish=False``: those
-    steps only, to rank several starts before polishing the best).
+    steps only, to rank several starts before polishing the best; ``lm=False``: none,
+    for a start the batch LM already converged).
 
     Parameters
     ----------
@@ -391,7 +397,7 @@ def fit_texel(V: np.ndarray, L: np.ndarray, p0: np.ndarray,
     nx = len(x0)
     lb, ub = _bounds(K, KS_CAP * float(np.max(Ls)))
     x0 = np.clip(x0, lb, ub)
-    if lm_batch is not None and cfg.loss == "linear" and K > 0:
+    if lm and lm_batch is not None and cfg.loss == "linear" and K > 0:
         # compiled LM steps first (cheap, and quadratic near the optimum): nlopt polishes
         X = x0[None].copy()
         lm_batch(X, np.ascontiguousarray(V, float)[None], np.ascontiguousarray(Ls, float)[None],
@@ -500,17 +506,18 @@ def fit_mh_tile(
     # the initial guesses in float32 (twice as fast; LM and nlopt then work in float64)
     V32, L32, W32 = V[todo].astype(np.float32), L[todo].astype(np.float32), Wf.astype(np.float32)
 
-    def starts(k: int, sel: np.ndarray) -> np.ndarray:
-        """Initial guesses (and LM steps) with k lobes for the texels todo[sel]."""
+    def starts(k: int, sel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Initial guesses (and LM steps) with k lobes for the texels todo[sel], and
+        whether the LM converged there."""
         p0 = init(V32[sel], L32[sel], W32[sel], k).astype(float)
-        return refine_batch(V[todo[sel]], L[todo[sel]], Wf[sel], p0) \
-            if cfg.init == "better" else p0
+        return refine_batch(V[todo[sel]], L[todo[sel]], Wf[sel], p0, why=True) \
+            if cfg.init == "better" else (p0, np.zeros(len(sel), bool))
 
     polished = {}
     if cfg.polish == "batch" and cfg.loss == "linear" and cfg.algorithm != "bobyqa":
         everyone = np.arange(len(todo))
         for k in Ks:
-            P, rss, ev, conv, code = polish_batch(V[todo], L[todo], Wf, starts(k, everyone),
+            P, rss, ev, conv, code = polish_batch(V[todo], L[todo], Wf, starts(k, everyone)[0],
                                                   cfg)
             polished[k] = (P, rss, ev, conv & np.isfinite(P).all(1) & np.isfinite(rss), code)
     # per texel: its data, best fit so far (result, lobes), its BIC, evaluations, and
@@ -533,6 +540,7 @@ def fit_mh_tile(
         # that BIC already stopped are never computed
         run = np.flatnonzero(~stopped)
         start = polished[k][0] if k in polished else None
+        conv = np.zeros(len(todo), bool)  # the batch LM converged: no LM in fit_texel
         if start is None and len(run):
             start = np.full((len(todo), mh_size(k)), np.nan)
             # a texel whose best fit so far has k - 1 lobes starts from that fit with one
@@ -543,12 +551,12 @@ def fit_mh_tile(
                              and best[j][0].status == FitStatus.OK], int)
             fresh = np.setdiff1d(run, grow)
             if len(fresh):
-                start[fresh] = starts(k, fresh)
+                start[fresh], conv[fresh] = starts(k, fresh)
             if len(grow):
                 P0 = np.stack([best[j][0].params for j in grow])
-                start[grow] = refine_batch(V[todo[grow]], L[todo[grow]], Wf[grow],
-                                           extend_guess_batch(V[todo[grow]], L[todo[grow]],
-                                                              Wf[grow], P0))
+                start[grow], conv[grow] = refine_batch(
+                    V[todo[grow]], L[todo[grow]], Wf[grow],
+                    extend_guess_batch(V[todo[grow]], L[todo[grow]], Wf[grow], P0), why=True)
         for j in np.flatnonzero(stopped):
             # past BIC's choice: only the batch fits, for _select_lobes to compare
             if select and k in polished and polished[k][3][j]:
@@ -561,7 +569,7 @@ def fit_mh_tile(
                 r = FitResult(P[j], float(rss[j]), ev, FitStatus.OK, code)
             else:
                 try:
-                    r = fit_texel(v, y, start[j], cfg, w=wt)
+                    r = fit_texel(v, y, start[j], cfg, w=wt, lm=not conv[j])
                 except Exception:  # noqa: BLE001 - a failed texel is flagged, never fatal
                     r = FitResult(np.full(mh_size(k), np.nan), math.inf, 0, FitStatus.FAILED,
                                   -1)
