@@ -722,13 +722,13 @@ _design = _jit(_design, _design)
 initial_batch = _jit(_initial_batch)
 
 
-def _rescaled_batch(P: np.ndarray, V: np.ndarray, L: np.ndarray, k: int, Q: np.ndarray,
-                    rss: np.ndarray) -> None:
+def _rescaled_batch(P: np.ndarray, owner: np.ndarray, V: np.ndarray, L: np.ndarray,
+                    W: np.ndarray, k: int, Q: np.ndarray, rss: np.ndarray) -> None:
     """Compiled ``repair._rescaled_starts``: each candidate's shininess and first ``k``
-    lobe directions kept, Kd and Ks by least squares on the texel's data V, L (N, 3)
-    (a ridge of 1e-12 of the trace), clipped at zero. P (c, 4 + 6K) in, Q (c, 4 + 6k)
-    and rss (c,) out."""
-    c, N = P.shape[0], V.shape[0]
+    lobe directions kept, Kd and Ks by weighted least squares on the data of texel
+    ``owner[i]`` (V, L (T, N, 3), weights W (T, N); a ridge of 1e-12 of the trace),
+    clipped at zero. P (c, 4 + 6K) in, Q (c, 4 + 6k) and the weighted rss (c,) out."""
+    c, N = P.shape[0], V.shape[1]
     nb = 1 + k
     A = np.empty((N, nb))
     D = np.empty((max(k, 1), 3))
@@ -739,21 +739,27 @@ def _rescaled_batch(P: np.ndarray, V: np.ndarray, L: np.ndarray, k: int, Q: np.n
     sol = np.empty(nb)
     x = np.empty((nb, 3))
     for i in range(c):
+        o = owner[i]
+        Vt, Lt, wt = V[o], L[o], W[o]
         for j in range(k):
             for a in range(3):
                 D[j, a] = P[i, MH_HEAD + MH_LOBE * j + 3 + a]
-        _design(V, D, k, math.log(P[i, 3]), A)
+        _design(Vt, D, k, math.log(P[i, 3]), A)
         for a in range(nb):
             for ch in range(3):
                 R[a, ch] = 0.0
             for b in range(nb):
                 G[a, b] = 0.0
         for n in range(N):
+            w = wt[n]
+            if w == 0.0:
+                continue
             for a in range(nb):
+                wa = w * A[n, a]
                 for ch in range(3):
-                    R[a, ch] += A[n, a] * L[n, ch]
+                    R[a, ch] += wa * Lt[n, ch]
                 for b in range(nb):
-                    G[a, b] += A[n, a] * A[n, b]
+                    G[a, b] += wa * A[n, b]
         tr = 0.0
         for a in range(nb):
             tr += G[a, a]
@@ -770,11 +776,13 @@ def _rescaled_batch(P: np.ndarray, V: np.ndarray, L: np.ndarray, k: int, Q: np.n
                 x[a, ch] = max(sol[a], 0.0)
         s = 0.0
         for n in range(N):
+            if wt[n] == 0.0:
+                continue
             for ch in range(3):
-                f = -L[n, ch]
+                f = -Lt[n, ch]
                 for a in range(nb):
                     f += A[n, a] * x[a, ch]
-                s += f * f
+                s += wt[n] * f * f
         rss[i] = s
         for a in range(Q.shape[1]):
             Q[i, a] = P[i, a]
