@@ -107,8 +107,11 @@ def _to_x(p: np.ndarray, s: float) -> np.ndarray:
     x[MHX_LNM] = math.log(min(max(p[MH_M], M_MIN), M_MAX))
     for k in range(K):
         x[mhx_ks(k)] = p[mh_ks(k)] / s
-        th, ph = _angles(p[mh_dir(k)])
-        x[mhx_theta(k)], x[mhx_phi(k)] = th, ph
+        # scalar math: this runs once per texel fit, where numpy's per-call cost dominates
+        dx, dy, dz = (float(c) for c in p[mh_dir(k)])
+        n = math.sqrt(dx * dx + dy * dy + dz * dz)
+        x[mhx_theta(k)] = math.acos(min(max(dz / n, -1.0), 1.0))
+        x[mhx_phi(k)] = math.atan2(dy, dx)
     return x
 
 
