@@ -19,6 +19,7 @@ from parammap.calibration import (
 )
 from parammap.capture import load_capture
 from parammap.config import validate_config
+from parammap.conventions import LUMINANCE
 from parammap.hdr import (
     load_bracket,
     load_response,
@@ -105,6 +106,39 @@ def test_pose_against_truth(tiny_capture, tiny_response):
     C = -poses["R"][0].T @ poses["t"][0]
     # The demo preset (tests/test_demo_accuracy.py) holds every view within 1 mm.
     assert np.linalg.norm(r["centre_mm"] - C) < 3.0
+
+
+def test_pattern_refinement_recovers_an_oblique_pose(tiny_capture, tiny_response):
+    """The pose refined on the markers' whole pattern (every cell edge, not only the
+    outline) returns to the truth from a start 0.3 deg and 2 mm off, at the capture's
+    most oblique view, and its predicted uncertainty covers the error it makes."""
+    import cv2
+
+    from parammap.calibration import refine_pose_pattern
+
+    cap, g = tiny_response
+    cam = yaml.safe_load((tiny_capture[1] / "camera.yaml").read_text())
+    intr = Intrinsics(np.array(cam["K"]), np.array(cam["dist"]), tuple(cam["image_size"]))
+    poses = np.load(tiny_capture[1] / "poses.npz")
+    ids = list(poses["view_ids"])
+    centres = np.einsum("nji,nj->ni", poses["R"], -poses["t"])
+    k = int(np.argmax(np.linalg.norm(centres[:, :2] - [cap.width_mm / 2, cap.height_mm / 2],
+                                     axis=1) / centres[:, 2]))
+    stack, t = load_bracket(cap.view(ids[k]))
+    rad, _, _ = merge_bracket(stack, t, g)
+    R0, t0 = poses["R"][k], poses["t"][k]
+    dR = cv2.Rodrigues(np.radians([0.3, -0.2, 0.1]))[0]
+    start_R, start_t = dR @ R0, t0 + np.array([1.5, -1.0, 1.0])
+    r = refine_pose_pattern(rad @ LUMINANCE, cap, [int(i) for i in cap.marker_ids],
+                            start_R, start_t, intr)
+    assert r is not None and r["markers"] >= 2
+    C, Ct = -r["R"].T @ r["t"], centres[k]
+    rot = np.degrees(np.arccos(np.clip((np.trace(r["R"] @ R0.T) - 1) / 2, -1, 1)))
+    assert np.linalg.norm(C - Ct) < 0.3 and rot < 0.05, (np.linalg.norm(C - Ct), rot)
+    assert np.linalg.norm(-start_R.T @ start_t - Ct) > 5 * np.linalg.norm(C - Ct)
+    # the predicted translation sd (1 sd per axis) is not far below the error made
+    sd = np.sqrt(np.trace(r["cov"][3:, 3:]))
+    assert np.linalg.norm(r["t"] - t0) < 5 * sd + 0.02, (np.linalg.norm(r["t"] - t0), sd)
 
 
 def test_corrupt_photo_names_file(tiny_copy):
@@ -320,9 +354,16 @@ def test_uncertain_poses_are_dropped_with_reason(tiny_processed, tmp_path):
     ids = obs.attrs["view_ids"]
     whole = [r for r in again if r["kept"] and "partial" not in r and not r["holdout"]]
     full = np.mean([obs["valid"][:, :, ids.index(r["id"])].mean() for r in whole])
-    for r in partial:  # the observation map leaves out what a partial view sees poorly
+    # the observation map leaves out what a partial view sees poorly (a view kept for
+    # nearly all of the region may lose no texel centre: its uncertain part lies at the
+    # region's edge)
+    clear = [r for r in partial if r["partial"] < 0.9]
+    assert clear, [r["partial"] for r in partial]
+    for r in partial:
         share = obs["valid"][:, :, ids.index(r["id"])].mean()
-        assert 0 < share < full and abs(share / full - r["partial"]) < 0.2, (share, full, r)
+        assert 0 < share <= full and abs(share / full - r["partial"]) < 0.2, (share, full, r)
+        if r in clear:
+            assert share < full, (share, full, r)
 
 
 def test_grazing_markers_missed_at_first_are_found_upsampled():

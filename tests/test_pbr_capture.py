@@ -66,19 +66,22 @@ def test_hdr_within_oracle(pbr):
 
 
 def test_views_kept_and_poses(pbr):
-    """Nearly every view is kept by the policy (every held-out one), and the poses the
-    policy keeps are accurate; the predicted surface-point shift is not optimistic."""
+    """At least 98 % of the views are kept by the policy (every held-out one; issue
+    14), and the poses it keeps are accurate: the marker pattern pins down the 74 deg
+    view that the marker outlines left 2.3 mm off (measured: all 33 kept, centres
+    within 0.23 mm median and 0.72 mm worst)."""
     from parammap.synth.evaluate import pose_errors
 
     _, truth, out = pbr
     m = json.loads((out / "metrics" / "poses.json").read_text())
     recs = yaml.safe_load((out / "camera" / "poses.yaml").read_text())["views"]
-    assert m["kept"] >= 0.95 * m["views"], m["dropped"]
+    assert m["kept"] >= 0.98 * m["views"], m["dropped"]
     assert all(r["kept"] for r in recs if r["holdout"])
+    assert sum(r.get("pose_solution") == "pattern" for r in recs) >= 0.9 * len(recs)
     e = pose_errors(truth, out)
     kept = [v for v in e.values() if v["kept"]]
-    assert np.median([v["centre_mm"] for v in kept]) < 1.0
-    assert max(v["centre_mm"] for v in kept) < 2.5
+    assert np.median([v["centre_mm"] for v in kept]) < 0.5
+    assert max(v["centre_mm"] for v in kept) < 1.2
     assert np.median([v["rotation_deg"] for v in kept]) < 0.2
     assert max(v["rotation_deg"] for v in kept) < 0.4
 
@@ -116,9 +119,10 @@ def test_observation_directions(pbr):
                          g.attrs["height_mm"])
     v = g["valid"][:]
     ang = np.degrees(np.arccos(np.clip((g["direction"][:] * dt).sum(-1), -1, 1)))[v]
-    # issue target 0.05 deg for every observation; the calibration of this small rig
-    # (640x480, 24 photos of a 9x7 board; principal point ~2 px off) limits it today
-    assert np.median(ang) < 0.06 and ang.max() < 0.2, (np.median(ang), ang.max())
+    # issue target 0.05 deg for every observation (measured: median 0.016, max 0.055);
+    # the calibration of this small rig (640x480, 24 photos of a 9x7 board; principal
+    # point 1.2 px off) limits the near-nadir views
+    assert np.median(ang) < 0.03 and ang.max() < 0.08, (np.median(ang), ang.max())
 
 
 def test_models_beat_diffuse_on_every_held_out_view(pbr):

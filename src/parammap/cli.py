@@ -151,7 +151,8 @@ def _poses(a: argparse.Namespace) -> int:
     from .poses import run_poses
 
     full = _stage_config(a)
-    run_poses(load_capture(a.capture), a.out, full["poses"], full["observation"])
+    run_poses(load_capture(a.capture), a.out, full["poses"], full["observation"],
+              a.workers or full["workers"])
     if a.figures:
         from .figures import make_figures
 
@@ -328,7 +329,7 @@ def _parser() -> argparse.ArgumentParser:
             s.add_argument("--view", action="append", help="only this view (repeatable)")
         if name in ("poses", "observe", "fit-mh", "fit-sh", "materials", "advise", "best"):
             s.add_argument("--figures", help="report folder for the figures")
-        if name in ("observe", "fit-mh", "fit-sh"):
+        if name in ("poses", "observe", "fit-mh", "fit-sh"):
             s.add_argument("--workers", type=int, help="processes (default: config workers)")
         if name == "fit-mh":
             s.add_argument("--lobes", default="1", help="lobes K, or auto (default 1)")

@@ -197,27 +197,41 @@ def map_resolution(cap: Capture, ppmm: list[float], n_views: int, texels_x: int 
     return {"S": S, "T": T, "texel_mm": cap.width_mm / S, **out}
 
 
-def run_poses(cap: Capture, processed: str | Path, cfg: dict, obs_cfg: dict) -> dict[str, Any]:
-    """The poses stage: the pose of every view, the map resolution and the view policy;
-    writes ``camera/poses.yaml`` and ``metrics/poses.json`` and returns the latter's
-    figures. ``cfg``, ``obs_cfg``: config sections ``poses`` and ``observation``."""
+def _view_pose(job: tuple) -> dict[str, Any]:
+    """The pose of one view from its HDR frame (a process pool's job)."""
     from .hdr import read_hdr
+
+    cap, intr, path, cfg = job
+    try:
+        rad, _, _ = read_hdr(path)
+    except ExrError as exc:
+        return {"ok": False, "reason": str(exc)}
+    rec = estimate_pose(cap, intr, to_gray8(rad), cfg["min_markers"], radiance=rad)
+    if rec["ok"] and rec["rms_px"] > cfg["max_rms_px"]:
+        rec.update(ok=False, reason=f"reprojection RMS {rec['rms_px']:.2f} px above "
+                                    f"{cfg['max_rms_px']} px")
+    return rec
+
+
+def run_poses(cap: Capture, processed: str | Path, cfg: dict, obs_cfg: dict,
+              workers: int = 1) -> dict[str, Any]:
+    """The poses stage: the pose of every view (on ``workers`` processes), the map
+    resolution and the view policy; writes ``camera/poses.yaml`` and
+    ``metrics/poses.json`` and returns the latter's figures. ``cfg``, ``obs_cfg``:
+    config sections ``poses`` and ``observation``."""
     from .metrics import write_metrics
+    from .stores import executor
 
     out = Processed(processed)
     intr = load_intrinsics(out.intrinsics)
+    jobs = [(cap, intr, out.hdr(v.id), cfg) for v in cap.views]
     recs = []
-    for v in cap.views:
-        try:
-            rad, _, _ = read_hdr(out.hdr(v.id))
-        except ExrError as exc:
-            rec = {"ok": False, "reason": str(exc)}
-        else:
-            rec = estimate_pose(cap, intr, to_gray8(rad), cfg["min_markers"], radiance=rad)
-            if rec["ok"] and rec["rms_px"] > cfg["max_rms_px"]:
-                rec.update(ok=False, reason=f"reprojection RMS {rec['rms_px']:.2f} px above "
-                                            f"{cfg['max_rms_px']} px")
-        recs.append((v, rec))
+    with executor(max(1, min(workers, len(jobs)))) as ex:
+        for v, rec in zip(cap.views, ex.map(_view_pose, jobs), strict=True):
+            logger.info(f"poses: {v.id} " + (f"{rec.get('solution')} solution, "
+                                             f"{len(rec['markers'])} markers"
+                                             if rec["ok"] else rec["reason"]))
+            recs.append((v, rec))
     posed = [(v, r) for v, r in recs if r["ok"]]
     fitted = [(v, r) for v, r in posed if not v.holdout]
     grid = map_resolution(cap, [px_per_mm(cap, r["R"], r["t"], intr) for _, r in fitted],
@@ -226,10 +240,11 @@ def run_poses(cap: Capture, processed: str | Path, cfg: dict, obs_cfg: dict) -> 
     spacing = view_spacing_deg(np.array([r["centre_mm"] for _, r in fitted]), cap)
     max_dir = cfg["max_direction_fraction"] * spacing
     max_shift_mm = cfg["max_texel_shift"] * grid["texel_mm"]
-    # noise floors per kind of solution (edge points are far less noisy than corners)
+    # noise floors per kind of solution (corners, edge points and the marker pattern
+    # measure different noises)
     med = {kind: float(np.median([r["noise_px"] for _, r in posed
-                                  if (r["edge_points"] > 0) == kind] or [0.0]))
-           for kind in (True, False)}
+                                  if r["solution"] == kind] or [0.0]))
+           for kind in {r["solution"] for _, r in posed}}
     logger.info(f"poses: map {grid['S']}x{grid['T']} texels ({grid['texel_mm']:.3f} mm, "
                 f"{grid['source']}); view spacing {spacing:.2f} deg; limits (1 sd) "
                 f"{cfg['max_texel_shift']} texel = {max_shift_mm:.3f} mm, "
@@ -239,7 +254,7 @@ def run_poses(cap: Capture, processed: str | Path, cfg: dict, obs_cfg: dict) -> 
         row: dict[str, Any] = {"id": v.id, "holdout": v.holdout}
         if rec["ok"]:
             # a view can fit its own noise: at least the capture's median noise level
-            noise = max(rec["noise_px"], med[rec["edge_points"] > 0])
+            noise = max(rec["noise_px"], med[rec["solution"]])
             cov = rec["cov"] * (noise / max(rec["noise_px"], 1e-9)) ** 2
             u = view_uncertainty(cov, rec["R"], rec["t"], intr, cap, grid["texel_mm"])
             rot = math.degrees(math.sqrt(max(float(np.trace(cov[:3, :3])), 0.0)))
@@ -291,6 +306,9 @@ def run_poses(cap: Capture, processed: str | Path, cfg: dict, obs_cfg: dict) -> 
                         f"{rec['texel_shift']:.2f} of the sampling width)")
         if "edge_points" in rec:
             row["edge_points"] = int(rec["edge_points"])
+        if "solution" in rec:
+            row["pose_solution"] = rec["solution"]
+            row["pattern_pixels"] = int(rec["pattern_pixels"])
         row["markers"] = rec.get("markers", [])
         if "detected" in rec:
             row["detected"] = rec["detected"]

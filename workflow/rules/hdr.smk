@@ -95,6 +95,7 @@ rule poses:
         cli=PARAMMAP,
         cfg=config_arg("poses", "observation"),
         out=lambda wc: f"{PROC}/{wc.sid}",
+    threads: WORKERS
     log:
         "logs/poses/{sid}.log",
     benchmark:
@@ -102,4 +103,5 @@ rule poses:
     conda:
         "../envs/parammap.yaml"
     shell:
-        "{params.cli} poses {input.capture} --out {params.out} {params.cfg} 2> {log}"
+        "{params.cli} poses {input.capture} --out {params.out} {params.cfg}"
+        " --workers {threads} 2> {log}"
