@@ -731,14 +731,24 @@ def drop_negligible_lobes(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.nda
     nres = 3 * np.maximum(W.sum(1), 1)
     fl = (floor * np.abs(np.where(w, L, 0)).sum((1, 2)) / nres) ** 2
 
-    def rss(Q):
-        r = np.where(w, mh_eval(Q, V) - L, 0.0)
-        return np.maximum((r ** 2).sum((1, 2)), fl * nres)
+    def rss(Q, rows):
+        r = np.where(w[rows], mh_eval(Q, V[rows]) - L[rows], 0.0)
+        return np.maximum((r ** 2).sum((1, 2)), fl[rows] * nres[rows])
 
     pen = 5 * np.log(nres)
+    # each texel's RSS kept current; a change is judged only where it can apply
+    rssP = rss(P, slice(None))
 
-    def better(Q, base):
-        return nres * np.log(rss(Q) / base) < pen
+    def take(Q, rows, also=None):
+        """Take Q at the rows where BIC says the change costs nothing (or ``also``)."""
+        if len(rows) == 0:
+            return
+        rq = rss(Q[rows], rows)
+        ok = nres[rows] * np.log(rq / rssP[rows]) < pen[rows]
+        if also is not None:
+            ok |= also
+        P[rows[ok]] = Q[rows[ok]]
+        rssP[rows[ok]] = rq[ok]
 
     for k in range(K):
         for j in range(k + 1, K):
@@ -750,21 +760,19 @@ def drop_negligible_lobes(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.nda
             Q = P.copy()
             Q[:, a] = np.c_[P[:, a][:, :3] + P[:, b][:, :3], d]
             Q[:, b] = [0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
-            ok = (wa[:, 0] > 0) & (wb[:, 0] > 0) & better(Q, rss(P))
-            P[ok] = Q[ok]
+            take(Q, np.flatnonzero((wa[:, 0] > 0) & (wb[:, 0] > 0)))
     for k in range(K):
         Q = P.copy()
         Q[:, mh_lobe(k)] = [0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+        rows = np.flatnonzero(P[:, mh_ks(k)].sum(1) > 0)
         # seen above twice the noise in fewer than MIN_SUPPORT observations, a lobe is
         # not determined by the data (a noise spike, a highlight that fell between
         # views) and would only sparkle in other views
-        noise = np.sqrt(rss(P) / nres)
-        c = np.clip(np.einsum("nvj,nj->nv", V, P[:, mh_dir(k)]), 0, None) \
-            ** P[:, MH_M, None] * P[:, mh_ks(k)].max(1, keepdims=True)
-        support = (W & (c > 2 * noise[:, None])).sum(1)
-        ok = (P[:, mh_ks(k)].sum(1) > 0) & (better(Q, rss(P))
-                                                       | (support < MIN_SUPPORT))
-        P[ok] = Q[ok]
+        noise = np.sqrt(rssP[rows] / nres[rows])
+        c = np.clip(np.einsum("nvj,nj->nv", V[rows], P[rows][:, mh_dir(k)]), 0, None) \
+            ** P[rows, MH_M, None] * P[rows][:, mh_ks(k)].max(1, keepdims=True)
+        support = (W[rows] & (c > 2 * noise[:, None])).sum(1)
+        take(Q, rows, support < MIN_SUPPORT)
     none = _lobes_present(P) == 0
     P[none, MH_M] = M_MIN
     return _sort_lobes_batch(P)
