@@ -89,19 +89,58 @@ def _marker(done_dir: str, name: str, block_info) -> Path:
     return Path(done_dir) / f"{name}-{bi}-{bj}"
 
 
+class _Opened:
+    """A zarr group's arrays, each opened (its metadata read from disk) on first use."""
+
+    def __init__(self, path: str, mode: str):
+        self.group = zarr.open_group(path, mode=mode)
+        self.arrays: dict[str, zarr.Array] = {}
+
+    def __getitem__(self, name: str) -> zarr.Array:
+        if name not in self.arrays:
+            self.arrays[name] = self.group[name]
+        return self.arrays[name]
+
+    def __contains__(self, name: str) -> bool:
+        try:
+            self[name]
+        except KeyError:
+            return False
+        return True
+
+    def items(self):
+        return ((name, self[name]) for name in self.group.array_keys())
+
+
+_OPENED: dict[tuple[str, str], _Opened] = {}
+
+
+def _arrays(path: str, token: str) -> _Opened:
+    """The zarr group at ``path``, opened once per process and ``token`` (the fit's
+    resume key: a store of another fit at the same path is opened anew; "": read
+    only). Opening an array reads its metadata from disk, a third of a small tile's
+    I/O."""
+    key = (path, token)
+    if key not in _OPENED:
+        if len(_OPENED) > 8:
+            _OPENED.clear()
+        _OPENED[key] = _Opened(path, "r+" if token else "r")
+    return _OPENED[key]
+
+
 def _fit_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path: str,
-               tile_fn: TileFn, done_dir: str) -> np.ndarray:
+               tile_fn: TileFn, done_dir: str, key: str = "") -> np.ndarray:
     (r0, r1), (c0, c1), _ = block_info[0]["array-location"]
     marker = _marker(done_dir, "fit", block_info)
+    out = _arrays(out_path, key or done_dir)
     if marker.is_file():  # finished by an earlier, interrupted run
-        return np.asarray(zarr.open_group(out_path, mode="r")["status"][r0:r1, c0:c1], np.int8)
-    g = zarr.open_group(obs_path, mode="r")
+        return np.asarray(out["status"][r0:r1, c0:c1], np.int8)
+    g = _arrays(obs_path, "")
     rad = g["radiance"][r0:r1, c0:c1]
     dirs = g["direction"][r0:r1, c0:c1]
     # observation maps built before the merge recorded noise have no "noise" array
     kw = {"noise": g["noise"][r0:r1, c0:c1]} if "noise" in g else {}
     res = tile_fn(rad, dirs, np.asarray(valid), **kw)
-    out = zarr.open_group(out_path, mode="r+")
     for name, arr in res.items():
         out[name][r0:r1, c0:c1] = arr
     marker.touch()  # only once every array of the tile is written
@@ -110,7 +149,7 @@ def _fit_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path: s
 
 def _repair_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path: str,
                   repair_fn: RepairFn, halo: int, phase: tuple[int, int],
-                  done_dir: str) -> np.ndarray:
+                  done_dir: str, key: str = "") -> np.ndarray:
     """One tile of the repair pass: only tiles of this checkerboard ``phase`` work, so
     no tile rewrites what a neighbour is reading as its halo."""
     (r0, r1), (c0, c1), _ = block_info[0]["array-location"]
@@ -121,7 +160,7 @@ def _repair_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path
     marker = _marker(done_dir, "repair", block_info)
     if marker.is_file():  # the texels it changed, as recorded when it finished
         return np.load(marker, allow_pickle=False)
-    out = zarr.open_group(out_path, mode="r+")
+    out = _arrays(out_path, key or done_dir)
     # a run killed while writing this tile's repair left it half written: put back
     # what the tile held before, so the refit sees what an uninterrupted run saw
     before = marker.with_name(marker.name + ".before.npz")
@@ -131,14 +170,15 @@ def _repair_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path
                 out[name][r0:r1, c0:c1] = held[name]
     T, S = out["status"].shape
     R0, R1, C0, C1 = max(r0 - halo, 0), min(r1 + halo, T), max(c0 - halo, 0), min(c1 + halo, S)
-    fields = {name: out[name][R0:R1, C0:C1] for name in out.array_keys()}
-    g = zarr.open_group(obs_path, mode="r")
+    fields = {name: arr[R0:R1, C0:C1] for name, arr in out.items()}
+    g = _arrays(obs_path, "")
     res = repair_fn(fields, g["radiance"][r0:r1, c0:c1], g["direction"][r0:r1, c0:c1],
                     np.asarray(valid), (r0 - R0, c0 - C0))
     if res is not None:
         tmp = before.with_name(before.name + ".tmp")
+        inner = (slice(r0 - R0, r1 - R0), slice(c0 - C0, c1 - C0))
         with tmp.open("wb") as f:
-            np.savez(f, **{name: out[name][r0:r1, c0:c1] for name in res if name != "changed"})
+            np.savez(f, **{name: fields[name][inner] for name in res if name != "changed"})
         tmp.replace(before)
         for name, arr in res.items():
             if name != "changed":
@@ -284,7 +324,7 @@ def fit_map(
                 f"{workers} workers")
     status = valid.map_blocks(
         _fit_block, obs_path=str(obs_path), out_path=str(tmp), tile_fn=tile_fn,
-        done_dir=str(done), drop_axis=2, dtype=np.int8, meta=np.array((), np.int8),
+        done_dir=str(done), key=key, drop_axis=2, dtype=np.int8, meta=np.array((), np.int8),
         chunks=valid.chunks[:2])
     t0 = time.perf_counter()
     with dask.config.set({"optimization.fuse.active": False}), \
@@ -296,7 +336,7 @@ def fit_map(
                 ch = valid.map_blocks(
                     _repair_block, obs_path=str(obs_path), out_path=str(tmp),
                     repair_fn=repair_fn, halo=halo, phase=phase, done_dir=str(done),
-                    drop_axis=2, dtype=np.int8, meta=np.array((), np.int8),
+                    key=key, drop_axis=2, dtype=np.int8, meta=np.array((), np.int8),
                     chunks=valid.chunks[:2])
                 repaired += int(np.asarray(_compute(ch, scheduler, workers, pool)).sum())
             status = g["status"][:]
