@@ -70,6 +70,51 @@ def test_killed_fit_resumes_and_matches_an_uninterrupted_run(obs, tmp_path):
     assert not (out.parent / ".mh-1.zarr.tiles").exists()
 
 
+class Smooth:
+    """A repair that replaces every texel's RMSE by the mean over its halo window (so a
+    tile's result depends on what its neighbours hold), dying at call ``die_at``."""
+
+    def __init__(self, die_at=None):
+        self.calls, self.die_at = 0, die_at
+
+    def __call__(self, fields, radiance, direction, valid, offset):
+        self.calls += 1
+        if self.calls == self.die_at:
+            raise Killed("pre-empted")
+        (oy, ox), (t, u) = offset, valid.shape[:2]
+        out = {k: np.array(fields[k][oy:oy + t, ox:ox + u]) for k in ("rmse", "status")}
+        out["rmse"][:] = np.nanmean(fields["rmse"], (0, 1))
+        out["changed"] = np.ones((t, u), np.int8)
+        return out
+
+
+def test_repair_reads_the_tile_pass_and_resumes_identically(obs, tmp_path):
+    def fit(out, repair):
+        return fit_map(obs, out, Tiles(), mh_outputs(1), {"model": "mh", "lobes": "1"},
+                       "synchronous", 1, repair_fn=repair, halo=1)
+
+    ref = tmp_path / "ref" / "mh-1.zarr"
+    fit(ref, Smooth())
+    plain = tmp_path / "plain" / "mh-1.zarr"
+    res = fit_map(obs, plain, Tiles(), mh_outputs(1), {"model": "mh"},
+                  "synchronous", 1)
+    assert res["status"].shape == (8, 8)
+    # every tile's halo is the tile pass's RMSE, not a neighbour's repaired one
+    before = zarr.open_group(plain)["rmse"][:]
+    got = zarr.open_group(ref)["rmse"][:]
+    for i in range(0, 8, 2):
+        for j in range(0, 8, 2):
+            win = before[max(i - 1, 0):i + 3, max(j - 1, 0):j + 3]
+            np.testing.assert_allclose(got[i, j], np.nanmean(win, (0, 1)), rtol=1e-6)
+    out = tmp_path / "run" / "mh-1.zarr"
+    with pytest.raises(Killed):
+        fit(out, Smooth(die_at=7))
+    again = Smooth()
+    fit(out, again)
+    assert again.calls == 16 - 6  # the repairs finished before the kill are kept
+    assert _files(out) == _files(ref)
+
+
 def test_a_changed_config_starts_afresh(obs, tmp_path):
     out = tmp_path / "mh-1.zarr"
     with pytest.raises(Killed):

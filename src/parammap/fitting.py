@@ -143,43 +143,58 @@ def _fit_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path: s
     res = tile_fn(rad, dirs, np.asarray(valid), **kw)
     for name, arr in res.items():
         out[name][r0:r1, c0:c1] = arr
+    # the tile pass's result as the repair pass reads it (its halo, and where the tile
+    # starts from), untouched by the repairs written into the store meanwhile
+    snap = _marker(done_dir, "snap", block_info).with_suffix(".npz")
+    tmp = snap.with_name(snap.name + ".tmp")
+    with tmp.open("wb") as f:
+        np.savez(f, **res)
+    tmp.replace(snap)
     marker.touch()  # only once every array of the tile is written
     return np.asarray(res["status"], np.int8)
 
 
+def _snapshot(done_dir: str, rows: tuple[int, int], cols: tuple[int, int], tile: int,
+              ) -> dict[str, np.ndarray]:
+    """The tile pass's results over rows x cols of the map, from the snapshots its
+    tiles left (:func:`_fit_block`)."""
+    (R0, R1), (C0, C1) = rows, cols
+    out: dict[str, np.ndarray] = {}
+    for bi in range(R0 // tile, (R1 - 1) // tile + 1):
+        for bj in range(C0 // tile, (C1 - 1) // tile + 1):
+            y0, x0 = bi * tile, bj * tile
+            with np.load(Path(done_dir) / f"snap-{bi}-{bj}.npz") as held:
+                for name in held.files:
+                    a = held[name]
+                    if name not in out:
+                        out[name] = np.empty((R1 - R0, C1 - C0) + a.shape[2:], a.dtype)
+                    ys = slice(max(R0, y0), min(R1, y0 + a.shape[0]))
+                    xs = slice(max(C0, x0), min(C1, x0 + a.shape[1]))
+                    out[name][ys.start - R0:ys.stop - R0, xs.start - C0:xs.stop - C0] = \
+                        a[ys.start - y0:ys.stop - y0, xs.start - x0:xs.stop - x0]
+    return out
+
+
 def _repair_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path: str,
-                  repair_fn: RepairFn, halo: int, phase: tuple[int, int],
-                  done_dir: str, key: str = "") -> np.ndarray:
-    """One tile of the repair pass: only tiles of this checkerboard ``phase`` work, so
-    no tile rewrites what a neighbour is reading as its halo."""
+                  repair_fn: RepairFn, halo: int, tile: int, done_dir: str, key: str = "",
+                  ) -> np.ndarray:
+    """One tile of the repair pass. It starts from the tile pass's results and reads
+    its halo from them (the snapshots of :func:`_fit_block`), never from the repairs
+    its neighbours write meanwhile: the tiles run at once, the result does not depend
+    on their order, and a tile repaired again after an interruption gets the same."""
     (r0, r1), (c0, c1), _ = block_info[0]["array-location"]
-    bi, bj, _ = block_info[0]["chunk-location"]
-    changed = np.zeros((r1 - r0, c1 - c0), np.int8)
-    if (bi % 2, bj % 2) != phase:
-        return changed
     marker = _marker(done_dir, "repair", block_info)
     if marker.is_file():  # the texels it changed, as recorded when it finished
         return np.load(marker, allow_pickle=False)
-    out = _arrays(out_path, key or done_dir)
-    # a run killed while writing this tile's repair left it half written: put back
-    # what the tile held before, so the refit sees what an uninterrupted run saw
-    before = marker.with_name(marker.name + ".before.npz")
-    if before.is_file():
-        with np.load(before) as held:
-            for name in held.files:
-                out[name][r0:r1, c0:c1] = held[name]
-    T, S = out["status"].shape
+    T, S = block_info[None]["shape"][:2]
     R0, R1, C0, C1 = max(r0 - halo, 0), min(r1 + halo, T), max(c0 - halo, 0), min(c1 + halo, S)
-    fields = {name: arr[R0:R1, C0:C1] for name, arr in out.items()}
+    fields = _snapshot(done_dir, (R0, R1), (C0, C1), tile)
     g = _arrays(obs_path, "")
     res = repair_fn(fields, g["radiance"][r0:r1, c0:c1], g["direction"][r0:r1, c0:c1],
                     np.asarray(valid), (r0 - R0, c0 - C0))
-    if res is not None:
-        tmp = before.with_name(before.name + ".tmp")
-        inner = (slice(r0 - R0, r1 - R0), slice(c0 - C0, c1 - C0))
-        with tmp.open("wb") as f:
-            np.savez(f, **{name: fields[name][inner] for name in res if name != "changed"})
-        tmp.replace(before)
+    changed = np.zeros((r1 - r0, c1 - c0), np.int8)
+    if res is not None and np.any(res["changed"]):
+        out = _arrays(out_path, key or done_dir)
         for name, arr in res.items():
             if name != "changed":
                 out[name][r0:r1, c0:c1] = arr
@@ -219,7 +234,7 @@ def _mp_context(start_method: str = "auto"):
 
 @contextlib.contextmanager
 def _process_pool(scheduler: str, workers: int, start_method: str = "auto"):
-    """One process pool for every pass of a fit (tiles, then the repair phases): each new
+    """One process pool for every pass of a fit (tiles, then the repair passes): each new
     pool would start its workers again. None for the other schedulers."""
     if scheduler != "processes":
         yield None
@@ -280,8 +295,9 @@ def fit_map(
 
     With ``repair_fn`` a second pass follows once every tile is fitted: each tile sees
     its neighbours' results (``halo`` texels around it) and may refit texels that stand
-    out from them (e.g. stuck in a poor local minimum). Tiles run in four checkerboard
-    phases, so no tile is rewritten while a neighbour reads it.
+    out from them (e.g. stuck in a poor local minimum). Every tile reads its halo from
+    the tile pass's results (snapshots beside the store), so all tiles are repaired at
+    once and the result does not depend on their order.
 
     Parameters
     ----------
@@ -332,13 +348,12 @@ def fit_map(
         status = np.asarray(_compute(status, scheduler, workers, pool))
         repaired = 0
         if repair_fn is not None:
-            for phase in ((0, 0), (0, 1), (1, 0), (1, 1)):
-                ch = valid.map_blocks(
-                    _repair_block, obs_path=str(obs_path), out_path=str(tmp),
-                    repair_fn=repair_fn, halo=halo, phase=phase, done_dir=str(done),
-                    key=key, drop_axis=2, dtype=np.int8, meta=np.array((), np.int8),
-                    chunks=valid.chunks[:2])
-                repaired += int(np.asarray(_compute(ch, scheduler, workers, pool)).sum())
+            ch = valid.map_blocks(
+                _repair_block, obs_path=str(obs_path), out_path=str(tmp),
+                repair_fn=repair_fn, halo=halo, tile=tile, done_dir=str(done), key=key,
+                drop_axis=2, dtype=np.int8, meta=np.array((), np.int8),
+                chunks=valid.chunks[:2])
+            repaired = int(np.asarray(_compute(ch, scheduler, workers, pool)).sum())
             status = g["status"][:]
             logger.info(f"fit: repair pass refitted {repaired} texels from their neighbours")
     seconds = time.perf_counter() - t0
@@ -357,9 +372,8 @@ def fit_map(
 def fit_tile_size(T: int, S: int, tile: int, workers: int, smallest: int = 8) -> int:
     """Texels across a fit task: the observation map's tile, halved (down to
     ``smallest``) while the map has fewer than four tasks per worker. A map of a few
-    tiles otherwise leaves workers idle behind the slowest tile, and the repair pass,
-    whose four checkerboard phases each take a quarter of the tiles, runs one tile at a
-    time (the demo's 64 x 64 map: four tiles of 32, 16 of 16)."""
+    tiles otherwise leaves workers idle behind the slowest tile (the demo's 64 x 64 map:
+    four tiles of 32, 16 of 16)."""
     b = tile
     while (b // 2 >= smallest and b % 2 == 0
            and math.ceil(T / b) * math.ceil(S / b) < 4 * max(workers, 1)):

@@ -3,6 +3,7 @@ polish, lobe selection (K = auto, negligible lobes), and a tile of texels."""
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -68,15 +69,25 @@ def _bounds(K: int, ks_max: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
     """Bounds in x-space. ``ks_max`` caps the lobe amplitudes: a peak between samples
     may exceed every observation, but not by orders of magnitude; without a cap a
     narrow lobe whose peak no view saw can grow without limit (a spike in renders)."""
+    lb, ub, ks = _bounds_template(K)
+    ub = ub.copy()
+    ub[ks] = ks_max
+    return lb.copy(), ub
+
+
+@functools.lru_cache(maxsize=8)
+def _bounds_template(K: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_bounds` without the Ks cap, and the Ks columns (built once per K: it
+    runs once per texel fit)."""
     nx = mhx_size(K)
     lb, ub = np.zeros(nx), np.full(nx, np.inf)
-    for k in range(K):
-        ub[mhx_ks(k)] = ks_max
     ub[MHX_LNM] = LN_M_MAX
     for k in range(K):
         lb[mhx_theta(k)], ub[mhx_theta(k)] = 0.0, math.pi / 2
         lb[mhx_phi(k)], ub[mhx_phi(k)] = -3 * math.pi, 3 * math.pi
-    return lb, ub
+    ks = np.array([i for k in range(K) for i in range(mhx_ks(k).start, mhx_ks(k).stop)],
+                  np.int64)
+    return lb, ub, ks
 
 
 def _normal_equations(X, V, Ls, W, K, LL=None, need_A: bool = True):
@@ -391,11 +402,11 @@ def fit_texel(V: np.ndarray, L: np.ndarray, p0: np.ndarray,
     the residual sum of squares in radiance units squared.
     """
     K = mh_lobes(len(p0))
-    s = float(max(np.mean(L), 1e-12))
+    s = max(float(L.mean()), 1e-12)
     Ls = L / s
     x0 = _to_x(p0, s)
     nx = len(x0)
-    lb, ub = _bounds(K, KS_CAP * float(np.max(Ls)))
+    lb, ub = _bounds(K, KS_CAP * float(Ls.max()))
     x0 = np.clip(x0, lb, ub)
     if lm and lm_batch is not None and cfg.loss == "linear" and K > 0:
         # compiled LM steps first (cheap, and quadratic near the optimum): nlopt polishes

@@ -425,31 +425,24 @@ def _sandwich_batch(X: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
     n, N = W.shape
     nx = X.shape[1]
     Kx = (nx - MH_HEAD) // MHX_LOBE
+    # the Jacobian of the free columns only: a texel with fewer lobes than the layout
+    # holds has a smaller system (the products below grow with its square)
     J = np.zeros((N, 3, nx))
     r = np.zeros((N, 3))
-    A = np.zeros((nx, nx))
-    free = np.zeros(nx, np.bool_)
     M = np.empty((3, nx))
     for t in range(n):
         x = X[t]
         m = math.exp(x[MHX_LNM])
         nl = nlobes[t]
-        for i in range(nx):
-            free[i] = True
-        for k in range(nl, Kx):
-            b = MH_HEAD + MHX_LOBE * k
-            for i in range(5):
-                free[b + i] = False
-        if nl == 0:
-            free[MHX_LNM] = False
+        # lobes are sorted, the first nl present: the free columns are a prefix of x
+        # (without a lobe, Kd alone: no shininess to determine)
+        nf = MH_HEAD + MHX_LOBE * nl if nl > 0 else 3
         d, dth, dph = _lobe_frames(x, Kx)
-        for i in range(nx):
-            for j in range(nx):
-                A[i, j] = 0.0
+        A = np.zeros((nf, nf))
         for v in range(N):
             for c in range(3):
                 r[v, c] = 0.0
-                for i in range(nx):
+                for i in range(nf):
                     J[v, c, i] = 0.0
             if not W[t, v]:
                 continue
@@ -461,6 +454,11 @@ def _sandwich_batch(X: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
                 b = MH_HEAD + MHX_LOBE * k
                 cs = v0 * d[k, 0] + v1 * d[k, 1] + v2 * d[k, 2]
                 if cs <= 0.0:
+                    continue
+                if k >= nl:  # not free: only its (zero) part of the prediction
+                    p = math.exp(m * math.log(cs))
+                    for c in range(3):
+                        r[v, c] += x[b + c] * p
                     continue
                 lc = math.log(cs)
                 p = math.exp(m * lc)
@@ -476,18 +474,12 @@ def _sandwich_batch(X: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
                     J[v, c, b + 4] = ks * a_ph
             wv = w[t, v]
             for c in range(3):
-                for i in range(nx):
-                    if not free[i]:
-                        J[v, c, i] = 0.0
-                for i in range(nx):
+                for i in range(nf):
                     a = wv * J[v, c, i]
                     if a == 0.0:
                         continue
-                    for j in range(nx):
+                    for j in range(nf):
                         A[i, j] += a * J[v, c, j]
-        for i in range(nx):
-            if not free[i]:
-                A[i, i] = 1.0
         Ai = np.linalg.pinv(A)
         bad[t] = False
         for v in range(N):
@@ -498,16 +490,16 @@ def _sandwich_batch(X: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
             sw = math.sqrt(w[t, v])
             # the view's 3 x 3 block of the hat matrix, H = Jw Ai Jw^T
             for c in range(3):
-                for j in range(nx):
+                for j in range(nf):
                     s = 0.0
-                    for i in range(nx):
+                    for i in range(nf):
                         s += J[v, c, i] * Ai[i, j]
                     M[c, j] = s * sw
             h = np.empty((3, 3))
             for a in range(3):
                 for c in range(3):
                     s = 0.0
-                    for j in range(nx):
+                    for j in range(nf):
                         s += M[a, j] * J[v, c, j]
                     h[a, c] = (1.0 if a == c else 0.0) - s * sw
             co00 = h[1, 1] * h[2, 2] - h[1, 2] * h[2, 1]
@@ -531,33 +523,31 @@ def _sandwich_batch(X: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
             loo[t, v, 2] = (co20 * r0 + co21 * r1 + co22 * r2) / det
         if not want_cov:
             continue
-        dof = 0  # residuals minus free parameters
+        dof = -nf  # residuals minus free parameters
         for v in range(N):
             if W[t, v]:
                 dof += 3
-        for i in range(nx):
-            if free[i]:
-                dof -= 1
         # B = sum over rows of (w J loo)^T (w J loo); cov = Ai B Ai
-        Bm = np.zeros((nx, nx))
+        Bm = np.zeros((nf, nf))
         for v in range(N):
             if not W[t, v]:
                 continue
             for c in range(3):
                 f = w[t, v] * loo[t, v, c]
-                for i in range(nx):
+                for i in range(nf):
                     a = f * J[v, c, i]
                     if a == 0.0:
                         continue
-                    for j in range(nx):
+                    for j in range(nf):
                         Bm[i, j] += a * f * J[v, c, j]
         T = Ai @ Bm
         for i in range(nx):
-            if not free[i] or dof <= 0:
-                var[t, i] = np.nan
-                continue
+            var[t, i] = np.nan
+        if dof <= 0:
+            continue
+        for i in range(nf):
             s = 0.0
-            for j in range(nx):
+            for j in range(nf):
                 s += T[i, j] * Ai[j, i]
             var[t, i] = s
 

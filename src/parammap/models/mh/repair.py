@@ -8,7 +8,17 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import maximum_filter
 
-from ...conventions import MH_KD, MH_M, FitStatus, mh_dir, mh_dir_z, mh_ks, mh_lobes, mh_size
+from ...conventions import (
+    MH_KD,
+    MH_M,
+    FitStatus,
+    mh_dir,
+    mh_dir_z,
+    mh_ks,
+    mh_lobes,
+    mh_size,
+    mhx_size,
+)
 from ..residuals import mean_percentage_residual
 from .fit import MhFitConfig, fit_texel, refine_batch
 from .kernel import rescaled_batch
@@ -54,6 +64,26 @@ def stains(rmse: np.ndarray, status: np.ndarray, factor: float = REPAIR_FACTOR,
         out = e > factor * _neighbourhood_median(e, radius)
     lab, n = label(out)
     return np.sort(np.bincount(lab.ravel())[1:])[::-1] if n else np.zeros(0, int)
+
+
+def _window(at: np.ndarray, radius: int, shape: tuple[int, int], nearest_first: bool = False,
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The (2 ``radius`` + 1)^2 window around each of the points ``at`` (m, 2): rows and
+    columns (m, w) clipped into ``shape``, and (m, w) whether each lies inside it. In
+    raster order, or with ``nearest_first`` stably sorted by Chebyshev distance."""
+    oy, ox = np.mgrid[-radius:radius + 1, -radius:radius + 1].reshape(2, -1)
+    if nearest_first:
+        order = np.argsort(np.maximum(np.abs(oy), np.abs(ox)), kind="stable")
+        oy, ox = oy[order], ox[order]
+    Y, X = at[:, :1] + oy, at[:, 1:] + ox
+    inside = (Y >= 0) & (Y < shape[0]) & (X >= 0) & (X < shape[1])
+    return Y.clip(0, shape[0] - 1), X.clip(0, shape[1] - 1), inside
+
+
+def _bic(rss: np.ndarray, n: np.ndarray, k: np.ndarray, floor: np.ndarray) -> np.ndarray:
+    """:func:`bic` of many fits at once."""
+    free = np.where(k == 0, 3, mhx_size(np.asarray(k)))
+    return n * np.log(np.maximum(np.maximum(rss / n, floor), 1e-300)) + free * np.log(n)
 
 
 def _rescaled_starts(P: np.ndarray, V: np.ndarray, L: np.ndarray, k: int,
@@ -183,8 +213,7 @@ def repair_mh_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
             break
         tried[todo] = True
         fresh = np.zeros(e.shape, bool)
-        gy, gx = np.nonzero(good)
-        refits = _refit_from_neighbours(data, bad, offset, u, params, kused, rmse, gy, gx,
+        refits = _refit_from_neighbours(data, bad, offset, u, params, kused, rmse, good,
                                         K=K, cfg=cfg, radius=radius, starts=starts)
         for (i, j), r in zip(bad, refits, strict=True):
             if r is None:
@@ -235,26 +264,25 @@ def _missed_lobes(params: np.ndarray, kused: np.ndarray, rmse: np.ndarray,
                           cval=-1)
     cand = check & (more[oy:oy + t, ox:ox + u] > kused[oy:oy + t, ox:ox + u])
     nobs = data[2].sum(1)
-    pairs: dict[int, tuple[list, list]] = {}  # lobes -> (texels, candidate positions)
-    for i, j in np.argwhere(cand):
-        at = (i + oy, j + ox)
-        if not float(np.nanmean(rmse[at])) > 0 or nobs[i * u + j] < 4:
-            continue
-        r0, c0 = max(at[0] - radius, 0), max(at[1] - radius, 0)
-        win = (slice(r0, min(at[0] + radius + 1, H)), slice(c0, min(at[1] + radius + 1, Wd)))
-        ny, nx = np.nonzero(good[win] & (kused[win] > kused[at]))
-        d = np.maximum(np.abs(ny + r0 - at[0]), np.abs(nx + c0 - at[1]))
-        order = np.argsort(d, kind="stable")[:starts]
-        for y, x in zip(ny[order] + r0, nx[order] + c0, strict=True):
-            who, where = pairs.setdefault(int(kused[y, x]), ([], []))
-            who.append(i * u + j)
-            where.append((y, x))
+    ci, cj = np.nonzero(cand)
+    at = np.stack([ci + oy, cj + ox], 1)
+    with np.errstate(invalid="ignore"):
+        own_at = np.nansum(rmse[at[:, 0], at[:, 1]], -1) \
+            / np.isfinite(rmse[at[:, 0], at[:, 1]]).sum(-1)
+    keep = (own_at > 0) & (nobs[ci * u + cj] >= 4)
+    at, rows = at[keep], (ci * u + cj)[keep]
+    # up to ``starts`` of the nearest well-fitted neighbours with more lobes
+    Y, X, inside = _window(at, radius, good.shape, nearest_first=True)
+    use = inside & good[Y, X] & (kused[Y, X] > kused[at[:, 0], at[:, 1]][:, None])
+    use &= np.cumsum(use, 1) <= starts
+    e, o = np.nonzero(use)
+    ny, nx = Y[e, o], X[e, o]
     best = np.full(t * u, np.inf)
-    for k, (who, where) in pairs.items():
-        yx = np.array(where)
-        _, rss = _rescaled_starts(params[yx[:, 0], yx[:, 1]].astype(float), data[0],
-                                  data[1], k, owner=np.array(who), W=data[2])
-        np.minimum.at(best, np.array(who), rss)
+    for k in np.unique(kused[ny, nx]):
+        m = kused[ny, nx] == k
+        _, rss = _rescaled_starts(params[ny[m], nx[m]].astype(float), data[0], data[1],
+                                  int(k), owner=rows[e[m]], W=data[2])
+        np.minimum.at(best, rows[e[m]], rss)
     own = np.nanmean(rmse[oy:oy + t, ox:ox + u], -1).ravel()
     with np.errstate(invalid="ignore", divide="ignore"):
         hit = np.isfinite(best) & (factor * np.sqrt(best / (3 * np.maximum(nobs, 1))) < own)
@@ -265,8 +293,8 @@ def _missed_lobes(params: np.ndarray, kused: np.ndarray, rmse: np.ndarray,
 def _refit_from_neighbours(data: tuple[np.ndarray, np.ndarray, np.ndarray],
                            bad: np.ndarray, offset: tuple[int, int], width: int,
                            params: np.ndarray,
-                           kused: np.ndarray, rmse: np.ndarray, gy: np.ndarray,
-                           gx: np.ndarray, *, K: int | str, cfg: MhFitConfig, radius: int,
+                           kused: np.ndarray, rmse: np.ndarray, good: np.ndarray,
+                           *, K: int | str, cfg: MhFitConfig, radius: int,
                            starts: int) -> list:
     """The refits of one round of :func:`repair_mh_tile`, for the tile's texels ``bad``
     (b, 2) of a tile ``width`` texels across (``data``: :func:`_tile_data`): per texel
@@ -278,37 +306,46 @@ def _refit_from_neighbours(data: tuple[np.ndarray, np.ndarray, np.ndarray],
     oy, ox = offset
     Kmax = mh_lobes(params.shape[-1])
     res: list = [None] * len(bad)
-    info = {}
-    runs: dict[int, tuple[list, list]] = {}  # lobes -> (entries of bad, starts)
-    for e, (i, j) in enumerate(bad):
-        b, at = i * width + j, (i + oy, j + ox)
-        w = Wt[b] > 0
-        n = int(w.sum())
-        if n < 4:
-            continue
-        L = Lt[b][w]
-        floor = (cfg.bic_floor * float(np.mean(np.abs(L)))) ** 2
-        k0 = int(kused[at]) if K == "auto" else int(K)
-        rss0 = float(np.sum(rmse[at] ** 2) * n)
-        crit0 = bic(rss0, L.size, k0, floor) if K == "auto" else rss0
-        info[e] = (b, L.size, floor, crit0)
-        near = np.flatnonzero((np.abs(gy - at[0]) <= radius) & (np.abs(gx - at[1]) <= radius))
-        ks = kused[gy[near], gx[near]].astype(int) if K == "auto" \
-            else np.full(len(near), int(K))
-        cands = []  # (rescaled criterion, lobes, start): the best ``starts`` of every count
-        for k in np.unique(ks[ks >= 1]):
-            sel = near[ks == k]
-            Q, score = _rescaled_starts(params[gy[sel], gx[sel]].astype(float), Vt[b][w],
-                                        L, int(k))
-            crit = [bic(float(x), L.size, int(k), floor) if K == "auto" else float(x)
-                    for x in score]
-            cands += [(crit[q], int(k), Q[q]) for q in range(len(Q))]
-        cands.sort(key=lambda c: c[0])
-        for _, k, q in cands[:starts]:
-            who, P0 = runs.setdefault(k, ([], []))
-            who.append(e)
-            P0.append(q)
+    rows = bad[:, 0] * width + bad[:, 1]
+    n = (Wt[rows] > 0).sum(1)
+    ents = np.flatnonzero(n >= 4)
+    for e in ents:
         res[e] = (None, 0, 0)
+    rows, n = rows[ents], n[ents]
+    at = bad[ents] + (oy, ox)
+    size = 3 * n
+    floor = (cfg.bic_floor * np.abs(Lt[rows] * (Wt[rows, :, None] > 0)).sum((1, 2))
+             / np.maximum(size, 1)) ** 2
+    k0 = kused[at[:, 0], at[:, 1]].astype(int) if K == "auto" else np.full(len(at), int(K))
+    rss0 = (rmse[at[:, 0], at[:, 1]] ** 2).sum(-1) * n
+    crit0 = _bic(rss0, size, k0, floor) if K == "auto" else rss0
+    # every well-fitted texel of the window, its shininess and lobes kept and its
+    # colours refit (one batch per count of lobes); each texel keeps its ``starts`` best
+    Y, X, inside = _window(at, radius, good.shape)
+    ks = kused[Y, X].astype(int) if K == "auto" else np.full(Y.shape, int(K))
+    e, o = np.nonzero(inside & good[Y, X] & (ks >= 1))
+    ny, nx, nk = Y[e, o], X[e, o], ks[e, o]
+    cand_e, cand_k, cand_crit, cand_q = [], [], [], []
+    for k in np.unique(nk):
+        m = nk == k
+        Q, score = _rescaled_starts(params[ny[m], nx[m]].astype(float), Vt, Lt, int(k),
+                                    owner=rows[e[m]], W=Wt)
+        cand_e.append(e[m])
+        cand_k.append(np.full(int(m.sum()), int(k)))
+        cand_crit.append(_bic(score, size[e[m]], k, floor[e[m]]) if K == "auto" else score)
+        cand_q += list(Q)
+    runs: dict[int, tuple[list, list]] = {}  # lobes -> (entries of bad, starts)
+    if cand_q:
+        ce, ck, cc = (np.concatenate(x) for x in (cand_e, cand_k, cand_crit))
+        order = np.lexsort((np.arange(len(ce)), cc, ce))
+        first = np.r_[0, np.flatnonzero(np.diff(ce[order])) + 1]
+        rank = np.arange(len(order)) - np.repeat(first, np.diff(np.r_[first, len(order)]))
+        for c in order[rank < starts]:
+            who, P0 = runs.setdefault(int(ck[c]), ([], []))
+            who.append(int(ents[ce[c]]))
+            P0.append(cand_q[c])
+    info = {int(ents[i]): (int(rows[i]), int(size[i]), float(floor[i]), float(crit0[i]))
+            for i in range(len(ents))}
     # every start converged by the compiled LM steps in one batch per count of lobes
     best: dict[int, tuple[float, np.ndarray, int, bool]] = {}
     for k, (who, P0) in runs.items():
