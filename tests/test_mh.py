@@ -285,6 +285,34 @@ def test_repair_refits_a_stuck_texel_from_its_neighbours_and_leaves_good_ones():
     np.testing.assert_array_equal(out["params"][keep], before["params"][keep])
 
 
+def test_repair_weights_by_noise_and_keeps_chi2_current():
+    """The repair refits a texel with the tile pass's noise weights, so a few very
+    noisy views do not pull the refit, and the texel's chi-square is its new fit's."""
+    from parammap.models.mh import repair_mh_tile
+
+    rng = np.random.default_rng(4)
+    p, clean, dirs, valid = _one_material_tile(noise=0.0)
+    sd = np.full(valid.shape, 0.01, np.float32)
+    loud = rng.random(valid.shape[-1]) < 0.25
+    sd[..., loud] = 0.2
+    rad = (clean * (1 + sd[..., None] * rng.standard_normal(clean.shape))).astype(np.float32)
+    fields = fit_mh_tile(rad, dirs, valid, 1, noise=sd)
+    good = fields["chi2"].copy()
+    bad = p.copy()
+    bad[7:10] = [0.0, 0.6, 0.8]
+    bad[3] = 300.0
+    fields["params"][4, 4] = bad
+    fields["rmse"][4, 4] = np.sqrt(((mh_eval(bad, dirs[4, 4]) - rad[4, 4]) ** 2).mean(0))
+    fields["chi2"][4, 4] = 1e6
+    out = repair_mh_tile(fields, rad, dirs, valid, (0, 0), K=1, noise=sd)
+    assert out["changed"][4, 4] == 1
+    # as good as the texel's neighbours, which the weighted tile pass fitted
+    err = np.abs(out["params"][4, 4, :mh_size(1)] - p)
+    others = np.abs(fields["params"][..., :mh_size(1)] - p).reshape(-1, mh_size(1))
+    assert (err <= np.percentile(others, 95, axis=0) + 1e-6).all(), (err, others.max(0))
+    assert 0.5 * np.median(good) < out["chi2"][4, 4] < 2 * np.median(good)
+
+
 def test_repair_clears_a_stain_wider_than_the_neighbourhood():
     """A 7x7 blob of poor minima in a 9x9 neighbourhood hides its own core (the
     neighbourhood median is itself poor there): rounds repair it from the rim inwards,

@@ -76,7 +76,8 @@ FIT_UNITS = {
 # (radiance, direction, valid of a tile; keyword noise: its relative sd per observation)
 TileFn = Callable[..., dict[str, np.ndarray]]
 # (fit arrays of the tile and its halo, radiance, direction, valid of the tile, offset of
-# the tile in the halo arrays) -> the tile's new arrays plus "changed", or None
+# the tile in the halo arrays; keyword noise as for TileFn) -> the tile's new arrays plus
+# "changed", or None
 RepairFn = Callable[..., dict[str, np.ndarray] | None]
 
 
@@ -190,8 +191,9 @@ def _repair_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path
     R0, R1, C0, C1 = max(r0 - halo, 0), min(r1 + halo, T), max(c0 - halo, 0), min(c1 + halo, S)
     fields = _snapshot(done_dir, (R0, R1), (C0, C1), tile)
     g = _arrays(obs_path, "")
+    kw = {"noise": g["noise"][r0:r1, c0:c1]} if "noise" in g else {}
     res = repair_fn(fields, g["radiance"][r0:r1, c0:c1], g["direction"][r0:r1, c0:c1],
-                    np.asarray(valid), (r0 - R0, c0 - C0))
+                    np.asarray(valid), (r0 - R0, c0 - C0), **kw)
     changed = np.zeros((r1 - r0, c1 - c0), np.int8)
     if res is not None and np.any(res["changed"]):
         out = _arrays(out_path, key or done_dir)

@@ -20,6 +20,7 @@ from ...conventions import (
     mhx_size,
 )
 from ..residuals import mean_percentage_residual
+from ..weights import noise_weights, reduced_chi2
 from .fit import MhFitConfig, fit_texel, refine_batch
 from .kernel import rescaled_batch
 from .model import bic, mh_eval
@@ -134,20 +135,24 @@ def _rescaled_starts(P: np.ndarray, V: np.ndarray, L: np.ndarray, k: int,
 
 
 def _tile_data(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray,
+               noise: np.ndarray | None = None,
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A tile's observations as (t u, N, 3) directions and radiance, and (t u, N) 0/1
-    weights of the valid ones (invalid: direction +z, radiance 0)."""
+    """A tile's observations as (t u, N, 3) directions and radiance, and (t u, N)
+    weights: the tile pass's (:func:`~parammap.models.weights.noise_weights` of
+    ``noise`` (t, u, N), or 1), 0 where not valid (direction +z, radiance 0)."""
     t, u, N = valid.shape
     W = (valid & np.isfinite(radiance).all(-1) & np.isfinite(direction).all(-1)) \
         .reshape(t * u, N)
     V = np.where(W[..., None], direction.reshape(t * u, N, 3), [0.0, 0.0, 1.0])
     L = np.where(W[..., None], radiance.reshape(t * u, N, 3), 0.0)
-    return V.astype(float), L.astype(float), W.astype(float)
+    w = noise_weights(None if noise is None else noise.reshape(t * u, N), W)
+    return V.astype(float), L.astype(float), np.where(W, w, 0.0).astype(float)
 
 
 def repair_mh_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
                    direction: np.ndarray, valid: np.ndarray, offset: tuple[int, int], *,
                    K: int | str, cfg: MhFitConfig | None = None,
+                   noise: np.ndarray | None = None,
                    factor: float = REPAIR_FACTOR, radius: int = REPAIR_RADIUS,
                    starts: int = REPAIR_STARTS) -> dict[str, np.ndarray] | None:
     """Refit the texels of a tile that stand out from their neighbourhood.
@@ -168,6 +173,9 @@ def repair_mh_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
         k_used, evals, status).
     radiance, direction, valid : the tile's observations.
     offset : (row, col) of the tile in the halo arrays.
+    noise : (t, u, N) relative sd per observation: the refits weight the observations
+        as the tile pass did (:func:`~parammap.models.weights.noise_weights`; RSS and
+        BIC weighted alike), and ``chi2`` of a repaired texel is recomputed.
 
     Texels repaired in one round serve as starts in the next, up to
     :data:`REPAIR_ROUNDS` rounds: a stain larger than the neighbourhood raises the
@@ -188,11 +196,13 @@ def repair_mh_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
     status = np.array(fields["status"], copy=True)
     kused = np.array(fields["k_used"], copy=True)
     rmse = np.array(fields["rmse"], copy=True)
-    out = {k: np.array(fields[k][sl]) for k in ("params", "rmse", "mpr", "sd", "k_used",
-                                                "evals", "status") if k in fields}
+    out = {k: np.array(fields[k][sl]) for k in ("params", "rmse", "mpr", "chi2", "sd",
+                                                "k_used", "evals", "status")
+           if k in fields}
     out["changed"] = np.zeros((t, u), np.int8)
     tried = np.zeros((t, u), bool)
-    data = _tile_data(radiance, direction, valid)
+    data = _tile_data(radiance, direction, valid, noise)
+    NZ = None if noise is None else noise.reshape(t * u, -1)
     fresh = None  # texels changed in the last round: their neighbours are tried again
     for _ in range(REPAIR_ROUNDS):
         e = np.where(status == FitStatus.OK, np.nanmean(rmse, -1), np.nan)
@@ -230,6 +240,10 @@ def repair_mh_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
             out["status"][i, j] = status[i + oy, j + ox] = FitStatus.OK
             out["rmse"][i, j] = rmse[i + oy, j + ox] = np.sqrt(((fitted - L) ** 2).mean(0))
             out["mpr"][i, j] = mean_percentage_residual(L, fitted)
+            if "chi2" in out:
+                out["chi2"][i, j] = reduced_chi2(
+                    L[None], fitted[None], None if NZ is None else NZ[i * u + j][w][None],
+                    np.ones((1, len(L)), bool), mhx_size(k))[0]
             out["changed"][i, j] = 1
             fresh[i + oy, j + ox] = True
         if not fresh.any():
@@ -239,7 +253,7 @@ def repair_mh_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
         ci, cj = np.nonzero(out["changed"])
         b = ci * u + cj
         out["sd"][ci, cj] = parameter_sd(out["params"][ci, cj].astype(float), data[0][b],
-                                         data[1][b], data[2][b] > 0)
+                                         data[1][b], data[2][b] > 0, data[2][b])
     return out if out["changed"].any() or tried.any() else None
 
 
@@ -263,7 +277,7 @@ def _missed_lobes(params: np.ndarray, kused: np.ndarray, rmse: np.ndarray,
     more = maximum_filter(np.where(good, kused, -1), 2 * radius + 1, mode="constant",
                           cval=-1)
     cand = check & (more[oy:oy + t, ox:ox + u] > kused[oy:oy + t, ox:ox + u])
-    nobs = data[2].sum(1)
+    nobs = (data[2] > 0).sum(1)
     ci, cj = np.nonzero(cand)
     at = np.stack([ci + oy, cj + ox], 1)
     with np.errstate(invalid="ignore"):
@@ -317,7 +331,9 @@ def _refit_from_neighbours(data: tuple[np.ndarray, np.ndarray, np.ndarray],
     floor = (cfg.bic_floor * np.abs(Lt[rows] * (Wt[rows, :, None] > 0)).sum((1, 2))
              / np.maximum(size, 1)) ** 2
     k0 = kused[at[:, 0], at[:, 1]].astype(int) if K == "auto" else np.full(len(at), int(K))
-    rss0 = (rmse[at[:, 0], at[:, 1]] ** 2).sum(-1) * n
+    # the current fit's RSS weighted as every refit's (the tile pass's weights)
+    r0 = mh_eval(params[at[:, 0], at[:, 1]].astype(float), Vt[rows]) - Lt[rows]
+    rss0 = (Wt[rows][..., None] * r0 ** 2).sum((1, 2))
     crit0 = _bic(rss0, size, k0, floor) if K == "auto" else rss0
     # every well-fitted texel of the window, its shininess and lobes kept and its
     # colours refit (one batch per count of lobes); each texel keeps its ``starts`` best
@@ -352,8 +368,7 @@ def _refit_from_neighbours(data: tuple[np.ndarray, np.ndarray, np.ndarray],
         rows = np.array([info[e][0] for e in who])
         P, conv = refine_batch(Vt[rows], Lt[rows], Wt[rows], np.array(P0), why=True,
                                iters=RANK_ITERS)
-        r = np.where(Wt[rows][..., None] > 0, mh_eval(P, Vt[rows]) - Lt[rows], 0.0)
-        rss = (r ** 2).sum((1, 2))
+        rss = (Wt[rows][..., None] * (mh_eval(P, Vt[rows]) - Lt[rows]) ** 2).sum((1, 2))
         for e, p, x, c in zip(who, P, rss, conv, strict=True):
             _, size, floor, _ = info[e]
             if not (np.all(np.isfinite(p)) and np.isfinite(x)):
@@ -365,7 +380,7 @@ def _refit_from_neighbours(data: tuple[np.ndarray, np.ndarray, np.ndarray],
     for e, (_, p0, k, conv) in best.items():
         b, size, floor, crit0 = info[e]
         w = Wt[b] > 0
-        r = fit_texel(Vt[b][w], Lt[b][w], p0, cfg, lm=not conv)
+        r = fit_texel(Vt[b][w], Lt[b][w], p0, cfg, w=Wt[b][w], lm=not conv)
         if r.status != FitStatus.OK:
             res[e] = (None, 0, r.evals)
             continue
