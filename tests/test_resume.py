@@ -77,7 +77,7 @@ class Smooth:
     def __init__(self, die_at=None):
         self.calls, self.die_at = 0, die_at
 
-    def __call__(self, fields, radiance, direction, valid, offset):
+    def __call__(self, fields, radiance, direction, valid, offset, noise=None):
         self.calls += 1
         if self.calls == self.die_at:
             raise Killed("pre-empted")
