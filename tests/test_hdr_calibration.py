@@ -141,6 +141,33 @@ def test_pattern_refinement_recovers_an_oblique_pose(tiny_capture, tiny_response
     assert np.linalg.norm(r["t"] - t0) < 5 * sd + 0.02, (np.linalg.norm(r["t"] - t0), sd)
 
 
+def test_compiled_pattern_prediction_matches_the_numpy_chain():
+    from scipy.ndimage import map_coordinates
+
+    from parammap.calibration import _plane_texture_coords
+    from parammap.pattern_kernel import pattern_predict
+
+    if pattern_predict is None:
+        pytest.skip("numba missing: the numpy chain is the only one")
+    rng = np.random.default_rng(3)
+    tex = rng.random((72, 72))
+    ns, n = 9, 500
+    p = np.r_[0.3, -0.2, 0.1, 5.0, -8.0, 300.0]  # rvec, tvec (mm)
+    nrm = rng.uniform(-0.2, 0.2, (n * ns, 2))
+    A = np.array([[2.0, 0.1, 30.0], [-0.05, 1.9, 20.0], [1e-4, -2e-4, 1.0]])
+    uv = _plane_texture_coords(p, nrm, A)
+    want = map_coordinates(tex, [uv[:, 1] - 0.5, uv[:, 0] - 0.5], order=1,
+                           mode="nearest").reshape(-1, ns).mean(1)
+    assert ((uv < 0) | (uv > 72)).any()  # the edges' extension is exercised too
+    import cv2
+
+    R, _ = cv2.Rodrigues(p[:3])
+    pred, xm, ym = np.empty(n), np.empty(n), np.empty(n)
+    pattern_predict(R, -R.T @ p[3:], nrm, A, tex, ns, pred, xm, ym)
+    np.testing.assert_allclose(pred, want, atol=1e-12)
+    np.testing.assert_allclose(np.c_[xm, ym], uv.reshape(n, ns, 2).mean(1), rtol=1e-12)
+
+
 def test_corrupt_photo_names_file(tiny_copy):
     p = tiny_copy / "views" / "v001_0.png"
     p.write_bytes(p.read_bytes()[:100])

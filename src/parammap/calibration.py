@@ -755,13 +755,24 @@ class PatternView:
         black-to-white step (markers in shade count alike)."""
         from scipy.ndimage import map_coordinates
 
+        from .pattern_kernel import pattern_predict
+
+        if pattern_predict is not None:
+            Rm, _ = cv2.Rodrigues(np.asarray(p[:3], float))
+            C = -Rm.T @ np.asarray(p[3:], float)
         out = []
         for m, tex in zip(self.markers, textures, strict=True):
-            uv = _plane_texture_coords(p, m["nrm"], m["A"])
-            pred = map_coordinates(tex, [uv[:, 1] - 0.5, uv[:, 0] - 0.5], order=1,
-                                   mode="nearest").reshape(-1, self.ns).mean(1)
+            if pattern_predict is not None:
+                n = len(m["I"])
+                pred, x, y = np.empty(n), np.empty(n), np.empty(n)
+                pattern_predict(Rm, C, m["nrm"], m["A"], tex, self.ns, pred, x, y)
+                x, y = x / self.side - 0.5, y / self.side - 0.5
+            else:
+                uv = _plane_texture_coords(p, m["nrm"], m["A"])
+                pred = map_coordinates(tex, [uv[:, 1] - 0.5, uv[:, 0] - 0.5], order=1,
+                                       mode="nearest").reshape(-1, self.ns).mean(1)
+                x, y = (uv.reshape(-1, self.ns, 2).mean(1) / self.side - 0.5).T
             # the light may vary across a marker: levels linear in the pattern position
-            x, y = (uv.reshape(-1, self.ns, 2).mean(1) / self.side - 0.5).T
             X = np.stack([np.ones_like(pred), x, y, pred, pred * x, pred * y], -1)
             # normal equations by einsum: BLAS would spin threads for these thin
             # products, idle work beside a pool's other workers
