@@ -418,3 +418,19 @@ def test_grazing_markers_missed_at_first_are_found_upsampled():
     ids, corners = detect_markers(img, "DICT_5X5_250", np.array([3, 17]))
     assert list(ids) == [17]
     assert np.abs(corners[0] - true).max() < 1.0, corners[0] - true
+
+
+def test_corner_gate_trusts_a_typical_pattern_fit_only():
+    from parammap.poses import PATTERN_NOISE_FACTOR, corner_gate
+
+    def rec(rms, solution, noise):
+        return {"ok": True, "rms_px": rms, "solution": solution, "noise_px": noise}
+
+    recs = [rec(0.3, "pattern", 0.10), rec(0.4, "pattern", 0.11), rec(0.5, "pattern", 0.12),
+            rec(2.3, "pattern", 0.11),  # grazing: corners off, pattern as good as the rest
+            rec(2.3, "pattern", 0.10 * PATTERN_NOISE_FACTOR * 1.5),  # a wrong marker
+            rec(2.3, "edges", 0.2), rec(1.0, "corners", 0.5)]
+    corner_gate(recs, 2.0)
+    assert [r["ok"] for r in recs] == [True, True, True, True, False, False, True]
+    assert "rms_waived" in recs[3] and "2.30 px" in recs[3]["rms_waived"]
+    assert "2.30 px above 2.0 px" in recs[4]["reason"] and "rms_waived" not in recs[5]
