@@ -139,6 +139,20 @@ def test_pattern_refinement_recovers_an_oblique_pose(tiny_capture, tiny_response
     # the predicted translation sd (1 sd per axis) is not far below the error made
     sd = np.sqrt(np.trace(r["cov"][3:, 3:]))
     assert np.linalg.norm(r["t"] - t0) < 5 * sd + 0.02, (np.linalg.norm(r["t"] - t0), sd)
+    # the analytic Jacobian the solve uses is the residuals' own (central differences)
+    from parammap.calibration import PatternView
+
+    view = PatternView(rad @ LUMINANCE, cap, [int(i) for i in cap.marker_ids],
+                       cv2.Rodrigues(start_R)[0].ravel(), start_t, intr)
+    tex = view.textures(0.35)
+    p = np.r_[cv2.Rodrigues(start_R)[0].ravel(), start_t]
+    got = view.residuals_jacobian(p, tex)
+    if got is not None:
+        np.testing.assert_allclose(got[0], view.residuals(p, tex), atol=1e-12)
+        for j, h in enumerate([1e-6] * 3 + [1e-4] * 3):
+            e = np.eye(6)[j] * h
+            num = (view.residuals(p + e, tex) - view.residuals(p - e, tex)) / (2 * h)
+            assert np.linalg.norm(got[1][:, j] - num) < 0.02 * np.linalg.norm(num), j
 
 
 def test_compiled_pattern_prediction_matches_the_numpy_chain():

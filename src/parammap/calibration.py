@@ -349,23 +349,25 @@ def _fit_step_columns(vals: np.ndarray, lo: float, span: np.ndarray, e0: np.ndar
     target = (vals - lo) / np.maximum(span, 1e-12)[:, None]
 
     def model(e, w):
-        # a Gaussian-blurred step integrated over each pixel (exact ramp as w -> 0)
-        a, b = (j - 0.5 - e[:, None]) / w, (j + 0.5 - e[:, None]) / w
+        # a Gaussian-blurred step integrated over each pixel (exact ramp as w -> 0); e
+        # (..., n), w (..., 1, 1): every width at once
+        a, b = (j - 0.5 - e[..., None]) / w, (j + 0.5 - e[..., None]) / w
         G = lambda z: z * ndtr(z) + np.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)  # noqa: E731
         return w * (G(b) - G(a)), -(ndtr(b) - ndtr(a))  # value, d value / d e
 
     def solve(w):
-        e = e0.copy()
+        e = np.broadcast_to(e0, w.shape[:-2] + e0.shape).copy()
         for _ in range(iters):
             m, g = model(e, w)
-            step = (g * (target - m)).sum(1) / np.maximum((g * g).sum(1), 1e-12)
+            step = (g * (target - m)).sum(-1) / np.maximum((g * g).sum(-1), 1e-12)
             e = e + np.clip(step, -0.5, 0.5)
         m, _ = model(e, w)
-        return e, ((target - m) ** 2).mean(1)
+        return e, ((target - m) ** 2).mean(-1)
 
     widths = np.geomspace(0.05, 3.0, 14)
-    cost = [np.median(solve(w)[1][use]) for w in widths]
-    e, res = solve(widths[int(np.argmin(cost))])
+    es, res = solve(widths[:, None, None])  # Gauss-Newton on every width together
+    best = int(np.argmin(np.median(res[:, use], axis=1)))
+    e, res = es[best], res[best]
     ok = (e > 0) & (e < vals.shape[1] - 1) & (np.abs(e - e0) < 1.5) \
         & (res <= 4.0 * np.median(res[use]))
     return e, ok
@@ -772,15 +774,62 @@ class PatternView:
                 pred = map_coordinates(tex, [uv[:, 1] - 0.5, uv[:, 0] - 0.5], order=1,
                                        mode="nearest").reshape(-1, self.ns).mean(1)
                 x, y = (uv.reshape(-1, self.ns, 2).mean(1) / self.side - 0.5).T
-            # the light may vary across a marker: levels linear in the pattern position
-            X = np.stack([np.ones_like(pred), x, y, pred, pred * x, pred * y], -1)
-            # normal equations by einsum: BLAS would spin threads for these thin
-            # products, idle work beside a pool's other workers
-            G = np.einsum("ni,nj->ij", X, X)
-            G[np.diag_indices(6)] += 1e-12 * np.trace(G)
-            coef = np.linalg.solve(G, np.einsum("ni,n->i", X, m["I"]))
+            X, G, coef = _levels(pred, x, y, m["I"])
             out.append((m["I"] - X @ coef) / max(abs(coef[3]), 1e-12))
         return np.concatenate(out)
+
+    def residuals_jacobian(self, p: np.ndarray, textures: list[np.ndarray],
+                           ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`residuals` and their Jacobian (pixels, 6) by the pose, analytic: the
+        compiled kernel's derivatives of the prediction, with the levels refitted at
+        the moved pose (variable projection) and the step they scale by. None where
+        numba is missing."""
+        from .pattern_kernel import pattern_predict_grad
+
+        if pattern_predict_grad is None:
+            return None
+        Rm, dR = cv2.Rodrigues(np.asarray(p[:3], float))
+        t = np.asarray(p[3:], float)
+        C = -Rm.T @ t
+        dR = np.ascontiguousarray(dR.reshape(3, 3, 3))
+        rs, Js = [], []
+        for m, tex in zip(self.markers, textures, strict=True):
+            n = len(m["I"])
+            f, x, y = np.empty(n), np.empty(n), np.empty(n)
+            df, dx, dy = np.empty((n, 6)), np.empty((n, 6)), np.empty((n, 6))
+            pattern_predict_grad(Rm, C, dR, t, m["nrm"], m["A"], tex, self.ns, f, x, y,
+                                 df, dx, dy)
+            x, y = x / self.side - 0.5, y / self.side - 0.5
+            dx, dy = dx / self.side, dy / self.side
+            X, G, c = _levels(f, x, y, m["I"])
+            e = m["I"] - X @ c
+            scale = max(abs(c[3]), 1e-12)
+            r = e / scale
+            # the design's derivative times the levels, then the levels' own change
+            # (their refit at the moved pose) and the step's
+            D = (c[1] + c[4] * f)[:, None] * dx + (c[2] + c[5] * f)[:, None] * dy \
+                + (c[3] + c[4] * x + c[5] * y)[:, None] * df
+            dXe = np.stack([np.zeros(6), e @ dx, e @ dy, e @ df,
+                            e @ (df * x[:, None] + f[:, None] * dx),
+                            e @ (df * y[:, None] + f[:, None] * dy)])  # (6 columns, 6)
+            dc = np.linalg.solve(G, dXe - np.einsum("ni,nj->ij", X, D))  # (6 coef, 6)
+            de = -(D + X @ dc)
+            rs.append(r)
+            Js.append(de / scale - np.outer(r, np.sign(c[3]) * dc[3] / scale))
+        return np.concatenate(rs), np.concatenate(Js)
+
+
+def _levels(pred: np.ndarray, x: np.ndarray, y: np.ndarray, lum: np.ndarray,
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A marker's black and white levels, each linear in the pattern position (the
+    light may vary across a marker): the design X (n, 6), its normal matrix G and the
+    least-squares coefficients for the photo's luminance ``lum``."""
+    X = np.stack([np.ones_like(pred), x, y, pred, pred * x, pred * y], -1)
+    # normal equations by einsum: BLAS would spin threads for these thin products, idle
+    # work beside a pool's other workers
+    G = np.einsum("ni,nj->ij", X, X)
+    G[np.diag_indices(6)] += 1e-12 * np.trace(G)
+    return X, G, np.linalg.solve(G, np.einsum("ni,n->i", X, lum))
 
 
 def _pattern_noise(r: np.ndarray, free: int) -> tuple[float, float]:
@@ -831,9 +880,21 @@ def refine_pose_pattern(lum: np.ndarray, cap: Capture, marker_ids: list[int],
 
     def solve(blur: float):
         tex = view.textures(blur)
+        last: dict = {}
+
+        def both(p):  # residuals and Jacobian in one pass, asked for at the same point
+            if last.get("p") is None or not np.array_equal(last["p"], p):
+                last.update(p=np.array(p, copy=True), rj=view.residuals_jacobian(p, tex))
+            return last["rj"]
+
+        analytic = view.residuals_jacobian(p0, tex) is not None
         try:
-            sol = least_squares(lambda p: view.residuals(p, tex), p0, method="lm",
-                                x_scale="jac", diff_step=1e-7)
+            if analytic:
+                sol = least_squares(lambda p: both(p)[0], p0, jac=lambda p: both(p)[1],
+                                    method="lm", x_scale="jac")
+            else:
+                sol = least_squares(lambda p: view.residuals(p, tex), p0, method="lm",
+                                    x_scale="jac", diff_step=1e-7)
         except (ValueError, np.linalg.LinAlgError):
             return None
         return (float(sol.fun @ sol.fun), sol, blur) if np.all(np.isfinite(sol.x)) else None
