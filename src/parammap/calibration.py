@@ -170,36 +170,51 @@ def marker_views(cap: Capture, intr: Intrinsics, frames, min_markers: int = 4,
     with the board intrinsics ``intr``; only markers measured on all four edges are
     used, and views with fewer than ``min_markers`` of them are skipped.
     """
-    if len(cap.marker_ids) == 0:
-        return []
-    known = {int(i): k for k, i in enumerate(cap.marker_ids)}
-    cells = aruco_dictionary(cap.marker_dictionary).markerSize + 2
-    out = []
-    for vid, rad in frames:
-        ids, corners = detect_markers(to_gray8(rad), cap.marker_dictionary, cap.marker_ids)
-        use = [k for k, i in enumerate(ids) if int(i) in known]
-        if len(use) < min_markers:
-            continue
-        lum = np.asarray(rad, np.float32) @ LUMINANCE.astype(np.float32)
-        c, measured = refine_marker_corners(lum, np.asarray(corners, float)[use], intr, cells,
-                                            return_measured=True)
-        # only markers measured on all four edges: ArUco's corners would bias the focal
-        use, c = [k for k, ok in zip(use, measured, strict=True) if ok], c[measured]
-        if len(use) < min_markers:
-            continue
-        obj = np.concatenate([np.c_[cap.marker_corners[known[int(ids[k])]], np.zeros(4)]
-                              for k in use])
-        out.append((vid, obj, c.reshape(-1, 2)))
+    out = [m for vid, rad in frames
+           if (m := _marker_view(cap, intr, vid, rad, min_markers)) is not None]
     logger.info(f"calibration: {len(out)} captured views add their surface markers")
     return out
 
 
-def run_calibration(cap: Capture, processed: str | Path, cfg: dict) -> Intrinsics:
+def _marker_view(cap: Capture, intr: Intrinsics, vid: str, rad: np.ndarray,
+                 min_markers: int) -> tuple[str, np.ndarray, np.ndarray] | None:
+    """One view's entry of :func:`marker_views`, or None."""
+    if len(cap.marker_ids) == 0:
+        return None
+    known = {int(i): k for k, i in enumerate(cap.marker_ids)}
+    cells = aruco_dictionary(cap.marker_dictionary).markerSize + 2
+    ids, corners = detect_markers(to_gray8(rad), cap.marker_dictionary, cap.marker_ids)
+    use = [k for k, i in enumerate(ids) if int(i) in known]
+    if len(use) < min_markers:
+        return None
+    lum = np.asarray(rad, np.float32) @ LUMINANCE.astype(np.float32)
+    c, measured = refine_marker_corners(lum, np.asarray(corners, float)[use], intr, cells,
+                                        return_measured=True)
+    # only markers measured on all four edges: ArUco's corners would bias the focal
+    use, c = [k for k, ok in zip(use, measured, strict=True) if ok], c[measured]
+    if len(use) < min_markers:
+        return None
+    obj = np.concatenate([np.c_[cap.marker_corners[known[int(ids[k])]], np.zeros(4)]
+                          for k in use])
+    return vid, obj, c.reshape(-1, 2)
+
+
+def _marker_view_job(job: tuple) -> tuple[str, np.ndarray, np.ndarray] | None:
+    """:func:`_marker_view` of a view's HDR frame on disk (a process pool's job)."""
+    from .hdr import read_hdr
+
+    cap, intr, vid, path, min_markers = job
+    return _marker_view(cap, intr, vid, read_hdr(path)[0], min_markers)
+
+
+def run_calibration(cap: Capture, processed: str | Path, cfg: dict,
+                    workers: int = 1) -> Intrinsics:
     """The calibrate stage: intrinsics from the board photos, then (config
     ``calibration.use_marker_views``) a second pass that adds the surface markers seen
     in the captured views' HDR frames, started from the board's solution. A capture's
     saved intrinsics are used as they are. Writes ``camera/intrinsics.yaml`` and
-    ``metrics/calibration.json``; ``cfg``: config section ``calibration``."""
+    ``metrics/calibration.json``; ``cfg``: config section ``calibration``; the marker
+    views are measured on ``workers`` processes."""
     from .metrics import write_metrics
 
     out = Processed(processed)
@@ -214,10 +229,12 @@ def run_calibration(cap: Capture, processed: str | Path, cfg: dict) -> Intrinsic
             if missing:
                 raise CalibrationError(f"calibration.use_marker_views: HDR frames missing "
                                        f"(run the hdr stage first): {missing[0]}...")
-            from .hdr import read_hdr
+            from .stores import executor
 
-            extra = marker_views(cap, intr, ((vid, read_hdr(p)[0]) for vid, p in hdr),
-                                 cfg["min_markers_per_view"])
+            jobs = [(cap, intr, vid, p, cfg["min_markers_per_view"]) for vid, p in hdr]
+            with executor(max(1, min(workers, len(jobs)))) as ex:
+                extra = [m for m in ex.map(_marker_view_job, jobs) if m is not None]
+            logger.info(f"calibration: {len(extra)} captured views add their surface markers")
             if extra:
                 intr = calibrate(cap, cfg["min_images"], cfg["min_corners"],
                                  extra_views=extra, guess=intr)

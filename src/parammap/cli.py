@@ -141,7 +141,9 @@ def _calibrate(a: argparse.Namespace) -> int:
     from .calibration import run_calibration
     from .capture import load_capture
 
-    run_calibration(load_capture(a.capture), a.out, _stage_config(a)["calibration"])
+    full = _stage_config(a)
+    run_calibration(load_capture(a.capture), a.out, full["calibration"],
+                    a.workers or full["workers"])
     return 0
 
 
@@ -329,7 +331,7 @@ def _parser() -> argparse.ArgumentParser:
             s.add_argument("--view", action="append", help="only this view (repeatable)")
         if name in ("poses", "observe", "fit-mh", "fit-sh", "materials", "advise", "best"):
             s.add_argument("--figures", help="report folder for the figures")
-        if name in ("poses", "observe", "fit-mh", "fit-sh"):
+        if name in ("calibrate", "poses", "observe", "fit-mh", "fit-sh"):
             s.add_argument("--workers", type=int, help="processes (default: config workers)")
         if name == "fit-mh":
             s.add_argument("--lobes", default="1", help="lobes K, or auto (default 1)")

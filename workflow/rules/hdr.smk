@@ -73,6 +73,7 @@ rule calibrate:
         cli=PARAMMAP,
         cfg=config_arg("calibration"),
         out=lambda wc: f"{PROC}/{wc.sid}",
+    threads: WORKERS
     log:
         "logs/calibrate/{sid}.log",
     benchmark:
@@ -80,7 +81,8 @@ rule calibrate:
     conda:
         "../envs/parammap.yaml"
     shell:
-        "{params.cli} calibrate {input.capture} --out {params.out} {params.cfg} 2> {log}"
+        "{params.cli} calibrate {input.capture} --out {params.out} {params.cfg}"
+        " --workers {threads} 2> {log}"
 
 
 rule poses:
