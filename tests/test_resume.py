@@ -233,3 +233,14 @@ def test_killed_observation_build_resumes(tiny_processed, tmp_path, monkeypatch)
     assert len(calls) == m["views"] - 4
     assert _files(out) == _files(ref)
     assert not list(out.parent.glob(".*"))
+
+
+def test_only_a_fit_with_a_repair_keeps_tile_snapshots(obs, tmp_path):
+    # the snapshots are the repair's halo; a fit without one (SH) must not spend the
+    # disk on them
+    for repair, want in ((None, 0), (partial(repair_mh_tile, K=1, cfg=MhFitConfig()), 4)):
+        out = tmp_path / f"{want}" / "mh-1.zarr"
+        with pytest.raises(Killed):
+            fit_map(obs, out, Tiles(die_at=5), mh_outputs(1), {"model": "mh"},
+                    "synchronous", 1, repair_fn=repair, halo=REPAIR_RADIUS)
+        assert len(list((out.parent / ".mh-1.zarr.tiles").glob("snap-*.npz"))) == want

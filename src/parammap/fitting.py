@@ -130,7 +130,8 @@ def _arrays(path: str, token: str) -> _Opened:
 
 
 def _fit_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path: str,
-               tile_fn: TileFn, done_dir: str, key: str = "") -> np.ndarray:
+               tile_fn: TileFn, done_dir: str, key: str = "", snapshot: bool = False,
+               ) -> np.ndarray:
     (r0, r1), (c0, c1), _ = block_info[0]["array-location"]
     marker = _marker(done_dir, "fit", block_info)
     out = _arrays(out_path, key or done_dir)
@@ -144,13 +145,14 @@ def _fit_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path: s
     res = tile_fn(rad, dirs, np.asarray(valid), **kw)
     for name, arr in res.items():
         out[name][r0:r1, c0:c1] = arr
-    # the tile pass's result as the repair pass reads it (its halo, and where the tile
-    # starts from), untouched by the repairs written into the store meanwhile
-    snap = _marker(done_dir, "snap", block_info).with_suffix(".npz")
-    tmp = snap.with_name(snap.name + ".tmp")
-    with tmp.open("wb") as f:
-        np.savez(f, **res)
-    tmp.replace(snap)
+    if snapshot:
+        # the tile pass's result as the repair pass reads it (its halo, and where the
+        # tile starts from), untouched by the repairs written into the store meanwhile
+        snap = _marker(done_dir, "snap", block_info).with_suffix(".npz")
+        tmp = snap.with_name(snap.name + ".tmp")
+        with tmp.open("wb") as f:
+            np.savez(f, **res)
+        tmp.replace(snap)
     marker.touch()  # only once every array of the tile is written
     return np.asarray(res["status"], np.int8)
 
@@ -342,8 +344,8 @@ def fit_map(
                 f"{workers} workers")
     status = valid.map_blocks(
         _fit_block, obs_path=str(obs_path), out_path=str(tmp), tile_fn=tile_fn,
-        done_dir=str(done), key=key, drop_axis=2, dtype=np.int8, meta=np.array((), np.int8),
-        chunks=valid.chunks[:2])
+        done_dir=str(done), key=key, snapshot=repair_fn is not None, drop_axis=2,
+        dtype=np.int8, meta=np.array((), np.int8), chunks=valid.chunks[:2])
     t0 = time.perf_counter()
     with dask.config.set({"optimization.fuse.active": False}), \
             _process_pool(scheduler, workers, start_method) as pool:
