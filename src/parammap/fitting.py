@@ -332,7 +332,9 @@ def fit_map(
                                               for k, v in outputs.items()},
                   "observation": dict(obs.attrs), "shape": [T, S, N],
                   "observation_mtime_ns": mtime_ns(Path(obs_path) / "zarr.json"),
-                  "repair": repair_fn is not None, "tile": tile, "software": __version__})
+                  # a partial store of the four-phase repair (no snapshots) starts afresh
+                  "repair": "snapshot halo" if repair_fn is not None else False,
+                  "tile": tile, "software": __version__})
     valid = da.from_zarr(obs["valid"], chunks=(tile, tile, N))
     ntiles = len(valid.chunks[0]) * len(valid.chunks[1])
     g = _resume_or_create(tmp, done, key, ntiles, outputs, (T, S, tile))
