@@ -21,13 +21,35 @@ except ImportError:  # pragma: no cover - exercised only without numba
     njit = None
 
 
+def _read(tex: np.ndarray, u: float, v: float) -> tuple[float, float, float]:
+    """The pattern at (u, v) (samples; read at row v - 0.5, column u - 0.5, bilinear,
+    edges extended) and its slopes by u and v (zero where the read is clamped)."""
+    H, W = tex.shape
+    r = min(max(v - 0.5, 0.0), H - 1.0)
+    c = min(max(u - 0.5, 0.0), W - 1.0)
+    r0 = min(int(r), H - 2) if H > 1 else 0
+    c0 = min(int(c), W - 2) if W > 1 else 0
+    fr = r - r0
+    fc = c - c0
+    r1 = min(r0 + 1, H - 1)
+    c1 = min(c0 + 1, W - 1)
+    t00, t01, t10, t11 = tex[r0, c0], tex[r0, c1], tex[r1, c0], tex[r1, c1]
+    val = (1 - fr) * ((1 - fc) * t00 + fc * t01) + fr * ((1 - fc) * t10 + fc * t11)
+    gu = ((1 - fr) * (t01 - t00) + fr * (t11 - t10)) if 0.0 < u - 0.5 < W - 1.0 else 0.0
+    gv = ((1 - fc) * (t10 - t00) + fc * (t11 - t01)) if 0.0 < v - 0.5 < H - 1.0 else 0.0
+    return val, gu, gv
+
+
+if njit is not None:
+    _read = njit(cache=True, nogil=True, inline="always")(_read)
+
+
 def _pattern_predict(R: np.ndarray, C: np.ndarray, nrm: np.ndarray, A: np.ndarray,
                      tex: np.ndarray, ns: int, pred: np.ndarray, xm: np.ndarray,
                      ym: np.ndarray) -> None:
     """Fill ``pred`` (n,) with each pixel's mean pattern value over its ``ns`` rays
     ``nrm`` (n ns, 2), and ``xm``, ``ym`` (n,) with its mean pattern coordinates
     (samples). R (3, 3), C (3,): the camera; A (3, 3): plane (mm) -> pattern."""
-    H, W = tex.shape
     n = pred.shape[0]
     for i in range(n):
         acc = 0.0
@@ -44,17 +66,7 @@ def _pattern_predict(R: np.ndarray, C: np.ndarray, nrm: np.ndarray, A: np.ndarra
             v = (A[1, 0] * X + A[1, 1] * Y + A[1, 2]) / w
             ax += u
             ay += v
-            # bilinear at (row v - 0.5, column u - 0.5), edges extended
-            r = min(max(v - 0.5, 0.0), H - 1.0)
-            c = min(max(u - 0.5, 0.0), W - 1.0)
-            r0 = min(int(r), H - 2) if H > 1 else 0
-            c0 = min(int(c), W - 2) if W > 1 else 0
-            fr = r - r0
-            fc = c - c0
-            r1 = min(r0 + 1, H - 1)
-            c1 = min(c0 + 1, W - 1)
-            acc += ((1 - fr) * ((1 - fc) * tex[r0, c0] + fc * tex[r0, c1])
-                    + fr * ((1 - fc) * tex[r1, c0] + fc * tex[r1, c1]))
+            acc += _read(tex, u, v)[0]
         pred[i] = acc / ns
         xm[i] = ax / ns
         ym[i] = ay / ns
@@ -69,7 +81,6 @@ def _pattern_predict_grad(R: np.ndarray, C: np.ndarray, dR: np.ndarray, t: np.nd
     """:func:`_pattern_predict` and its derivatives by the pose (rvec, tvec): ``dR``
     (3, 3, 3) the rotation's derivative by each rvec component (``cv2.Rodrigues``'
     Jacobian), ``t`` (3,) the translation; fills ``dpred``, ``dxm``, ``dym`` (n, 6)."""
-    H, W = tex.shape
     n = pred.shape[0]
     dC = np.empty((6, 3))
     for k in range(3):
@@ -106,21 +117,8 @@ def _pattern_predict_grad(R: np.ndarray, C: np.ndarray, dR: np.ndarray, t: np.nd
             v = b / wh
             ax += u
             ay += v
-            r = min(max(v - 0.5, 0.0), H - 1.0)
-            c_ = min(max(u - 0.5, 0.0), W - 1.0)
-            r0 = min(int(r), H - 2) if H > 1 else 0
-            c0 = min(int(c_), W - 2) if W > 1 else 0
-            fr = r - r0
-            fc = c_ - c0
-            r1 = min(r0 + 1, H - 1)
-            c1 = min(c0 + 1, W - 1)
-            t00, t01, t10, t11 = tex[r0, c0], tex[r0, c1], tex[r1, c0], tex[r1, c1]
-            acc += (1 - fr) * ((1 - fc) * t00 + fc * t01) + fr * ((1 - fc) * t10 + fc * t11)
-            # the pattern's slope there (zero where the read is clamped at an edge)
-            gu = ((1 - fr) * (t01 - t00) + fr * (t11 - t10)) \
-                if 0.0 < u - 0.5 < W - 1.0 else 0.0
-            gv = ((1 - fc) * (t10 - t00) + fc * (t11 - t01)) \
-                if 0.0 < v - 0.5 < H - 1.0 else 0.0
+            val, gu, gv = _read(tex, u, v)
+            acc += val
             for j in range(6):
                 ds = -dC[j, 2] / w2 + C[2] * dw[j, 2] / (w2 * w2)
                 dX = dC[j, 0] + ds * w0 + s * dw[j, 0]
