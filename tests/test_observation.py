@@ -88,3 +88,37 @@ def test_marker_texels_are_masked(tiny_capture):
     rows, cols = np.nonzero(m)
     assert cols.min() == int(10 // tw) and cols.max() == int(np.ceil(20 / tw)) - 1
     assert m.sum() == (rows.max() - rows.min() + 1) * (cols.max() - cols.min() + 1)
+
+
+@pytest.mark.parametrize("zenith_deg", [0.0, 60.0])
+def test_texels_read_only_their_own_surface(zenith_deg):
+    """A texel-aligned checkerboard photographed with box-filtered pixels (texels of
+    5-10 pixels, frontal and foreshortened to about half): every texel's observation
+    is its own value, not a blend with its neighbours across the texel edges."""
+    from parammap.geometry import Intrinsics, look_at, pixel_to_plane
+    from parammap.observation import sample_view
+
+    S, T, w_mm, h_mm = 8, 6, 80.0, 60.0
+    a, b = 1.0, 3.0
+    K = np.array([[800.0, 0, 199.5], [0, 800.0, 149.5], [0, 0, 1]])
+    intr = Intrinsics(K, np.zeros(5), (400, 300))
+    z = np.radians(zenith_deg)
+    target = np.array([w_mm / 2, h_mm / 2, 0.0])
+    R, t = look_at(target + 1000.0 * np.array([np.sin(z), 0.0, np.cos(z)]), target)
+    # box-filtered pixels: the mean of 8 x 8 points over each pixel's area
+    u, v = np.meshgrid(np.arange(400.0), np.arange(300.0))
+    sub = (np.arange(8) + 0.5) / 8 - 0.5
+    img = np.zeros((300, 400))
+    for du in sub:
+        for dv in sub:
+            P, _ = pixel_to_plane(np.stack([u + du, v + dv], -1), K, intr.dist, R, t)
+            col = np.floor(P[..., 0] * S / w_mm).astype(int)
+            row = np.floor((h_mm - P[..., 1]) * T / h_mm).astype(int)
+            img += np.where((row + col) % 2 == 0, a, b) / 64
+    frame = np.repeat(img[..., None], 3, -1).astype(np.float32)
+    rad, _, valid, _ = sample_view(frame, np.zeros((300, 400), bool), intr, R, t,
+                                   slice(0, T), S, T, w_mm, h_mm)
+    assert valid.all()
+    rr, cc = np.meshgrid(np.arange(T), np.arange(S), indexing="ij")
+    expect = np.where((rr + cc) % 2 == 0, a, b)
+    np.testing.assert_allclose(rad[..., 0], expect, rtol=2e-3)
