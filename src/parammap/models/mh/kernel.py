@@ -628,6 +628,25 @@ def _design(V: np.ndarray, D: np.ndarray, nd: int, lnm: float, A: np.ndarray) ->
             A[n, 1 + k] = math.exp(m * math.log(c)) if c > 0.0 else 0.0
 
 
+def _log_cos(V: np.ndarray, D: np.ndarray, k: int, LC: np.ndarray) -> None:
+    """LC[k, n] = ln(d_k . v_n), -inf where the lobe faces away: the part of the design
+    that does not change while m is searched."""
+    for n in range(V.shape[0]):
+        c = V[n, 0] * D[k, 0] + V[n, 1] * D[k, 1] + V[n, 2] * D[k, 2]
+        LC[k, n] = math.log(c) if c > 0.0 else -np.inf
+
+
+def _design_log(LC: np.ndarray, nd: int, lnm: float, A: np.ndarray) -> None:
+    """:func:`_design` from the logarithms of :func:`_log_cos`: A[:, 1 + k] = exp(m LC[k])
+    (0 below exp(-700), which the exponential would round to anyway)."""
+    m = math.exp(lnm)
+    for n in range(A.shape[0]):
+        A[n, 0] = 1.0
+        for k in range(nd):
+            e = m * LC[k, n]
+            A[n, 1 + k] = math.exp(e) if e > -700.0 else 0.0
+
+
 def _initial_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, K: int, cos_sep: float,
                    ln_m_max: float, grid: int, golden: int, out: np.ndarray) -> None:
     """The better initial guess of many texels (compiled counterpart of
@@ -637,6 +656,7 @@ def _initial_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, K: int, cos_sep:
     B, N = W.shape
     D = np.zeros((K, 3))
     A = np.empty((N, 1 + K))
+    LC = np.empty((K, N))
     x = np.empty((1 + K, 3))
     resid = np.empty(N)
     gr = (math.sqrt(5.0) - 1.0) / 2.0
@@ -657,34 +677,35 @@ def _initial_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, K: int, cos_sep:
                     best_n = n
             for c in range(3):
                 D[k, c] = Vt[best_n, c]
+            _log_cos(Vt, D, k, LC)
             # ln m: the best of a grid, then golden-section search in its bracket
             bi, bf = 0, np.inf
             for i in range(grid):
                 u = ln_m_max * i / (grid - 1)
-                _design(Vt, D, k + 1, u, A)
+                _design_log(LC, k + 1, u, A)
                 f = _nnls_texel(A, Lt, wt, k + 2, x)
                 if f < bf:
                     bi, bf = i, f
             a = ln_m_max * max(bi - 1, 0) / (grid - 1)
             b = ln_m_max * min(bi + 1, grid - 1) / (grid - 1)
             c1, d1 = b - gr * (b - a), a + gr * (b - a)
-            _design(Vt, D, k + 1, c1, A)
+            _design_log(LC, k + 1, c1, A)
             fc = _nnls_texel(A, Lt, wt, k + 2, x)
-            _design(Vt, D, k + 1, d1, A)
+            _design_log(LC, k + 1, d1, A)
             fd = _nnls_texel(A, Lt, wt, k + 2, x)
             for _ in range(golden):
                 if fc < fd:
                     b, d1, fd = d1, c1, fc
                     c1 = b - gr * (b - a)
-                    _design(Vt, D, k + 1, c1, A)
+                    _design_log(LC, k + 1, c1, A)
                     fc = _nnls_texel(A, Lt, wt, k + 2, x)
                 else:
                     a, c1, fc = c1, d1, fd
                     d1 = a + gr * (b - a)
-                    _design(Vt, D, k + 1, d1, A)
+                    _design_log(LC, k + 1, d1, A)
                     fd = _nnls_texel(A, Lt, wt, k + 2, x)
             lnm = (a + b) / 2.0
-            _design(Vt, D, k + 1, lnm, A)
+            _design_log(LC, k + 1, lnm, A)
             _nnls_texel(A, Lt, wt, k + 2, x)
             for n in range(N):
                 if wt[n] > 0:
@@ -709,6 +730,8 @@ def _initial_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, K: int, cos_sep:
 
 _nnls_texel = _jit(_nnls_texel, _nnls_texel)
 _design = _jit(_design, _design)
+_log_cos = _jit(_log_cos, _log_cos)
+_design_log = _jit(_design_log, _design_log)
 initial_batch = _jit(_initial_batch)
 
 
