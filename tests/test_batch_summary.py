@@ -24,8 +24,7 @@ def test_summary_over_surfaces(tmp_path):
         write_metrics(m / "poses.json", {"views": 100, "kept_fraction": 0.99 - 0.3 * (k == 3),
                                          "median_rms_px": 0.05})
         write_metrics(m / "calibration.json", {"rms_px": 0.2})
-        write_metrics(m / "observation.json", {"texels": 4096, "valid_fraction": 0.9,
-                                               "mixed_fraction": 0.01 * k})
+        write_metrics(m / "observation.json", {"texels": 4096, "valid_fraction": 0.9})
         write_metrics(m / "fit-mh-1.json", {"mean_percentage_residual": [5.0, 6.0, 7.0],
                                             "seconds": 10.0})
         write_metrics(m / "holdout.json", {"views": {"v1": {"models": {
@@ -38,5 +37,4 @@ def test_summary_over_surfaces(tmp_path):
     assert [r["surface"] for r in rows] == ["s1", "s2", "s3", "s4"]
     assert float(rows[2]["mh-1 residual %"]) == 6.0
     assert float(rows[3]["mh-1 held-out 8-bit"]) == 11.0
-    assert float(rows[2]["mixed_fraction"]) == 0.02
     assert (tmp_path / "reports" / "summary.png").stat().st_size > 5000

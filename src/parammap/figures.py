@@ -345,8 +345,7 @@ def batch_summary(processed_dir: str | Path, surfaces: list[str], models: list[s
                "kept_fraction": poses.get("kept_fraction"),
                "calibration_rms_px": cal.get("rms_px"),
                "pose_median_rms_px": poses.get("median_rms_px"),
-               "texels": obs.get("texels"), "valid_fraction": obs.get("valid_fraction"),
-               "mixed_fraction": obs.get("mixed_fraction")}
+               "texels": obs.get("texels"), "valid_fraction": obs.get("valid_fraction")}
         for m in models:
             fit = metric(f"fit-{m}")
             mpr = fit.get("mean_percentage_residual")
