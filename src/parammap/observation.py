@@ -16,15 +16,10 @@ texel's footprint that follows perspective foreshortening (anisotropic footprint
 grazing views are covered by the same grid). The grid is inset from each texel edge by
 the reach of a box-filtered pixel read bilinearly (``PIXEL_REACH``, 1.5 pixels: one of
 interpolation support, half of the pixel's own area), per texel and per axis of its
-projected footprint, so a texel at least three pixels across (two: it is then read by
-whole pixels) reads only its own surface (half a pixel of inset left the demo's texels
-on material edges a blend of both sides in every oblique view: RMSE 5x their
-neighbours'); a smaller texel is read at its
-centre line. Where even that read reaches the neighbours, ``sample_view`` estimates the
-blend (the read's mass beyond the texel edges times the frame's contrast to the
-neighbour texels) and the view is left out if the texel's other views read it cleanly
-and the blend exceeds ``MIX_SIGMAS`` noise sd (:func:`mixed_observations`; counted in
-``mixed_fraction`` of ``metrics/observation.json``). The view direction is the one
+projected footprint, so a texel at least three pixels across reads only its own surface
+(half a pixel of inset left the demo's texels on material edges a blend of both sides
+in every oblique view: RMSE 5x their neighbours'); a smaller texel is read at its
+centre line. The view direction is the one
 of the texel centre. An observation is valid when all of its points fall inside the
 frame, the texel is in front of the camera, the direction's zenith is below
 ``max_zenith_deg``, no point is saturated in every exposure, and the texel does not
@@ -45,7 +40,6 @@ import math
 import os
 import shutil
 import time
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -178,18 +172,6 @@ OBS_UNITS = {"radiance": "relative linear radiance (one global scale)",
 # bilinear read 1.5 (1 of interpolation support, half the pixel's own area), a nearest
 # read 1 (the pixel that holds the point).
 PIXEL_REACH = {"bilinear": 1.5, "nearest": 1.0}
-# A view that blends a texel most views read cleanly with its neighbours is left out when
-# the blend biases it by more than this many noise sd (:func:`mixed_observations`).
-MIX_SIGMAS = 3.0
-
-
-def _outer_mass(w: np.ndarray) -> np.ndarray:
-    """Fraction of a bilinear read of box-filtered pixels (a quadratic B-spline of
-    half-width 1.5 pixels) centred on a texel ``w`` pixels wide that lies beyond its
-    two edges."""
-    a = np.clip(np.asarray(w, float) / 2, 0.0, 1.5)
-    inner = 1 / 6 + 0.75 * (0.5 - a) - (0.125 - a ** 3) / 3
-    return 2 * np.where(a >= 0.5, (1.5 - a) ** 3 / 6, inner)
 
 
 def sample_view(
@@ -207,7 +189,7 @@ def sample_view(
     max_supersample: int = 6,
     noise: np.ndarray | None = None, cov: np.ndarray | None = None,
     max_texel_shift: float | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
     """Sample one HDR frame at the texels of rows ``rows`` of the map.
 
     Parameters
@@ -225,10 +207,6 @@ def sample_view(
     radiance : (r, S, 3) float32, NaN where a point fell outside the frame.
     direction : (r, S, 3) float32 unit vectors from the texel centre to the camera.
     valid : (r, S) bool (before the marker mask).
-    mix : (r, S) float32 the relative error the reading may carry from neighbouring
-        surface: where a texel is too narrow in this view for a read that stays inside
-        it, the read's mass beyond each edge (:func:`_outer_mass`) times the frame's
-        contrast to the neighbour texels there; 0 where the read stays inside.
     noise : (r, S) float32 relative sd of each observation (None without ``noise``):
         the mean sd of the footprint's pixels. Not divided by the square root of the
         footprint's pixel count: the merged frames' errors are correlated between
@@ -288,25 +266,12 @@ def sample_view(
         _, rel = point_uncertainty(cov, R, t, intr, ctr.reshape(-1, 3), tw)
         valid &= (rel <= max_texel_shift).reshape(valid.shape)
     rad = np.where(inside[..., None], rad, np.nan)
-    bil = ~near
-    fx = np.where(bil & (wx < 2 * PIXEL_REACH["bilinear"]), _outer_mass(np.nan_to_num(wx)), 0.0)
-    fy = np.where(bil & (wy < 2 * PIXEL_REACH["bilinear"]), _outer_mass(np.nan_to_num(wy)), 0.0)
-    mix = np.zeros(rad.shape[:2], np.float32)
-    if (fx > 0).any() or (fy > 0).any():
-        lum = rad.mean(-1)
-        for f, step in ((fx, [tw, 0, 0]), (fy, [0, -th, 0])):
-            for sign in (1, -1):
-                q = _project(ctr + sign * np.asarray(step), intr, R, t).astype(np.float32)
-                nb = sample_image(radiance, q[..., 0], q[..., 1]).mean(-1)
-                mix += (f / 2 * np.abs(nb - lum)).astype(np.float32)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            mix = np.nan_to_num(mix / np.abs(lum), nan=0.0, posinf=0.0).astype(np.float32)
     sd = None
     if noise is not None:
         nz = sample_image(np.asarray(noise, np.float32)[..., None], uv[..., 0],
                           uv[..., 1])[..., 0].mean(axis=2)
         sd = np.where(inside, nz, np.nan).astype(np.float32)
-    return rad.astype(np.float32), d.astype(np.float32), valid, mix, sd
+    return rad.astype(np.float32), d.astype(np.float32), valid, sd
 
 
 # ---------------------------------------------------------------------------------
@@ -329,12 +294,10 @@ def _pass1_view(job: tuple) -> tuple[str, float, int]:
     nvalid = 0
     for r0 in range(0, T, band):
         rows = slice(r0, min(r0 + band, T))
-        r, _, v, mix, sd = sample_view(rad, sat, intr, view.R, view.t, rows, S, T, w_mm,
-                                       h_mm, max_zen, max_ss, noise, view.cov,
-                                       view.max_texel_shift)
+        r, _, v, sd = sample_view(rad, sat, intr, view.R, view.t, rows, S, T, w_mm, h_mm,
+                                  max_zen, max_ss, noise, view.cov, view.max_texel_shift)
         g["radiance"][n, rows] = r
         g["valid"][n, rows] = v
-        g["mix"][n, rows] = mix
         if sd is not None:
             g["noise"][n, rows] = sd
         nvalid += int(v.sum())
@@ -348,9 +311,6 @@ def _pass2_band(job: tuple) -> int:
     dst = zarr.open_group(final, mode="r+")
     rad = np.moveaxis(src["radiance"][:, r0:r1], 0, 2)  # (r, S, N, 3)
     valid = np.moveaxis(src["valid"][:, r0:r1], 0, 2) & ~marker[r0:r1, :, None]
-    noise = np.moveaxis(src["noise"][:, r0:r1], 0, 2)
-    mixed = mixed_observations(np.moveaxis(src["mix"][:, r0:r1], 0, 2), noise, valid)
-    valid &= ~mixed
     S = rad.shape[1]
     T = dst["valid"].shape[0]
     h_mm, w_mm = dst.attrs["height_mm"], dst.attrs["width_mm"]
@@ -359,29 +319,8 @@ def _pass2_band(job: tuple) -> int:
     dst["radiance"][r0:r1] = rad
     dst["direction"][r0:r1] = d
     dst["valid"][r0:r1] = valid
-    dst["noise"][r0:r1] = noise
-    return int(valid.sum()), int(mixed.sum())
-
-
-def mixed_observations(mix: np.ndarray, noise: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """(..., N) bool: the valid observations to leave out as blends with neighbouring
-    surface.
-
-    A texel that most of its views read cleanly (``mix``, relative, from
-    :func:`sample_view`: median 0 over its valid views) loses the views in which it is
-    too narrow to be read alone and whose blend with its neighbours biases it by more
-    than ``MIX_SIGMAS`` times its noise sd (``noise``, relative; an observation without a
-    recorded sd is kept): they disagree with the texel's other views by more than the
-    noise, in a way no reflectance model can fit (on the demo's material edges the fits
-    there had 5x their neighbours' RMSE). A texel that most views already see blended
-    (a map about as fine as the photos, the ``auto`` resolution) keeps every view: its
-    views share the blend, and leaving the grazing ones out would leave none there.
-    """
-    m = np.where(valid, mix, np.nan)
-    with np.errstate(invalid="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # texels without a valid view
-        resolved = np.nanmedian(m, axis=-1, keepdims=True) <= 0
-        return valid & resolved & (m > MIX_SIGMAS * noise)
+    dst["noise"][r0:r1] = np.moveaxis(src["noise"][:, r0:r1], 0, 2)
+    return int(valid.sum())
 
 
 def _create_final(final: Path, S: int, T: int, N: int, tile: int) -> zarr.Group:
@@ -448,8 +387,7 @@ def build_observation_map(
     final = tmp / "store.zarr"
     key = digest({"views": [(v.id, v.R, v.t, mtime_ns(v.hdr)) for v in views],
                   "K": intr.K, "dist": intr.dist, "grid": [S, T, tile],
-                  "sampling": [max_zenith_deg, max_supersample, PIXEL_REACH, MIX_SIGMAS],
-                  "config": config or {},
+                  "sampling": [max_zenith_deg, max_supersample], "config": config or {},
                   "surface": [cap.width_mm, cap.height_mm, cap.marker_corners],
                   "software": __version__})
     resume = tmp.is_dir() and (marks / "key").is_file() and (marks / "key").read_text() == key
@@ -471,8 +409,6 @@ def build_observation_map(
                         compressors=fast, fill_value=False)
         sg.create_array("noise", shape=(N, T, S), chunks=(1, band, S), dtype="float32",
                         compressors=fast, fill_value=np.nan)
-        sg.create_array("mix", shape=(N, T, S), chunks=(1, band, S), dtype="float32",
-                        compressors=fast, fill_value=0.0)
         (marks / "key").write_text(key)
     done = {n: json.loads((marks / f"view-{n}").read_text()) for n in range(N)
             if (marks / f"view-{n}").is_file()}
@@ -511,23 +447,18 @@ def build_observation_map(
         "config": config or {},
     })
     centres = np.array([v.centre for v in views])
-    written = {r0: json.loads((marks / f"band-{r0}").read_text()) for r0 in range(0, T, tile)
+    written = {r0: int((marks / f"band-{r0}").read_text()) for r0 in range(0, T, tile)
                if (marks / f"band-{r0}").is_file()}
     bands = [(str(scratch), str(final), r0, min(r0 + tile, T), centres, marker)
              for r0 in range(0, T, tile) if r0 not in written]
     with executor(workers) as ex:
         for k, (job, nv) in enumerate(zip(bands, ex.map(_pass2_band, bands), strict=True)):
-            written[job[2]] = list(nv)
-            (marks / f"band-{job[2]}").write_text(json.dumps(written[job[2]]))
+            written[job[2]] = nv
+            (marks / f"band-{job[2]}").write_text(str(nv))
             if (k + 1) % max(1, len(bands) // 5) == 0 or k + 1 == len(bands):
                 logger.info(f"observation: wrote {len(written)}/{len(range(0, T, tile))} "
                             "tile rows")
-    nvalid = sum(v[0] for v in written.values())
-    nmixed = sum(v[1] for v in written.values())
-    if nmixed:
-        share = 100 * nmixed / max(nvalid + nmixed, 1)
-        logger.info(f"observation: {nmixed} observations ({share:.2f} %) left out: too "
-                    "narrow in their view to be read without their neighbours")
+    nvalid = sum(written.values())
     g.attrs[COMPLETE_ATTR] = True
     shutil.rmtree(scratch)
     if out.exists():
@@ -542,8 +473,7 @@ def build_observation_map(
         "texels": S * T, "S": S, "T": T, "texel_mm": cap.width_mm / S,
         "resolution": "auto" if texels_x == "auto" else "config",
         "views": N, "held_out_views": len(held),
-        "valid_fraction": nvalid / (S * T * N), "mixed_fraction": nmixed / (S * T * N),
-        "build_seconds": seconds,
+        "valid_fraction": nvalid / (S * T * N), "build_seconds": seconds,
         "sample_seconds": t_sample, "hdr_bytes_read": bytes_read,
         "read_mb_per_s": bytes_read / 1e6 / max(t_sample, 1e-9),
         "bytes_on_disk": on_disk, "bytes_uncompressed": uncompressed,
