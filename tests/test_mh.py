@@ -407,6 +407,58 @@ def test_negligible_second_lobe_is_written_as_absent():
     np.testing.assert_array_equal(q[:, 13:16], np.broadcast_to([0.0, 0.0, 1.0], (9, 3)))
 
 
+def test_a_lobe_whose_peak_lies_where_no_view_looked_is_dropped():
+    """Exact data from two lobes, 200 views about 6 deg apart. The second lobe's peak
+    sits in a 20 deg hole of the views (m = 20: they see at most cos(20 deg)^20 = 0.29
+    of it): its tail lowers the residual, so BIC alone would keep it, but nothing
+    locates it and it goes. The same lobe with one view inside its half maximum stays;
+    so does a sharp lobe (m = 300) whose peak fell between views without a hole, more
+    than its 3.9 deg half maximum from the nearest; and a texel's only lobe."""
+    from parammap.models.mh import drop_negligible_lobes
+
+    rng = np.random.default_rng(3)
+    d1 = np.array([0.3, 0.0, np.sqrt(1 - 0.09)])
+    d2 = np.array([-0.6, 0.3, np.sqrt(1 - 0.45)])
+    v = rng.normal(size=(1000, 3))
+    v[:, 2] = np.abs(v[:, 2])
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    full = v[:200]
+    v = v[np.degrees(np.arccos(np.clip(v @ d2, -1, 1))) > 20][:200]
+    G = full @ full.T
+    np.fill_diagonal(G, -1)
+    spacing = np.degrees(np.arccos(np.median(G.max(1))))
+    assert spacing < 8
+    # a direction between views of ``full``: beyond the sharp lobe's half maximum from
+    # the nearest, yet no farther than the views' spacing
+    c = rng.normal(size=(2000, 3))
+    c[:, 2] = np.abs(c[:, 2]) + 1.0
+    c /= np.linalg.norm(c, axis=1, keepdims=True)
+    near = np.degrees(np.arccos(np.clip(c @ full.T, -1, 1))).min(1)
+    d3 = c[np.flatnonzero((near > 4.5) & (near < spacing))[0]]
+
+    def towards(deg):
+        e = np.cos(np.radians(deg)) * d2 + np.sin(np.radians(deg)) * np.array([0, 1.0, 0])
+        return e / np.linalg.norm(e)
+
+    V = np.stack([v, np.vstack([v[:-1], towards(5)]), full])
+    P = np.array([0.2, 0.2, 0.2, 20.0, 1.0, 0.9, 0.8, *d1, 0.6, 0.6, 0.6, *d2])
+    sharp = P.copy()
+    sharp[3] = 300.0
+    sharp[13:16] = d3
+    P3 = np.stack([P, P, sharp])
+    W = np.ones(V.shape[:2], bool)
+    Q = drop_negligible_lobes(P3, V, mh_eval(P3, V), W)
+    np.testing.assert_array_equal(Q[0, 10:13], 0.0)  # in the hole: gone
+    np.testing.assert_allclose(Q[0, 4:10], P[4:10])
+    np.testing.assert_allclose(Q[1], P)  # seen 5 deg from its peak: kept
+    np.testing.assert_allclose(Q[2], sharp)  # between views: kept
+    only = P.copy()
+    only[4:10] = only[10:16]
+    only[10:13], only[13:16] = 0.0, [0.0, 0.0, 1.0]
+    R = drop_negligible_lobes(only[None], V[:1], mh_eval(only[None], V[:1]), W[:1])
+    np.testing.assert_allclose(R[0], only)
+
+
 def test_auto_chooses_no_lobe_on_a_matte_texel():
     """``auto`` starts from K = 0: on matte texels (noise only) no lobe pays for itself;
     on the glossy ones one lobe does."""
@@ -476,13 +528,14 @@ def test_loo_error_matches_refits_without_each_view():
     np.testing.assert_allclose(approx, exact, rtol=0.25)
 
 
-def test_second_lobe_kept_only_where_it_predicts_unseen_directions_better():
+def test_second_lobe_kept_only_where_it_predicts_unseen_directions_better(monkeypatch):
     """A highlight with a broad tail under a sharp core (a microfacet lobe's shape, not
     MH's), 30 views, 3 % noise: two lobes with a shared m fit the views better and
-    predict the directions between them 18 % worse than one. mh-2 with lobe selection
-    predicts them within 5 % of mh-1 (3 % measured); without it (``lobe_window=0``) it
-    does not. Where
-    the truth has two highlights, the second lobe stays."""
+    predict the directions between them 18 % worse than one. mh-2 predicts them within
+    5 % of mh-1 with lobe selection, and without it (``lobe_window=0``) by the rule
+    that drops a lobe whose peak lies where no view looked; with neither it does not.
+    Where the truth has two highlights, the second lobe stays."""
+    import parammap.models.mh.fit as mhfit
     from parammap.synth.sampling import sample_directions
 
     n = 6
@@ -507,8 +560,14 @@ def test_second_lobe_kept_only_where_it_predicts_unseen_directions_better():
     one = held_out_rmse(fit_mh_tile(rad, dirs, val, 1))
     always = held_out_rmse(fit_mh_tile(rad, dirs, val, 2, MhFitConfig(lobe_window=0)))
     chosen = fit_mh_tile(rad, dirs, val, 2)
-    assert always > 1.1 * one
     assert held_out_rmse(chosen) < 1.05 * one and (chosen["k_used"] == 1).mean() > 0.7
+    assert always < 1.05 * one
+    with monkeypatch.context() as mp:
+        mp.setattr(mhfit, "_peak_observed", lambda P, *a: np.ones(len(P), bool))
+        assert held_out_rmse(fit_mh_tile(rad, dirs, val, 2, MhFitConfig(lobe_window=0))) \
+            > 1.1 * one
+        chosen = fit_mh_tile(rad, dirs, val, 2)
+        assert held_out_rmse(chosen) < 1.05 * one
     case = phong_case(colour=(140, 30, 25), ks=1.2, m=30,
                       lights=((1500, 1500, 2000), (-900, -600, 1800)), intensities=(1, 0.7),
                       noise=0.01, seed=3)

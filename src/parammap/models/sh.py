@@ -308,6 +308,19 @@ def hemisphere_grid(step_deg: float = GRID_STEP_DEG) -> tuple[np.ndarray, np.nda
     return d, w
 
 
+@lru_cache(maxsize=8)
+def _grid_basis(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The basis at :func:`hemisphere_grid`'s directions (G, n^2) and the mask (n^2,)
+    of the bands above :data:`LOW_BANDS`, computed once per n (every validity pattern
+    of a map needs them)."""
+    Yg = sh_basis(hemisphere_grid()[0], n)
+    l_, _ = sh_degree_order(n)
+    high = l_ >= LOW_BANDS
+    Yg.setflags(write=False)
+    high.setflags(write=False)
+    return Yg, high
+
+
 def cap_radius(directions: np.ndarray, expected_views: float = 3.0) -> float:
     """Radius (radians) of a hole among view directions (N, 3) that counts as
     unsampled: the disc that would hold ``expected_views`` views at the capture's mean
@@ -353,9 +366,8 @@ class SampledCap:
         cell = np.bincount(near, w, minlength=N)
         kept = np.bincount(near[inside], w[inside], minlength=N)
         self.fraction = np.where(cell > 0, kept / np.maximum(cell, 1e-300), 1.0)
-        Yg = sh_basis(g, n)
-        l_, _ = sh_degree_order(n)
-        H = Yg[~inside] * (l_ >= LOW_BANDS)
+        Yg, high = _grid_basis(n)
+        H = Yg[~inside] * high
         self.prior = (H * w[~inside, None]).T @ H
         self.basis_u = Yg[~inside]
         self.zenith_u = np.arccos(g[~inside, 2])
