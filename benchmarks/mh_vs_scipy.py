@@ -72,7 +72,11 @@ def run(name, case, K, n, repeat=3):
     sl = (slice((T - side) // 2, (T - side) // 2 + side),) * 2
     rad, dirs, valid = (a[sl] for a in (case.radiance, case.direction, case.valid))
     m = side * side
-    fit_mh_tile(rad[:2, :2], dirs[:2, :2], valid[:2, :2], K)  # warm-up (imports, caches)
+    # warm-up on the tile itself: the first call loads the compiled kernels, and a
+    # smaller first call leaves glibc's malloc mapping and unmapping every large array
+    # of the later calls (a third of their time in page faults, measured; the workflow's
+    # workers fit tiles of one size and do not show it)
+    fit_mh_tile(rad, dirs, valid, K)
     t_ours = math.inf
     for _ in range(repeat):  # best of `repeat`, for both fitters: the machine is noisy
         t0 = time.perf_counter()

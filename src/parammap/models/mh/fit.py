@@ -31,7 +31,18 @@ from ...conventions import (
 from ..residuals import mean_percentage_residual
 from ..weights import noise_weights, reduced_chi2
 from .initial import extend_guess_batch, initial_guess_batch, initial_guess_published
-from .kernel import LM_CONVERGED, LOSSES, cost_grad, gram, lm_batch
+from .kernel import (
+    LM_CONVERGED,
+    LOSSES,
+    cost_grad,
+    cost_grad_batch,
+    gram,
+    initial_batch,
+    lm_batch,
+    lobe_support,
+    rss_batch,
+)
+from .kernel import residual_stats as _residual_stats
 from .model import (
     LN_M_MAX,
     M_MIN,
@@ -234,15 +245,25 @@ def polish_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, P0: np.ndarray,
     X0 = np.clip(X0, lb, ub)
     nx = X0.shape[1]
     best = [math.inf, X0.ravel().copy(), None]
+    if cost_grad_batch is not None:
+        Vc, Lc, Wc = (np.ascontiguousarray(a, float) for a in (V, Ls, W))
+
+        def objective(X):
+            cost, g = np.empty(B), np.empty((B, nx))
+            cost_grad_batch(X, Vc, Lc, Wc, K, 0, 1.0, g, True, cost)
+            return cost, g
+    else:
+        def objective(X):
+            cost, _, g = _normal_equations(X, V, Ls, W, K, LL, need_A=False)
+            return np.maximum(cost, 0.0), 2 * g
 
     def fn(x: np.ndarray, grad: np.ndarray) -> float:
-        X = x.reshape(B, nx)
-        cost, _, g = _normal_equations(X, V, Ls, W, K, LL, need_A=False)
+        cost, g = objective(x.reshape(B, nx))
         val = float(cost.sum())
         if grad.size > 0:
-            grad[:] = (2 * g).ravel()
+            grad[:] = g.ravel()
         if val < best[0]:
-            best[0], best[1], best[2] = val, x.copy(), (cost, 2 * g)
+            best[0], best[1], best[2] = val, x.copy(), (cost, g)
         return val
 
     opt = nlopt.opt(ALGORITHMS.get(cfg.algorithm, nlopt.LD_LBFGS), B * nx)
@@ -292,7 +313,7 @@ class MhFitConfig:
     xtol_rel: float = 1e-6
     bic_margin: float = 10.0  # auto-K adds a lobe only if BIC drops by more
     bic_floor: float = 1e-3  # residuals below this fraction of the radiance are noise
-    polish: str = "texel"  # texel (one nlopt run per texel) | batch (stacked texels first)
+    polish: str = "batch"  # batch (LM-converged texels stacked in one run) | texel (each alone)
     # K fixed >= 2: keep the K-th lobe where it predicts left-out views better than K - 1
     # lobes, judged over this many texels across (0: always K lobes)
     lobe_window: int = 3
@@ -496,9 +517,10 @@ def fit_mh_tile(
            mh_outputs(Kmax).items()}
     V = direction.reshape(t * u, N, 3).astype(float)
     L = radiance.reshape(t * u, N, 3).astype(float)
-    W = (valid.reshape(t * u, N) & np.isfinite(L).all(-1) & np.isfinite(V).all(-1))
-    L = np.where(W[..., None], L, 0.0)
-    V = np.where(W[..., None], V, [0.0, 0.0, 1.0])
+    # a NaN or infinity in any component makes the sum non-finite
+    W = valid.reshape(t * u, N) & np.isfinite(L.sum(-1) + V.sum(-1))
+    L[~W] = 0.0  # L and V are copies (astype)
+    V[~W] = [0.0, 0.0, 1.0]
     NZ = None if noise is None else noise.reshape(t * u, N)
     NW = noise_weights(NZ, W)
     nobs = W.sum(1)
@@ -515,8 +537,10 @@ def fit_mh_tile(
         return out
     init = initial_guess_batch if cfg.init == "better" else initial_guess_published
     Wf = NW[todo]
-    # the initial guesses in float32 (twice as fast; LM and nlopt then work in float64)
-    V32, L32, W32 = V[todo].astype(np.float32), L[todo].astype(np.float32), Wf.astype(np.float32)
+    # the numpy initial guesses in float32 (twice as fast; LM and nlopt then work in
+    # float64); the compiled one works in float64 anyway
+    dt = np.float64 if initial_batch is not None else np.float32
+    V32, L32, W32 = (a.astype(dt, copy=False) for a in (V[todo], L[todo], Wf))
 
     def starts(k: int, sel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Initial guesses (and LM steps) with k lobes for the texels todo[sel], and
@@ -525,61 +549,68 @@ def fit_mh_tile(
         return refine_batch(V[todo[sel]], L[todo[sel]], Wf[sel], p0, why=True) \
             if cfg.init == "better" else (p0, np.zeros(len(sel), bool))
 
-    polished = {}
-    if cfg.polish == "batch" and cfg.loss == "linear" and cfg.algorithm != "bobyqa":
-        everyone = np.arange(len(todo))
-        for k in Ks:
-            P, rss, ev, conv, code = polish_batch(V[todo], L[todo], Wf, starts(k, everyone)[0],
-                                                  cfg)
-            polished[k] = (P, rss, ev, conv & np.isfinite(P).all(1) & np.isfinite(rss), code)
-    # per texel: its data, best fit so far (result, lobes), its BIC, evaluations, and
-    # whether BIC stopped adding lobes (``auto``)
-    data, best, best_bic, evals = [], [None] * len(todo), [math.inf] * len(todo), \
-        np.zeros(len(todo), int)
+    # LM-converged texels get their nlopt polish stacked: one bounded run over all of
+    # them (their objectives are separable), the few it leaves unconverged alone after
+    stacked = cfg.polish == "batch" and cfg.loss == "linear" and cfg.algorithm != "bobyqa"
+    nres = 3 * nobs[todo]
+    floor = (cfg.bic_floor * np.abs(np.where(W[todo][..., None], L[todo], 0.0)).sum((1, 2))
+             / nres) ** 2
+
+    def texel_data(j: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        w = W[todo[j]]
+        return V[todo[j]][w], L[todo[j]][w], NW[todo[j]][w]
+
+    # per texel: best fit so far (result, lobes), its BIC, evaluations, and whether BIC
+    # stopped adding lobes (``auto``)
+    best, best_bic = [None] * len(todo), np.full(len(todo), math.inf)
+    evals = np.zeros(len(todo), int)
     stopped = np.zeros(len(todo), bool)
-    for j, b in enumerate(todo):
-        w = W[b]
-        v, y, wt = V[b][w], L[b][w], NW[b][w]
-        data.append((v, y, wt, (cfg.bic_floor * float(np.mean(np.abs(y)))) ** 2))
-        if K == "auto":
-            # K = 0 first: a lobe must pay for itself against a diffuse texel
-            kd = (wt[:, None] * y).sum(0) / wt.sum()
-            rss0 = float(np.sum(wt[:, None] * (y - kd) ** 2))
-            best[j] = (FitResult(np.r_[kd, M_MIN], rss0, 0, FitStatus.OK, 0), 0)
-            best_bic[j] = bic(rss0, y.size, 0, data[j][3])
+    if K == "auto":
+        # K = 0 first: a lobe must pay for itself against a diffuse texel
+        wt0 = Wf[..., None]
+        kd = (wt0 * L[todo]).sum(1) / Wf.sum(1)[:, None]
+        rss0 = (wt0 * np.where(W[todo][..., None], L[todo] - kd[:, None], 0.0) ** 2).sum((1, 2))
+        for j in range(len(todo)):
+            best[j] = (FitResult(np.r_[kd[j], M_MIN], float(rss0[j]), 0, FitStatus.OK, 0), 0)
+            best_bic[j] = bic(float(rss0[j]), int(nres[j]), 0, float(floor[j]))
     for k in Ks:
         # one number of lobes for every texel still adding lobes: the starts of texels
         # that BIC already stopped are never computed
         run = np.flatnonzero(~stopped)
-        start = polished[k][0] if k in polished else None
+        if len(run) == 0:
+            break
+        start = np.full((len(todo), mh_size(k)), np.nan)
         conv = np.zeros(len(todo), bool)  # the batch LM converged: no LM in fit_texel
-        if start is None and len(run):
-            start = np.full((len(todo), mh_size(k)), np.nan)
-            # a texel whose best fit so far has k - 1 lobes starts from that fit with one
-            # lobe more (the lobes it found stay where they are); the others from the
-            # initial guess. On the demo: held-out mh-2 9.07 -> 7.63, mh-auto 7.34 -> 7.18
-            grow = np.array([j for j in run if k >= 2 and cfg.init == "better"
-                             and best[j] is not None and best[j][1] == k - 1
-                             and best[j][0].status == FitStatus.OK], int)
-            fresh = np.setdiff1d(run, grow)
-            if len(fresh):
-                start[fresh], conv[fresh] = starts(k, fresh)
-            if len(grow):
-                P0 = np.stack([best[j][0].params for j in grow])
-                start[grow], conv[grow] = refine_batch(
-                    V[todo[grow]], L[todo[grow]], Wf[grow],
-                    extend_guess_batch(V[todo[grow]], L[todo[grow]], Wf[grow], P0), why=True)
-        for j in np.flatnonzero(stopped):
-            # past BIC's choice: only the batch fits, for _select_lobes to compare
-            if select and k in polished and polished[k][3][j]:
-                alts[k][todo[j]] = _padded(polished[k][0][j], k, Kmax)
+        # a texel whose best fit so far has k - 1 lobes starts from that fit with one
+        # lobe more (the lobes it found stay where they are); the others from the
+        # initial guess. On the demo: held-out mh-2 9.07 -> 7.63, mh-auto 7.34 -> 7.18
+        grow = np.array([j for j in run if k >= 2 and cfg.init == "better"
+                         and best[j] is not None and best[j][1] == k - 1
+                         and best[j][0].status == FitStatus.OK], int)
+        fresh = np.setdiff1d(run, grow)
+        if len(fresh):
+            start[fresh], conv[fresh] = starts(k, fresh)
+        if len(grow):
+            P0 = np.stack([best[j][0].params for j in grow])
+            start[grow], conv[grow] = refine_batch(
+                V[todo[grow]], L[todo[grow]], Wf[grow],
+                extend_guess_batch(V[todo[grow]], L[todo[grow]], Wf[grow], P0), why=True)
+        done = {}
+        sel = run[conv[run]] if stacked else run[:0]
+        if len(sel):
+            P, rss, ev, ok, code = polish_batch(V[todo[sel]], L[todo[sel]], Wf[sel],
+                                                start[sel], cfg)
+            ok &= np.isfinite(P).all(1) & np.isfinite(rss)
+            for i, j in enumerate(sel):
+                if ok[i]:
+                    done[j] = FitResult(P[i], float(rss[i]), ev, FitStatus.OK, code)
+                elif np.isfinite(P[i]).all():
+                    start[j] = P[i]  # LM converged, the stacked run left it: nlopt alone
         for j in run:
             b = todo[j]
-            v, y, wt, floor = data[j]
-            if k in polished and polished[k][3][j]:
-                P, rss, ev, _, code = polished[k]
-                r = FitResult(P[j], float(rss[j]), ev, FitStatus.OK, code)
-            else:
+            r = done.get(j)
+            if r is None:
+                v, y, wt = texel_data(j)
                 try:
                     r = fit_texel(v, y, start[j], cfg, w=wt, lm=not conv[j])
                 except Exception:  # noqa: BLE001 - a failed texel is flagged, never fatal
@@ -588,7 +619,8 @@ def fit_mh_tile(
             evals[j] += r.evals
             if select and r.status == FitStatus.OK:
                 alts[k][b] = _padded(r.params, k, Kmax)
-            crit = bic(r.rss, y.size, k, floor) if r.status == FitStatus.OK else math.inf
+            crit = bic(r.rss, int(nres[j]), k, float(floor[j])) \
+                if r.status == FitStatus.OK else math.inf
             if best[j] is None or (K != "auto" and r.status == FitStatus.OK) or \
                     crit < best_bic[j] - cfg.bic_margin:
                 best[j], best_bic[j] = (r, k), crit
@@ -627,18 +659,33 @@ def fit_mh_tile(
             if r.status == FitStatus.OK and r.rss < rss0:
                 P[j, : mh_size(k)] = r.params
         flat["params"][ok] = P
-        fitted = mh_eval(flat["params"][ok].astype(float), V[ok])
-        w = W[ok][..., None]
-        n = np.maximum(w.sum(1), 1)
-        flat["rmse"][ok] = np.sqrt((np.where(w, fitted - L[ok], 0) ** 2).sum(1) / n)
-        flat["mpr"][ok] = mean_percentage_residual(L[ok], fitted, W[ok])
+        P = flat["params"][ok].astype(float)
+        flat["rmse"][ok], flat["mpr"][ok] = residual_stats(P, V[ok], L[ok], W[ok])
         flat["sd"][ok] = parameter_sd(flat["params"][ok].astype(float), V[ok], L[ok], W[ok],
                                       NW[ok])
         if NZ is not None:
             # free parameters: Kd, m, and per lobe Ks and a direction (two angles)
-            flat["chi2"][ok] = reduced_chi2(L[ok], fitted, NZ[ok], W[ok],
+            flat["chi2"][ok] = reduced_chi2(L[ok], mh_eval(P, V[ok]), NZ[ok], W[ok],
                                             mhx_size(flat["k_used"][ok].astype(int)))
     return out
+
+
+def residual_stats(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 3) RMSE and (n, 3) mean percentage residual (004) per channel of MH
+    parameters P (n, 4 + 6K) on the valid observations (W (n, N) bool) of V, L
+    (n, N, 3)."""
+    if _residual_stats is not None:
+        rmse, mpr = np.empty((len(P), 3)), np.empty((len(P), 3))
+        _residual_stats(np.ascontiguousarray(P, float), np.ascontiguousarray(V, float),
+                        np.ascontiguousarray(L, float), np.ascontiguousarray(W, bool),
+                        rmse, mpr)
+        return rmse, mpr
+    fitted = mh_eval(P, V)
+    w = W[..., None]
+    n = np.maximum(w.sum(1), 1)
+    return (np.sqrt((np.where(w, fitted - L, 0) ** 2).sum(1) / n),
+            mean_percentage_residual(L, fitted, W))
 
 
 def _padded(params: np.ndarray, k: int, K: int) -> np.ndarray:
@@ -774,11 +821,17 @@ def drop_negligible_lobes(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.nda
         return P
     w = W.astype(bool)[..., None]
     nres = 3 * np.maximum(W.sum(1), 1)
-    fl = (floor * np.abs(np.where(w, L, 0)).sum((1, 2)) / nres) ** 2
+    fl = (floor * np.einsum("nvc,nv->n", np.abs(L), w[..., 0]) / nres) ** 2
 
     def rss(Q, rows):
-        r = np.where(w[rows], mh_eval(Q, V[rows]) - L[rows], 0.0)
-        return np.maximum((r ** 2).sum((1, 2)), fl[rows] * nres[rows])
+        if rss_batch is not None:
+            r2 = np.empty(len(Q))
+            rss_batch(np.ascontiguousarray(Q), np.ascontiguousarray(V[rows], float),
+                      np.ascontiguousarray(L[rows], float), np.ascontiguousarray(w[rows, :, 0]),
+                      r2)
+        else:
+            r2 = (np.where(w[rows], mh_eval(Q, V[rows]) - L[rows], 0.0) ** 2).sum((1, 2))
+        return np.maximum(r2, fl[rows] * nres[rows])
 
     pen = 5 * np.log(nres)
     # each texel's RSS kept current; a change is judged only where it can apply
@@ -814,9 +867,14 @@ def drop_negligible_lobes(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.nda
         # not determined by the data (a noise spike, a highlight that fell between
         # views) and would only sparkle in other views
         noise = np.sqrt(rssP[rows] / nres[rows])
-        c = np.clip(np.einsum("nvj,nj->nv", V[rows], P[rows][:, mh_dir(k)]), 0, None) \
-            ** P[rows, MH_M, None] * P[rows][:, mh_ks(k)].max(1, keepdims=True)
-        support = (W[rows] & (c > 2 * noise[:, None])).sum(1)
+        if lobe_support is not None:
+            support = np.empty(len(rows), np.int64)
+            lobe_support(np.ascontiguousarray(P[rows]), np.ascontiguousarray(V[rows], float),
+                         np.ascontiguousarray(w[rows, :, 0]), k, 2 * noise, support)
+        else:
+            c = np.clip(np.einsum("nvj,nj->nv", V[rows], P[rows][:, mh_dir(k)]), 0, None) \
+                ** P[rows, MH_M, None] * P[rows][:, mh_ks(k)].max(1, keepdims=True)
+            support = (W[rows] & (c > 2 * noise[:, None])).sum(1)
         take(Q, rows, support < MIN_SUPPORT)
     # a lobe beside another whose peak lies where no view looked is placed by its tail
     # alone: with a lobe shape unlike the model's, the fit puts one in a gap between the

@@ -25,7 +25,37 @@ LOSSES = {"linear": 0, "soft_l1": 1, "huber": 2}
 def _jit(f, fallback=None):
     """``f`` compiled by numba (cached on disk, GIL released), or ``fallback`` where numba
     is missing (None for the entry points: callers then take their numpy paths)."""
-    return njit(cache=True, nogil=True)(f) if njit is not None else fallback
+    return njit(cache=True, nogil=True)(f) \
+        if njit is not None else fallback
+
+
+def _sum(a: np.ndarray) -> float:
+    s = 0.0
+    for i in range(a.shape[0]):
+        s += a[i]
+    return s
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> float:
+    s = 0.0
+    for i in range(a.shape[0]):
+        s += a[i] * b[i]
+    return s
+
+
+def _dot3(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> float:
+    s = 0.0
+    for i in range(a.shape[0]):
+        s += a[i] * b[i] * c[i]
+    return s
+
+
+# sums over the observations, allowed to reassociate (so they vectorise: several times
+# faster; the order changes only the last bits): the kernels store per-observation
+# values first and form their products with these
+if njit is not None:
+    _sum, _dot, _dot3 = (njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})(f)
+                         for f in (_sum, _dot, _dot3))
 
 
 def _lobe_frames(x: np.ndarray, K: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -50,34 +80,44 @@ _lobe_frames = _jit(_lobe_frames, _lobe_frames)
 def _cost_grad(x: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K: int,
                loss: int, f: float, grad: np.ndarray, want_grad: bool) -> float:
     """Cost of x-space parameters ``x`` (``conventions.mhx_size(K)``) on directions
-    V (n, 3) and scaled radiance L (n, 3), each observation weighted by Wt (n,); fills ``grad`` when
-    ``want_grad``. Same layout and maths as the numpy objective in
-    :mod:`parammap.models.mh.fit`."""
+    V (n, 3) and scaled radiance L (n, 3), each observation weighted by Wt (n,); fills
+    ``grad`` when ``want_grad``. Same layout and maths as the numpy objective in
+    :mod:`parammap.models.mh.fit`.
+
+    As in :func:`_normal_texel`, the per-observation values (the loss derivative per
+    channel, and per lobe p, m p ln(cos), dp/dtheta, dp/dphi) are stored first and the
+    gradient formed from dot products over the observations."""
     n = V.shape[0]
+    nb = 1 + 4 * K
     m = math.exp(x[MHX_LNM])
     d, dth, dph = _lobe_frames(x, K)
-    if want_grad:
-        for j in range(grad.shape[0]):
-            grad[j] = 0.0
-    P = np.empty(K)
-    LC = np.empty(K)
-    C = np.empty(K)
+    qT = np.empty((nb, n)) if want_grad else np.empty((0, 0))
+    eT = np.empty((3, n)) if want_grad else np.empty((0, 0))
     val = 0.0
     for i in range(n):
         v0, v1, v2 = V[i, 0], V[i, 1], V[i, 2]
         r0, r1, r2 = x[0] - L[i, 0], x[1] - L[i, 1], x[2] - L[i, 2]
         for k in range(K):
             c = v0 * d[k, 0] + v1 * d[k, 1] + v2 * d[k, 2]
+            j = 1 + 4 * k
             if c > 0.0:
                 lc = math.log(c)
                 p = math.exp(m * lc)
-            else:
-                lc, p = 0.0, 0.0
-            C[k], P[k], LC[k] = c, p, lc
-            b = MH_HEAD + MHX_LOBE * k
-            r0 += x[b] * p
-            r1 += x[b + 1] * p
-            r2 += x[b + 2] * p
+                b = MH_HEAD + MHX_LOBE * k
+                r0 += x[b] * p
+                r1 += x[b + 1] * p
+                r2 += x[b + 2] * p
+                if want_grad:
+                    dpdc = p * m / c
+                    qT[j, i] = p
+                    qT[j + 1, i] = p * lc * m
+                    qT[j + 2, i] = dpdc * (v0 * dth[k, 0] + v1 * dth[k, 1] + v2 * dth[k, 2])
+                    qT[j + 3, i] = dpdc * (v0 * dph[k, 0] + v1 * dph[k, 1])
+            elif want_grad:
+                qT[j, i] = 0.0
+                qT[j + 1, i] = 0.0
+                qT[j + 2, i] = 0.0
+                qT[j + 3, i] = 0.0
         wt = Wt[i]
         if loss == 0:
             val += wt * (r0 * r0 + r1 * r1 + r2 * r2)
@@ -96,28 +136,157 @@ def _cost_grad(x: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K: i
             e0 = 2.0 * r0 if a0 <= f else 2.0 * f * math.copysign(1.0, r0)
             e1 = 2.0 * r1 if a1 <= f else 2.0 * f * math.copysign(1.0, r1)
             e2 = 2.0 * r2 if a2 <= f else 2.0 * f * math.copysign(1.0, r2)
-        e0, e1, e2 = wt * e0, wt * e1, wt * e2
         if want_grad:
-            grad[0] += e0
-            grad[1] += e1
-            grad[2] += e2
-            for k in range(K):
-                p = P[k]
-                if p == 0.0:
-                    continue
-                b = MH_HEAD + MHX_LOBE * k
-                grad[b] += p * e0
-                grad[b + 1] += p * e1
-                grad[b + 2] += p * e2
-                gp = (e0 * x[b] + e1 * x[b + 1] + e2 * x[b + 2]) * p
-                grad[MHX_LNM] += gp * LC[k] * m
-                gd = gp * m / C[k]
-                grad[b + 3] += gd * (v0 * dth[k, 0] + v1 * dth[k, 1] + v2 * dth[k, 2])
-                grad[b + 4] += gd * (v0 * dph[k, 0] + v1 * dph[k, 1])
+            eT[0, i], eT[1, i], eT[2, i] = wt * e0, wt * e1, wt * e2
+    if not want_grad:
+        return val
+    for j in range(grad.shape[0]):
+        grad[j] = 0.0
+    for c in range(3):
+        grad[c] = _sum(eT[c])
+        for k in range(K):
+            b = MH_HEAD + MHX_LOBE * k
+            ks = x[b + c]
+            for a in range(4):
+                t = _dot(qT[1 + 4 * k + a], eT[c])
+                if a == 0:
+                    grad[b + c] = t
+                elif a == 1:
+                    grad[MHX_LNM] += ks * t
+                else:
+                    grad[b + 1 + a] += ks * t
     return val
 
 
 cost_grad = _jit(_cost_grad)
+
+
+def _eval_batch(P: np.ndarray, V: np.ndarray, out: np.ndarray) -> None:
+    """MH radiance of B parameter vectors P (B, 4 + 6K) (conventions.md layout) in
+    their directions V (B, N, 3), into ``out`` (B, N, 3): the compiled
+    :func:`parammap.models.mh.model.mh_eval` for a batch of texels."""
+    B, N = V.shape[0], V.shape[1]
+    K = (P.shape[1] - MH_HEAD) // MH_LOBE
+    for t in range(B):
+        m = P[t, 3]
+        nk = 0  # lobes up to the last with some Ks (the others add 0)
+        for k in range(K):
+            b = MH_HEAD + MH_LOBE * k
+            if P[t, b] != 0.0 or P[t, b + 1] != 0.0 or P[t, b + 2] != 0.0:
+                nk = k + 1
+        for n in range(N):
+            r0, r1, r2 = P[t, 0], P[t, 1], P[t, 2]
+            for k in range(nk):
+                b = MH_HEAD + MH_LOBE * k
+                c = V[t, n, 0] * P[t, b + 3] + V[t, n, 1] * P[t, b + 4] \
+                    + V[t, n, 2] * P[t, b + 5]
+                if c > 0.0:
+                    p = math.exp(m * math.log(c))
+                    r0 += P[t, b] * p
+                    r1 += P[t, b + 1] * p
+                    r2 += P[t, b + 2] * p
+            out[t, n, 0], out[t, n, 1], out[t, n, 2] = r0, r1, r2
+
+
+eval_batch = _jit(_eval_batch)
+
+
+def _residual_stats(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
+                    rmse: np.ndarray, mpr: np.ndarray) -> None:
+    """Per texel and channel, the RMSE and 004's mean percentage residual
+    (:func:`parammap.models.residuals.mean_percentage_residual`) of MH parameters
+    P (B, 4 + 6K) on the valid (W (B, N) bool) observations V, L (B, N, 3); into
+    ``rmse`` and ``mpr`` (B, 3)."""
+    B, N = W.shape
+    f = np.empty((N, 3))
+    for t in range(B):
+        _eval_batch(P[t:t + 1], V[t:t + 1], f.reshape((1, N, 3)))
+        n = 0
+        top = np.zeros(3)
+        for v in range(N):
+            if W[t, v]:
+                n += 1
+                for c in range(3):
+                    top[c] = max(top[c], abs(L[t, v, c]))
+        for c in range(3):
+            se, pe = 0.0, 0.0
+            floor = 1e-9 * top[c] + 1e-30
+            for v in range(N):
+                if W[t, v]:
+                    r = f[v, c] - L[t, v, c]
+                    se += r * r
+                    pe += 100.0 * abs(r) / max(abs(L[t, v, c]), floor)
+            rmse[t, c] = math.sqrt(se / max(n, 1))
+            mpr[t, c] = pe / max(n, 1)
+
+
+def _rss_batch(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
+               rss: np.ndarray) -> None:
+    """Residual sum of squares over the valid observations (W (B, N) bool) of MH
+    parameters P (B, 4 + 6K) on V, L (B, N, 3), into ``rss`` (B,)."""
+    B, N = W.shape
+    f = np.empty((N, 3))
+    for t in range(B):
+        _eval_batch(P[t:t + 1], V[t:t + 1], f.reshape((1, N, 3)))
+        s = 0.0
+        for v in range(N):
+            if W[t, v]:
+                for c in range(3):
+                    r = f[v, c] - L[t, v, c]
+                    s += r * r
+        rss[t] = s
+
+
+def _lobe_support(P: np.ndarray, V: np.ndarray, W: np.ndarray, k: int, thr: np.ndarray,
+                  count: np.ndarray) -> None:
+    """Per texel, how many valid observations (W (B, N) bool) see lobe k of P
+    (B, 4 + 6K) above ``thr`` (B,): max over channels of Ks (d . v)^m, into
+    ``count`` (B,)."""
+    B, N = W.shape
+    b = MH_HEAD + MH_LOBE * k
+    for t in range(B):
+        m = P[t, 3]
+        top = max(P[t, b], P[t, b + 1], P[t, b + 2])
+        n = 0
+        if top > 0.0 and thr[t] < top:
+            # (d . v)^m > thr / top  <=>  d . v > (thr / top)^(1/m)
+            cmin = math.exp(math.log(thr[t] / top) / m) if thr[t] > 0.0 else 0.0
+            for v in range(N):
+                if W[t, v]:
+                    c = V[t, v, 0] * P[t, b + 3] + V[t, v, 1] * P[t, b + 4] \
+                        + V[t, v, 2] * P[t, b + 5]
+                    if c > cmin:
+                        n += 1
+        count[t] = n
+
+
+_eval_batch = _jit(_eval_batch, _eval_batch)
+rss_batch = _jit(_rss_batch)
+lobe_support = _jit(_lobe_support)
+residual_stats = _jit(_residual_stats)
+
+
+def _cost_grad_batch(X: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K: int,
+                     loss: int, f: float, grad: np.ndarray, want_grad: bool,
+                     cost: np.ndarray) -> float:
+    """:func:`_cost_grad` of every texel of a batch: X (B, nx), V and L (B, N, 3),
+    Wt (B, N); each texel's cost into ``cost`` (B,) and, with ``want_grad``, its
+    gradient into ``grad`` (B, nx). Returns the sum (the objective of the stacked
+    polish, whose minimum is every texel's own)."""
+    total = 0.0
+    g = np.empty(X.shape[1])
+    for b in range(X.shape[0]):
+        c = _cost_grad(X[b], V[b], L[b], Wt[b], K, loss, f, g, want_grad)
+        cost[b] = c
+        total += c
+        if want_grad:
+            for i in range(X.shape[1]):
+                grad[b, i] = g[i]
+    return total
+
+
+_cost_grad = _jit(_cost_grad, _cost_grad)
+cost_grad_batch = _jit(_cost_grad_batch)
 
 
 def _gram_numpy(A: np.ndarray, Y: np.ndarray, w: np.ndarray):
@@ -188,7 +357,7 @@ LM_CONVERGED, LM_DAMPED, LM_CAPPED = 0, 1, 2
 
 def _normal_texel(x: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K: int,
                   A: np.ndarray, g: np.ndarray, Q: np.ndarray, QR: np.ndarray,
-                  want: bool) -> float:
+                  want: bool, qT: np.ndarray, rT: np.ndarray) -> float:
     """Weighted least-squares cost of one texel in x-space; with ``want`` also the
     Gauss-Newton matrix J^T W J into ``A`` (nx, nx) and J^T W r into ``g`` (nx,).
 
@@ -201,19 +370,12 @@ def _normal_texel(x: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K
     nb = 1 + 4 * K
     m = math.exp(x[MHX_LNM])
     d, dth, dph = _lobe_frames(x, K)
-    if want:
-        for a in range(nb):
-            for c in range(3):
-                QR[a, c] = 0.0
-            for b in range(nb):
-                Q[a, b] = 0.0
-    q = np.empty(nb)
-    q[0] = 1.0
     val = 0.0
+    # q and the residuals per observation first (qT (nb, N), rT (3, N): observations
+    # contiguous), then their weighted products as dot products over the observations,
+    # which vectorise (accumulating into Q per observation does not)
     for i in range(n):
         wt = Wt[i]
-        if wt == 0.0:
-            continue
         v0, v1, v2 = V[i, 0], V[i, 1], V[i, 2]
         r0, r1, r2 = x[0] - L[i, 0], x[1] - L[i, 1], x[2] - L[i, 2]
         for k in range(K):
@@ -222,31 +384,35 @@ def _normal_texel(x: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K
             if c > 0.0:
                 lc = math.log(c)
                 p = math.exp(m * lc)
-                dpdc = p * m / c
-                q[j] = p
-                q[j + 1] = p * lc * m
-                q[j + 2] = dpdc * (v0 * dth[k, 0] + v1 * dth[k, 1] + v2 * dth[k, 2])
-                q[j + 3] = dpdc * (v0 * dph[k, 0] + v1 * dph[k, 1])
                 b = MH_HEAD + MHX_LOBE * k
                 r0 += x[b] * p
                 r1 += x[b + 1] * p
                 r2 += x[b + 2] * p
-            else:
-                q[j] = 0.0
-                q[j + 1] = 0.0
-                q[j + 2] = 0.0
-                q[j + 3] = 0.0
+                if want:
+                    dpdc = p * m / c
+                    qT[j, i] = p
+                    qT[j + 1, i] = p * lc * m
+                    qT[j + 2, i] = dpdc * (v0 * dth[k, 0] + v1 * dth[k, 1] + v2 * dth[k, 2])
+                    qT[j + 3, i] = dpdc * (v0 * dph[k, 0] + v1 * dph[k, 1])
+            elif want:
+                qT[j, i] = 0.0
+                qT[j + 1, i] = 0.0
+                qT[j + 2, i] = 0.0
+                qT[j + 3, i] = 0.0
         val += wt * (r0 * r0 + r1 * r1 + r2 * r2)
         if want:
-            for a in range(nb):
-                wq = wt * q[a]
-                if wq == 0.0:
-                    continue
-                QR[a, 0] += wq * r0
-                QR[a, 1] += wq * r1
-                QR[a, 2] += wq * r2
-                for b in range(a, nb):
-                    Q[a, b] += wq * q[b]
+            qT[0, i] = wt  # the weighted constant column: q_0 w q_b = w q_b
+            rT[0, i], rT[1, i], rT[2, i] = r0, r1, r2
+    if want:
+        for a in range(nb):
+            for c in range(3):
+                QR[a, c] = _dot(qT[0, :n], rT[c, :n]) if a == 0 else \
+                    _dot3(qT[0, :n], qT[a, :n], rT[c, :n])
+            for b in range(a, nb):
+                if a == 0:
+                    Q[a, b] = _sum(qT[0, :n]) if b == 0 else _dot(qT[0, :n], qT[b, :n])
+                else:
+                    Q[a, b] = _dot3(qT[0, :n], qT[a, :n], qT[b, :n])
     if not want:
         return val
     for a in range(nb):
@@ -324,6 +490,49 @@ def _chol_solve(M: np.ndarray, rhs: np.ndarray, out: np.ndarray) -> bool:
     return True
 
 
+def _spd_inverse(A: np.ndarray, Ai: np.ndarray) -> bool:
+    """Ai = A^-1 for a symmetric positive definite A (n, n) by Cholesky; False (Ai
+    undefined) where A is not positive definite or a pivot falls below 1e-12 of A's
+    largest diagonal element: there the caller takes the pseudo-inverse."""
+    n = A.shape[0]
+    M = np.empty((n, n))
+    top = 0.0
+    for i in range(n):
+        top = max(top, A[i, i])
+        for j in range(n):
+            M[i, j] = A[i, j]
+    for j in range(n):
+        s = M[j, j]
+        for k in range(j):
+            s -= M[j, k] * M[j, k]
+        if not s > 1e-12 * top:
+            return False
+        s = math.sqrt(s)
+        M[j, j] = s
+        for i in range(j + 1, n):
+            t = M[i, j]
+            for k in range(j):
+                t -= M[i, k] * M[j, k]
+            M[i, j] = t / s
+    # inverse of the factor L (lower), then A^-1 = L^-T L^-1
+    Li = np.zeros((n, n))
+    for i in range(n):
+        Li[i, i] = 1.0 / M[i, i]
+        for j in range(i):
+            t = 0.0
+            for k in range(j, i):
+                t -= M[i, k] * Li[k, j]
+            Li[i, j] = t / M[i, i]
+    for i in range(n):
+        for j in range(i + 1):
+            t = 0.0
+            for k in range(i, n):
+                t += Li[k, i] * Li[k, j]
+            Ai[i, j] = t
+            Ai[j, i] = t
+    return True
+
+
 def _lm_batch(X: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K: int,
               lb: np.ndarray, ub: np.ndarray, iters: int, ftol: float) -> np.ndarray:
     """Bounded Levenberg-Marquardt for each texel of a batch, in place on ``X``
@@ -346,12 +555,14 @@ def _lm_batch(X: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K: in
     step = np.empty(nx)
     xn = np.empty(nx)
     fixed = np.empty(nx, np.bool_)
+    qT = np.empty((nb, V.shape[1]))  # scratch of _normal_texel
+    rT = np.empty((3, V.shape[1]))
     why = np.full(B, 2, np.int64)
     for b in range(B):
         x = X[b]
         for i in range(nx):
             x[i] = min(max(x[i], lb[i]), ub[b, i])
-        cost = _normal_texel(x, V[b], L[b], Wt[b], K, A, g, Q, QR, True)
+        cost = _normal_texel(x, V[b], L[b], Wt[b], K, A, g, Q, QR, True, qT, rT)
         lam = 1e-3
         it = 0
         while it < iters:
@@ -375,10 +586,9 @@ def _lm_batch(X: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K: in
                 continue
             for i in range(nx):
                 xn[i] = min(max(x[i] + step[i], lb[i]), ub[b, i])
-            # the cost alone first: A and g only for a step that is taken
-            cn = _normal_texel(xn, V[b], L[b], Wt[b], K, An, gn, Q, QR, False)
+            # A and g with the cost in one pass: near the optimum most steps are taken
+            cn = _normal_texel(xn, V[b], L[b], Wt[b], K, An, gn, Q, QR, True, qT, rT)
             if cn < cost:
-                cn = _normal_texel(xn, V[b], L[b], Wt[b], K, An, gn, Q, QR, True)
                 gain = (cost - cn) / max(cost, 1e-300)
                 for i in range(nx):
                     x[i] = xn[i]
@@ -407,6 +617,7 @@ def _lm_batch(X: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K: in
 
 _normal_texel = _jit(_normal_texel, _normal_texel)
 _chol_solve = _jit(_chol_solve, _chol_solve)
+_spd_inverse = _jit(_spd_inverse, _spd_inverse)
 lm_batch = _jit(_lm_batch)
 
 
@@ -421,15 +632,29 @@ def _sandwich_batch(X: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
     (the others' columns are not free). Writes ``loo`` (n, N, 3), ``bad`` (n,) (a
     view's leave-one-out block singular) and, with ``want_cov``, the variances of the
     free x-space parameters into ``var`` (n, nx) (NaN elsewhere).
+
+    As in :func:`_normal_texel`, the Jacobian row of channel c puts each of the
+    1 + 4K per-observation values q (1, and per free lobe p, m p ln(cos), dp/dtheta,
+    dp/dphi) into one column (``col[c, a]``) times a factor of the texel
+    (``fac[c, a]``). So J^T W J, each view's 3 x 3 hat block and the sandwich's middle
+    term follow from the products q_a q_b (packed, a <= b): no (3N x nx) Jacobian.
     """
     n, N = W.shape
     nx = X.shape[1]
     Kx = (nx - MH_HEAD) // MHX_LOBE
-    # the Jacobian of the free columns only: a texel with fewer lobes than the layout
-    # holds has a smaller system (the products below grow with its square)
-    J = np.zeros((N, 3, nx))
+    nbx = 1 + 4 * Kx
+    npx = nbx * (nbx + 1) // 2
+    qqT = np.zeros((npx, N))  # q_a q_b (a <= b) per view, views contiguous
+    F2 = np.zeros((3, N))
     r = np.zeros((N, 3))
-    M = np.empty((3, nx))
+    q = np.zeros(nbx)
+    col = np.zeros((3, nbx), np.int64)
+    fac = np.zeros((3, nbx))
+    pa = np.zeros(npx, np.int64)
+    pb = np.zeros(npx, np.int64)
+    S = np.zeros((6, npx))  # the six distinct hat-block quadratic forms, packed
+    G = np.zeros((3, npx))
+    h = np.empty((3, 3))
     for t in range(n):
         x = X[t]
         m = math.exp(x[MHX_LNM])
@@ -437,71 +662,99 @@ def _sandwich_batch(X: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
         # lobes are sorted, the first nl present: the free columns are a prefix of x
         # (without a lobe, Kd alone: no shininess to determine)
         nf = MH_HEAD + MHX_LOBE * nl if nl > 0 else 3
+        nb = 1 + 4 * nl
+        npk = nb * (nb + 1) // 2
+        i = 0
+        for a in range(nb):
+            for b in range(a, nb):
+                pa[i], pb[i] = a, b
+                i += 1
+        for c in range(3):
+            col[c, 0], fac[c, 0] = c, 1.0
+            for k in range(nl):
+                b = MH_HEAD + MHX_LOBE * k
+                ks = x[b + c]
+                col[c, 1 + 4 * k], fac[c, 1 + 4 * k] = b + c, 1.0
+                col[c, 2 + 4 * k], fac[c, 2 + 4 * k] = MHX_LNM, ks
+                col[c, 3 + 4 * k], fac[c, 3 + 4 * k] = b + 3, ks
+                col[c, 4 + 4 * k], fac[c, 4 + 4 * k] = b + 4, ks
         d, dth, dph = _lobe_frames(x, Kx)
-        A = np.zeros((nf, nf))
+        Qp = np.empty(npk)
         for v in range(N):
             for c in range(3):
                 r[v, c] = 0.0
-                for i in range(nf):
-                    J[v, c, i] = 0.0
             if not W[t, v]:
+                for i in range(npk):
+                    qqT[i, v] = 0.0
                 continue
             v0, v1, v2 = V[t, v, 0], V[t, v, 1], V[t, v, 2]
-            for c in range(3):
-                r[v, c] = x[c] - L[t, v, c]
-                J[v, c, c] = 1.0
+            q[0] = 1.0
+            for a in range(1, nb):
+                q[a] = 0.0
+            r0, r1, r2 = x[0] - L[t, v, 0], x[1] - L[t, v, 1], x[2] - L[t, v, 2]
             for k in range(Kx):
                 b = MH_HEAD + MHX_LOBE * k
                 cs = v0 * d[k, 0] + v1 * d[k, 1] + v2 * d[k, 2]
                 if cs <= 0.0:
                     continue
-                if k >= nl:  # not free: only its (zero) part of the prediction
-                    p = math.exp(m * math.log(cs))
-                    for c in range(3):
-                        r[v, c] += x[b + c] * p
-                    continue
                 lc = math.log(cs)
                 p = math.exp(m * lc)
-                dpdc = m * p / cs
-                a_th = dpdc * (v0 * dth[k, 0] + v1 * dth[k, 1] + v2 * dth[k, 2])
-                a_ph = dpdc * (v0 * dph[k, 0] + v1 * dph[k, 1])
-                for c in range(3):
-                    ks = x[b + c]
-                    r[v, c] += ks * p
-                    J[v, c, MHX_LNM] += ks * p * m * lc
-                    J[v, c, b + c] = p
-                    J[v, c, b + 3] = ks * a_th
-                    J[v, c, b + 4] = ks * a_ph
-            wv = w[t, v]
-            for c in range(3):
-                for i in range(nf):
-                    a = wv * J[v, c, i]
-                    if a == 0.0:
-                        continue
-                    for j in range(nf):
-                        A[i, j] += a * J[v, c, j]
-        Ai = np.linalg.pinv(A)
+                r0 += x[b] * p
+                r1 += x[b + 1] * p
+                r2 += x[b + 2] * p
+                if k < nl:  # a free lobe (the others: only their part of the prediction)
+                    dpdc = m * p / cs
+                    j = 1 + 4 * k
+                    q[j] = p
+                    q[j + 1] = p * m * lc
+                    q[j + 2] = dpdc * (v0 * dth[k, 0] + v1 * dth[k, 1] + v2 * dth[k, 2])
+                    q[j + 3] = dpdc * (v0 * dph[k, 0] + v1 * dph[k, 1])
+            r[v, 0], r[v, 1], r[v, 2] = r0, r1, r2
+            for i in range(npk):
+                qqT[i, v] = q[pa[i]] * q[pb[i]]
+        for i in range(npk):
+            Qp[i] = _dot(w[t], qqT[i])
+        # A = J^T W J over the free columns
+        A = np.zeros((nf, nf))
+        for c in range(3):
+            for i in range(npk):
+                a, b = pa[i], pb[i]
+                z = fac[c, a] * fac[c, b] * Qp[i]
+                A[col[c, a], col[c, b]] += z
+                if a != b:
+                    A[col[c, b], col[c, a]] += z
+        Ai = np.empty((nf, nf))
+        if not _spd_inverse(A, Ai):
+            Ai = np.linalg.pinv(A)
+        # hat block of a view: H[a, c] = w sum_ij q_i q_j fac[a, i] fac[c, j]
+        # Ai[col[a, i], col[c, j]], symmetrised over (i, j) for the packed products
+        s = 0
+        for a in range(3):
+            for c in range(a, 3):
+                for i in range(npk):
+                    ia, ib = pa[i], pb[i]
+                    z = fac[a, ia] * fac[c, ib] * Ai[col[a, ia], col[c, ib]]
+                    if ia != ib:
+                        z += fac[a, ib] * fac[c, ia] * Ai[col[a, ib], col[c, ia]]
+                    S[s, i] = z
+                s += 1
         bad[t] = False
         for v in range(N):
             if not W[t, v]:
                 for c in range(3):
                     loo[t, v, c] = 0.0
                 continue
-            sw = math.sqrt(w[t, v])
-            # the view's 3 x 3 block of the hat matrix, H = Jw Ai Jw^T
-            for c in range(3):
-                for j in range(nf):
-                    s = 0.0
-                    for i in range(nf):
-                        s += J[v, c, i] * Ai[i, j]
-                    M[c, j] = s * sw
-            h = np.empty((3, 3))
+            wv = w[t, v]
+            s = 0
             for a in range(3):
-                for c in range(3):
-                    s = 0.0
-                    for j in range(nf):
-                        s += M[a, j] * J[v, c, j]
-                    h[a, c] = (1.0 if a == c else 0.0) - s * sw
+                for c in range(a, 3):
+                    z = 0.0
+                    for i in range(npk):
+                        z += S[s, i] * qqT[i, v]
+                    hv = (1.0 if a == c else 0.0) - wv * z
+                    h[a, c] = hv
+                    h[c, a] = hv
+                    s += 1
             co00 = h[1, 1] * h[2, 2] - h[1, 2] * h[2, 1]
             co01 = h[0, 2] * h[2, 1] - h[0, 1] * h[2, 2]
             co02 = h[0, 1] * h[1, 2] - h[0, 2] * h[1, 1]
@@ -528,28 +781,33 @@ def _sandwich_batch(X: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
             if W[t, v]:
                 dof += 3
         # B = sum over rows of (w J loo)^T (w J loo); cov = Ai B Ai
-        Bm = np.zeros((nf, nf))
         for v in range(N):
-            if not W[t, v]:
-                continue
             for c in range(3):
-                f = w[t, v] * loo[t, v, c]
-                for i in range(nf):
-                    a = f * J[v, c, i]
-                    if a == 0.0:
-                        continue
-                    for j in range(nf):
-                        Bm[i, j] += a * f * J[v, c, j]
-        T = Ai @ Bm
+                f = w[t, v] * loo[t, v, c]  # 0 where not valid
+                F2[c, v] = f * f
+        for c in range(3):
+            for i in range(npk):
+                G[c, i] = _dot(F2[c], qqT[i])
+        Bm = np.zeros((nf, nf))
+        for c in range(3):
+            for i in range(npk):
+                a, b = pa[i], pb[i]
+                z = fac[c, a] * fac[c, b] * G[c, i]
+                Bm[col[c, a], col[c, b]] += z
+                if a != b:
+                    Bm[col[c, b], col[c, a]] += z
         for i in range(nx):
             var[t, i] = np.nan
         if dof <= 0:
             continue
         for i in range(nf):
-            s = 0.0
+            z = 0.0
             for j in range(nf):
-                s += T[i, j] * Ai[j, i]
-            var[t, i] = s
+                u = 0.0
+                for k in range(nf):
+                    u += Ai[i, k] * Bm[k, j]
+                z += u * Ai[j, i]
+            var[t, i] = z
 
 
 sandwich_batch = _jit(_sandwich_batch)
@@ -576,6 +834,13 @@ def _nnls_texel(A: np.ndarray, Y: np.ndarray, w: np.ndarray, P: int, x: np.ndarr
                 R[a, c] += wa * Y[n, c]
             for b in range(a, P):
                 G[a, b] += wa * A[n, b]
+    return _nnls_solve(G, R, yy, P, x)
+
+
+def _nnls_solve(G: np.ndarray, R: np.ndarray, yy: float, P: int, x: np.ndarray) -> float:
+    """:func:`_nnls_texel` from its normal equations: G (P, P) (upper triangle),
+    R (P, 3), yy the weighted sum of squares of the targets. Writes x (P, 3); returns
+    the RSS."""
     tr = 0.0
     for a in range(P):
         tr += G[a, a]
@@ -636,15 +901,35 @@ def _log_cos(V: np.ndarray, D: np.ndarray, k: int, LC: np.ndarray) -> None:
         LC[k, n] = math.log(c) if c > 0.0 else -np.inf
 
 
-def _design_log(LC: np.ndarray, nd: int, lnm: float, A: np.ndarray) -> None:
-    """:func:`_design` from the logarithms of :func:`_log_cos`: A[:, 1 + k] = exp(m LC[k])
-    (0 below exp(-700), which the exponential would round to anyway)."""
+def _profile_nnls(LC: np.ndarray, nd: int, lnm: float, WY: np.ndarray, w: np.ndarray,
+                  G0: float, R0: np.ndarray, yy: float, AT: np.ndarray, x: np.ndarray) -> float:
+    """The design AT[1 + k] = exp(m LC[k]) (:func:`_log_cos`; 0 below exp(-700), which
+    the exponential rounds to anyway) of the first ``nd`` lobes (AT (1 + K, N),
+    observations contiguous), then
+    :func:`_nnls_texel` (the constant column implied) from the weights w (N,) and the
+    weighted targets WY (3, N), with the parts of the normal equations that do not
+    depend on m given (``G0`` = sum w, ``R0`` (3,) = sum w Y, ``yy`` = sum w Y^2): the
+    search over m evaluates this many times."""
+    P = nd + 1
+    N = AT.shape[1]
+    G = np.zeros((P, P))
+    R = np.zeros((P, 3))
+    G[0, 0] = G0
+    for c in range(3):
+        R[0, c] = R0[c]
     m = math.exp(lnm)
-    for n in range(A.shape[0]):
-        A[n, 0] = 1.0
-        for k in range(nd):
+    for k in range(nd):
+        for n in range(N):
             e = m * LC[k, n]
-            A[n, 1 + k] = math.exp(e) if e > -700.0 else 0.0
+            AT[1 + k, n] = math.exp(e) if e > -700.0 else 0.0
+    # dot products over the observations (they vectorise)
+    for k in range(nd):
+        G[0, 1 + k] = _dot(w, AT[1 + k])
+        for c in range(3):
+            R[1 + k, c] = _dot(WY[c], AT[1 + k])
+        for j in range(k, nd):
+            G[1 + k, 1 + j] = _dot3(w, AT[1 + k], AT[1 + j])
+    return _nnls_solve(G, R, yy, P, x)
 
 
 def _initial_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, K: int, cos_sep: float,
@@ -655,13 +940,25 @@ def _initial_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, K: int, cos_sep:
     and Ks by non-negative least squares. Writes ``out`` (B, 4 + 6K) parameters."""
     B, N = W.shape
     D = np.zeros((K, 3))
-    A = np.empty((N, 1 + K))
+    AT = np.empty((1 + K, N))
+    WY = np.empty((3, N))
     LC = np.empty((K, N))
     x = np.empty((1 + K, 3))
     resid = np.empty(N)
+    R0 = np.empty(3)
     gr = (math.sqrt(5.0) - 1.0) / 2.0
     for t in range(B):
         Vt, Lt, wt = V[t], L[t], W[t]
+        G0, yy = 0.0, 0.0
+        for c in range(3):
+            R0[c] = 0.0
+        for n in range(N):
+            wn = wt[n]
+            G0 += wn
+            for c in range(3):
+                WY[c, n] = wn * Lt[n, c]
+                R0[c] += wn * Lt[n, c]
+                yy += wn * Lt[n, c] * Lt[n, c]
         for n in range(N):
             resid[n] = (Lt[n, 0] + Lt[n, 1] + Lt[n, 2]) / 3.0 if wt[n] > 0 else -np.inf
         lnm = math.log(10.0)
@@ -682,38 +979,32 @@ def _initial_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, K: int, cos_sep:
             bi, bf = 0, np.inf
             for i in range(grid):
                 u = ln_m_max * i / (grid - 1)
-                _design_log(LC, k + 1, u, A)
-                f = _nnls_texel(A, Lt, wt, k + 2, x)
+                f = _profile_nnls(LC, k + 1, u, WY, wt, G0, R0, yy, AT, x)
                 if f < bf:
                     bi, bf = i, f
             a = ln_m_max * max(bi - 1, 0) / (grid - 1)
             b = ln_m_max * min(bi + 1, grid - 1) / (grid - 1)
             c1, d1 = b - gr * (b - a), a + gr * (b - a)
-            _design_log(LC, k + 1, c1, A)
-            fc = _nnls_texel(A, Lt, wt, k + 2, x)
-            _design_log(LC, k + 1, d1, A)
-            fd = _nnls_texel(A, Lt, wt, k + 2, x)
+            fc = _profile_nnls(LC, k + 1, c1, WY, wt, G0, R0, yy, AT, x)
+            fd = _profile_nnls(LC, k + 1, d1, WY, wt, G0, R0, yy, AT, x)
             for _ in range(golden):
                 if fc < fd:
                     b, d1, fd = d1, c1, fc
                     c1 = b - gr * (b - a)
-                    _design_log(LC, k + 1, c1, A)
-                    fc = _nnls_texel(A, Lt, wt, k + 2, x)
+                    fc = _profile_nnls(LC, k + 1, c1, WY, wt, G0, R0, yy, AT, x)
                 else:
                     a, c1, fc = c1, d1, fd
                     d1 = a + gr * (b - a)
-                    _design_log(LC, k + 1, d1, A)
-                    fd = _nnls_texel(A, Lt, wt, k + 2, x)
+                    fd = _profile_nnls(LC, k + 1, d1, WY, wt, G0, R0, yy, AT, x)
             lnm = (a + b) / 2.0
-            _design_log(LC, k + 1, lnm, A)
-            _nnls_texel(A, Lt, wt, k + 2, x)
+            _profile_nnls(LC, k + 1, lnm, WY, wt, G0, R0, yy, AT, x)
             for n in range(N):
                 if wt[n] > 0:
                     s = 0.0
                     for c in range(3):
                         mod = x[0, c]
                         for j in range(k + 1):
-                            mod += A[n, 1 + j] * x[1 + j, c]
+                            mod += AT[1 + j, n] * x[1 + j, c]
                         s += Lt[n, c] - mod
                     resid[n] = s / 3.0
                 else:
@@ -728,10 +1019,11 @@ def _initial_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, K: int, cos_sep:
                 out[t, b0 + 3 + c] = D[k, c]
 
 
+_nnls_solve = _jit(_nnls_solve, _nnls_solve)
 _nnls_texel = _jit(_nnls_texel, _nnls_texel)
+_profile_nnls = _jit(_profile_nnls, _profile_nnls)
 _design = _jit(_design, _design)
 _log_cos = _jit(_log_cos, _log_cos)
-_design_log = _jit(_design_log, _design_log)
 initial_batch = _jit(_initial_batch)
 
 

@@ -27,6 +27,7 @@ from ...conventions import (
     mhx_theta,
 )
 from ...errors import InputError
+from .kernel import eval_batch
 
 M_MIN, M_MAX = 1.0, 10000.0
 LN_M_MAX = math.log(M_MAX)
@@ -46,6 +47,11 @@ def mh_eval(params: np.ndarray, directions: np.ndarray) -> np.ndarray:
     """
     params = np.asarray(params, float)
     v = np.asarray(directions, float)
+    if eval_batch is not None and params.ndim == 2 and v.ndim == 3 \
+            and len(params) == len(v) and v.shape[2] == 3:
+        out = np.empty(v.shape)
+        eval_batch(np.ascontiguousarray(params), np.ascontiguousarray(v), out)
+        return out
     K = mh_lobes(params.shape[-1])
     out = np.broadcast_to(params[..., None, MH_KD], v.shape).copy()
     m = params[..., MH_M][..., None]
