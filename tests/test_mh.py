@@ -640,7 +640,7 @@ def test_compiled_lm_reaches_the_truth_and_respects_bounds():
     start[0, 8] -= 0.3  # phi
     lb, ub = _bounds(1, 20.0 * float(L.max() / s[0]))
     why = lm_batch(start, np.ascontiguousarray(V)[None], np.ascontiguousarray(L / s[0])[None],
-                   np.ones((1, len(V))), 1, lb, ub[None], 200, 1e-12)
+                   np.ones((1, len(V))), 1, lb, ub[None], 200, 1e-12, np.empty((1, 19)))
     assert why[0] == LM_CONVERGED
     assert (start >= lb - 1e-12).all() and (start <= ub + 1e-12).all()
     p = _x_to_params_batch(start, s)[0]

@@ -534,14 +534,18 @@ def _spd_inverse(A: np.ndarray, Ai: np.ndarray) -> bool:
 
 
 def _lm_batch(X: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K: int,
-              lb: np.ndarray, ub: np.ndarray, iters: int, ftol: float) -> np.ndarray:
+              lb: np.ndarray, ub: np.ndarray, iters: int, ftol: float,
+              state: np.ndarray) -> np.ndarray:
     """Bounded Levenberg-Marquardt for each texel of a batch, in place on ``X``
     (B, nx) x-space starts (scaled radiance L (B, N, 3), weights Wt (B, N), bounds
     lb (nx,) and ub (B, nx)). A variable at a bound whose gradient pushes outward is
     held for the step (active set), so the others keep converging; a texel stops when
     a step lowers its cost by less than ``ftol`` (relative) or the damping saturates.
     Returns why each texel stopped (B,): :data:`LM_CONVERGED`, :data:`LM_DAMPED` (no
-    step lowers the cost) or :data:`LM_CAPPED` (``iters`` steps)."""
+    step lowers the cost) or :data:`LM_CAPPED` (``iters`` steps). Writes ``state``
+    (B, 1 + 2 nx) at the point reached: the cost, its gradient, and the diagonal of the
+    Gauss-Newton matrix J^T W J (for the polish that follows: its first evaluation and
+    the scale of its variables)."""
     B, nx = X.shape
     nb = 1 + 4 * K
     Q = np.empty((nb, nb))
@@ -612,6 +616,10 @@ def _lm_batch(X: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K: in
                 if lam > 1e10:
                     why[b] = 1
                     break
+        state[b, 0] = cost
+        for i in range(nx):
+            state[b, 1 + i] = 2.0 * g[i]
+            state[b, 1 + nx + i] = A[i, i]
     return why
 
 
