@@ -577,8 +577,9 @@ def test_second_lobe_kept_only_where_it_predicts_unseen_directions_better(monkey
 
 
 def test_compiled_kernels_agree_with_their_numpy_versions():
-    """The compiled initial guess, leave-one-out residuals and uncertainty sandwich
-    (numba) do what their numpy fallbacks do, on two-light texels with noise."""
+    """The compiled initial guess, leave-one-out residuals, uncertainty sandwich, model
+    values, residual statistics and lobe checks (numba) do what their numpy fallbacks
+    do, on two-light texels with noise."""
     import parammap.models.mh.initial as ini
     import parammap.models.mh.uncertainty as unc
 
@@ -614,6 +615,24 @@ def test_compiled_kernels_agree_with_their_numpy_versions():
         np.testing.assert_allclose(loo1, loo0, rtol=1e-4, atol=1e-4 * np.abs(loo0).max())
         close = np.isclose(sd1, sd0, rtol=1e-3, atol=1e-9) | (np.isnan(sd0) & np.isnan(sd1))
         assert close.all(1).mean() >= 0.9, close.all(1).mean()
+        # model values, residual statistics and the lobe checks
+        import parammap.models.mh.fit as fit
+        import parammap.models.mh.model as model
+
+        P[::4, 4:10] = [0.0, 0.0, 0.0, 0.0, 0.0, 1.0]  # some texels without a lobe
+        kept = (model.eval_batch, fit._residual_stats, fit.rss_batch, fit.lobe_support)
+        with_numba = (model.mh_eval(P, V), fit.residual_stats(P, V, L, W),
+                      fit.drop_negligible_lobes(P, V, L, W))
+        model.eval_batch = fit._residual_stats = fit.rss_batch = fit.lobe_support = None
+        try:
+            without = (model.mh_eval(P, V), fit.residual_stats(P, V, L, W),
+                       fit.drop_negligible_lobes(P, V, L, W))
+        finally:
+            model.eval_batch, fit._residual_stats, fit.rss_batch, fit.lobe_support = kept
+        np.testing.assert_allclose(with_numba[0], without[0], rtol=1e-12, atol=1e-15)
+        for a, b in zip(with_numba[1], without[1], strict=True):
+            np.testing.assert_allclose(a, b, rtol=1e-10)
+        np.testing.assert_allclose(with_numba[2], without[2], rtol=1e-12, atol=1e-15)
 
 
 def test_compiled_lm_reaches_the_truth_and_respects_bounds():

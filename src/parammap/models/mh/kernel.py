@@ -77,6 +77,42 @@ def _lobe_frames(x: np.ndarray, K: int) -> tuple[np.ndarray, np.ndarray, np.ndar
 _lobe_frames = _jit(_lobe_frames, _lobe_frames)
 
 
+def _observe(x: np.ndarray, V: np.ndarray, L: np.ndarray, i: int, K: int, m: float,
+             d: np.ndarray, dth: np.ndarray, dph: np.ndarray, qT: np.ndarray,
+             want: bool) -> tuple[float, float, float]:
+    """Residual (model minus radiance) of observation i (V, L (n, 3)) per channel, for
+    x-space parameters x with shininess m and lobe frames d, dth, dph
+    (:func:`_lobe_frames`); with ``want`` also its per-lobe values into column i of
+    qT (rows 1 + 4k ... 4 + 4k: p, m p ln(cos), dp/dtheta, dp/dphi)."""
+    v0, v1, v2 = V[i, 0], V[i, 1], V[i, 2]
+    r0, r1, r2 = x[0] - L[i, 0], x[1] - L[i, 1], x[2] - L[i, 2]
+    for k in range(K):
+        c = v0 * d[k, 0] + v1 * d[k, 1] + v2 * d[k, 2]
+        j = 1 + 4 * k
+        if c > 0.0:
+            lc = math.log(c)
+            p = math.exp(m * lc)
+            b = MH_HEAD + MHX_LOBE * k
+            r0 += x[b] * p
+            r1 += x[b + 1] * p
+            r2 += x[b + 2] * p
+            if want:
+                dpdc = p * m / c
+                qT[j, i] = p
+                qT[j + 1, i] = p * lc * m
+                qT[j + 2, i] = dpdc * (v0 * dth[k, 0] + v1 * dth[k, 1] + v2 * dth[k, 2])
+                qT[j + 3, i] = dpdc * (v0 * dph[k, 0] + v1 * dph[k, 1])
+        elif want:
+            qT[j, i] = 0.0
+            qT[j + 1, i] = 0.0
+            qT[j + 2, i] = 0.0
+            qT[j + 3, i] = 0.0
+    return r0, r1, r2
+
+
+_observe = _jit(_observe, _observe)
+
+
 def _cost_grad(x: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K: int,
                loss: int, f: float, grad: np.ndarray, want_grad: bool) -> float:
     """Cost of x-space parameters ``x`` (``conventions.mhx_size(K)``) on directions
@@ -95,29 +131,7 @@ def _cost_grad(x: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K: i
     eT = np.empty((3, n)) if want_grad else np.empty((0, 0))
     val = 0.0
     for i in range(n):
-        v0, v1, v2 = V[i, 0], V[i, 1], V[i, 2]
-        r0, r1, r2 = x[0] - L[i, 0], x[1] - L[i, 1], x[2] - L[i, 2]
-        for k in range(K):
-            c = v0 * d[k, 0] + v1 * d[k, 1] + v2 * d[k, 2]
-            j = 1 + 4 * k
-            if c > 0.0:
-                lc = math.log(c)
-                p = math.exp(m * lc)
-                b = MH_HEAD + MHX_LOBE * k
-                r0 += x[b] * p
-                r1 += x[b + 1] * p
-                r2 += x[b + 2] * p
-                if want_grad:
-                    dpdc = p * m / c
-                    qT[j, i] = p
-                    qT[j + 1, i] = p * lc * m
-                    qT[j + 2, i] = dpdc * (v0 * dth[k, 0] + v1 * dth[k, 1] + v2 * dth[k, 2])
-                    qT[j + 3, i] = dpdc * (v0 * dph[k, 0] + v1 * dph[k, 1])
-            elif want_grad:
-                qT[j, i] = 0.0
-                qT[j + 1, i] = 0.0
-                qT[j + 2, i] = 0.0
-                qT[j + 3, i] = 0.0
+        r0, r1, r2 = _observe(x, V, L, i, K, m, d, dth, dph, qT, want_grad)
         wt = Wt[i]
         if loss == 0:
             val += wt * (r0 * r0 + r1 * r1 + r2 * r2)
@@ -376,29 +390,7 @@ def _normal_texel(x: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K
     # which vectorise (accumulating into Q per observation does not)
     for i in range(n):
         wt = Wt[i]
-        v0, v1, v2 = V[i, 0], V[i, 1], V[i, 2]
-        r0, r1, r2 = x[0] - L[i, 0], x[1] - L[i, 1], x[2] - L[i, 2]
-        for k in range(K):
-            c = v0 * d[k, 0] + v1 * d[k, 1] + v2 * d[k, 2]
-            j = 1 + 4 * k
-            if c > 0.0:
-                lc = math.log(c)
-                p = math.exp(m * lc)
-                b = MH_HEAD + MHX_LOBE * k
-                r0 += x[b] * p
-                r1 += x[b + 1] * p
-                r2 += x[b + 2] * p
-                if want:
-                    dpdc = p * m / c
-                    qT[j, i] = p
-                    qT[j + 1, i] = p * lc * m
-                    qT[j + 2, i] = dpdc * (v0 * dth[k, 0] + v1 * dth[k, 1] + v2 * dth[k, 2])
-                    qT[j + 3, i] = dpdc * (v0 * dph[k, 0] + v1 * dph[k, 1])
-            elif want:
-                qT[j, i] = 0.0
-                qT[j + 1, i] = 0.0
-                qT[j + 2, i] = 0.0
-                qT[j + 3, i] = 0.0
+        r0, r1, r2 = _observe(x, V, L, i, K, m, d, dth, dph, qT, want)
         val += wt * (r0 * r0 + r1 * r1 + r2 * r2)
         if want:
             qT[0, i] = wt  # the weighted constant column: q_0 w q_b = w q_b
@@ -460,15 +452,15 @@ def _normal_texel(x: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K
     return val
 
 
-def _chol_solve(M: np.ndarray, rhs: np.ndarray, out: np.ndarray) -> bool:
-    """Solve the symmetric positive definite system M out = rhs by Cholesky, in place
-    of M's lower triangle; False if M is not positive definite."""
+def _cholesky(M: np.ndarray, floor: float) -> bool:
+    """Cholesky factor of the symmetric M (n, n) in place of its lower triangle; False
+    where a pivot is not above ``floor`` (M not positive definite, or nearly singular)."""
     n = M.shape[0]
     for j in range(n):
         s = M[j, j]
         for k in range(j):
             s -= M[j, k] * M[j, k]
-        if not s > 0.0:
+        if not s > floor:
             return False
         s = math.sqrt(s)
         M[j, j] = s
@@ -477,6 +469,15 @@ def _chol_solve(M: np.ndarray, rhs: np.ndarray, out: np.ndarray) -> bool:
             for k in range(j):
                 t -= M[i, k] * M[j, k]
             M[i, j] = t / s
+    return True
+
+
+def _chol_solve(M: np.ndarray, rhs: np.ndarray, out: np.ndarray) -> bool:
+    """Solve the symmetric positive definite system M out = rhs by Cholesky, in place
+    of M's lower triangle; False if M is not positive definite."""
+    n = M.shape[0]
+    if not _cholesky(M, 0.0):
+        return False
     for i in range(n):
         t = rhs[i]
         for k in range(i):
@@ -501,19 +502,8 @@ def _spd_inverse(A: np.ndarray, Ai: np.ndarray) -> bool:
         top = max(top, A[i, i])
         for j in range(n):
             M[i, j] = A[i, j]
-    for j in range(n):
-        s = M[j, j]
-        for k in range(j):
-            s -= M[j, k] * M[j, k]
-        if not s > 1e-12 * top:
-            return False
-        s = math.sqrt(s)
-        M[j, j] = s
-        for i in range(j + 1, n):
-            t = M[i, j]
-            for k in range(j):
-                t -= M[i, k] * M[j, k]
-            M[i, j] = t / s
+    if not _cholesky(M, 1e-12 * top):
+        return False
     # inverse of the factor L (lower), then A^-1 = L^-T L^-1
     Li = np.zeros((n, n))
     for i in range(n):
@@ -624,6 +614,7 @@ def _lm_batch(X: np.ndarray, V: np.ndarray, L: np.ndarray, Wt: np.ndarray, K: in
 
 
 _normal_texel = _jit(_normal_texel, _normal_texel)
+_cholesky = _jit(_cholesky, _cholesky)
 _chol_solve = _jit(_chol_solve, _chol_solve)
 _spd_inverse = _jit(_spd_inverse, _spd_inverse)
 lm_batch = _jit(_lm_batch)
