@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -664,3 +666,23 @@ def test_compiled_lm_reaches_the_truth_and_respects_bounds():
     assert (start >= lb - 1e-12).all() and (start <= ub + 1e-12).all()
     p = _x_to_params_batch(start, s)[0]
     np.testing.assert_allclose(p, truth, rtol=1e-5, atol=1e-6)
+
+
+def test_neighbourhood_median_in_strips_matches_numpy():
+    """The stain check's 9x9 median, computed in strips of rows to bound memory on big
+    maps, equals NumPy's nanmedian over the whole windows (NaN where a window is empty)."""
+    from numpy.lib.stride_tricks import sliding_window_view
+
+    from parammap.models.mh.repair import _neighbourhood_median
+
+    rng = np.random.default_rng(4)
+    e = rng.random((37, 29))
+    e[rng.random(e.shape) < 0.3] = np.nan
+    e[:12, :12] = np.nan
+    win = sliding_window_view(np.pad(e, 4, constant_values=np.nan), (9, 9))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        ref = np.nanmedian(win.reshape(e.shape + (-1,)), -1)
+    assert np.isnan(ref).any()
+    for strip in (1 << 22, 900, 1):  # one strip, a few rows, one row at a time
+        np.testing.assert_array_equal(_neighbourhood_median(e, 4, strip), ref)
