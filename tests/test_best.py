@@ -52,31 +52,33 @@ def test_press_linear_is_exact_leave_one_view_out():
     assert np.allclose(press_linear(J, np.where(W[..., None], r, 0), w, W), brute)
 
 
-def test_best_map_renders_each_texel_with_its_own_model(tmp_path):
-    T = S = 16
-    a = ParamMap("diffuse", np.full((T, S, 3), 1.0, np.float32), 100.0, 100.0)
-    b = ParamMap("diffuse", np.full((T, S, 3), 2.0, np.float32), 100.0, 100.0)
+def test_best_map_renders_each_texel_with_its_own_models(tmp_path):
+    T = S = 18
+    a = ParamMap("diffuse", np.full((T, S, 3), 1.0, np.float32), 90.0, 90.0)
+    b = ParamMap("diffuse", np.full((T, S, 3), 2.0, np.float32), 90.0, 90.0)
     write_param_map(tmp_path / "a.exr", a)
     write_param_map(tmp_path / "b.exr", b)
-    choice = np.zeros((T, S, 1), np.float32)
-    choice[:, S // 2:] = 1  # right half: b
-    write_param_map(tmp_path / "best.exr", ParamMap("best", choice, 100.0, 100.0,
+    cp = np.zeros((T, S, 2), np.float32)
+    cp[:, S // 3:, 1] = 1  # middle third: the mean of a and b
+    cp[:, 2 * S // 3:] = 1  # right third: b
+    write_param_map(tmp_path / "best.exr", ParamMap("best", cp, 90.0, 90.0,
                                                     attrs={"candidates": "a b"}))
     best = read_param_map(tmp_path / "best.exr")
     assert list(best.parts) == ["a", "b"]
     intr = Intrinsics(np.array([[400.0, 0, 160], [0, 400.0, 120], [0, 0, 1]]), np.zeros(5),
                       (320, 240))
-    R, t = look_at(np.array([50.0, 50.0, 400.0]), np.array([50.0, 50.0, 0.0]))
+    R, t = look_at(np.array([45.0, 45.0, 400.0]), np.array([45.0, 45.0, 0.0]))
     img, inside = render(best, intr, R, t)
-    P_x = (np.arange(320) - 160) / 400 * 400 + 50  # plane x of each column (frontal view)
-    cols_a = (P_x < 40) & (P_x > 5)
-    cols_b = (P_x > 60) & (P_x < 95)
+    P_x = np.arange(320) - 160 + 45.0  # plane x of each column (frontal view, 1 mm a px)
     rows = slice(100, 140)
-    left, right = img[rows][:, cols_a].mean(-1), img[rows][:, cols_b].mean(-1)
-    assert {round(float(left.mean()), 4), round(float(right.mean()), 4)} == {1.0, 2.0}
-    write_param_map(tmp_path / "bad.exr", ParamMap("best", choice, 100.0, 100.0))
+    got = [round(float(img[rows][:, (P_x > lo + 5) & (P_x < lo + 25)].mean()), 4)
+           for lo in (0.0, 30.0, 60.0)]
+    assert got == [1.0, 1.5, 2.0]
+    write_param_map(tmp_path / "bad.exr", ParamMap("best", cp, 90.0, 90.0))
     with pytest.raises(InputError, match="no candidates"):
         read_param_map(tmp_path / "bad.exr")
+    with pytest.raises(InputError, match="2 channels, choice, partner"):
+        write_param_map(tmp_path / "bad.exr", ParamMap("best", cp[..., :1], 90.0, 90.0))
 
 
 def test_best_stage_keeps_the_lobe_where_the_views_need_it(tmp_path):
@@ -109,21 +111,30 @@ def test_best_stage_keeps_the_lobe_where_the_views_need_it(tmp_path):
 
 
 def test_choice_leaves_the_default_only_for_a_significant_gain():
-    from parammap.best import choose, pair_index
+    from parammap.best import candidates, choose, resolve, significance_z
 
     # four texels, candidates a (the default: least mean error), b, and c
     B = np.array([[1.0, 0.9, 2.0],    # b better, but within one standard error
                   [1.0, 0.5, 2.0],    # b better by more than one standard error
                   [np.inf, 0.5, 2.0],  # a undefined (a view alone makes its lobe)
                   [1.0, 3.0, 2.0]])
-    SE = np.full((4, 3), 0.2, np.float32)  # the pairs (b, a), (c, a), (c, b)
-    SE[1, pair_index(2, 1)] = np.inf  # a pair without the default plays no part
-    got = choose(B, SE, 0, (2, 2)).ravel()
-    assert list(got) == [0, 1, 0, 0]
-    assert list(choose(B, None, 0, (2, 2)).ravel()) == [1, 1, 1, 0]  # least, however slight
+    SE = np.full((4, 3), 0.2, np.float32)  # of each candidate's difference from a
+    SE[:, 0] = 0.0
+    assert list(choose(B, SE, 0, 0, (2, 2)).ravel()) == [0, 1, 0, 0]
+    assert list(choose(B, SE, 0, 0, (2, 2), z=3.0).ravel()) == [0, 0, 0, 0]
+    assert list(choose(B, None, 0, 0, (2, 2)).ravel()) == [1, 1, 1, 0]  # least, however slight
+    # the threshold grows with the number of candidates: 1 for two, more for many
+    assert significance_z(2) == pytest.approx(1.0)
+    assert 2.3 < significance_z(21) < 2.5 and significance_z(36) > significance_z(21)
+    # candidates: each model alone, then the mean of every two
+    cands = candidates(3)
+    assert cands == [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)]
+    assert candidates(3, blend=False) == cands[:3]
+    chosen = np.array([[3, 5], [1, 4]])
     same = np.tile([0, 1, 2], (4, 1))
     same[1, 1] = 2  # b is c's twin at texel 1 (e.g. an MH fit without a lobe, diffuse)
-    assert list(choose(B, SE, 0, (2, 2), same).ravel()) == [0, 2, 0, 0]
+    choice, partner = resolve(cands, chosen, same)
+    assert choice.tolist() == [[0, 2], [1, 0]] and partner.tolist() == [[1, 2], [1, 2]]
 
 
 def test_sh_is_judged_by_its_own_projection_not_a_plain_refit(tmp_path):
@@ -152,10 +163,55 @@ def test_sh_is_judged_by_its_own_projection_not_a_plain_refit(tmp_path):
     proc = Processed(tmp_path)
     maps = {n: read_param_map(proc.params(n)) for n in ("sh-rlsop-16", "diffuse")}
     obs = open_observation_map(proc.observation)
-    exact, se = error_table(proc, maps, obs)
-    assert np.isfinite(exact).all() and se.shape == (144, 1)  # one pair
+    exact, se = error_table(proc, maps, obs, default=1)
+    assert np.isfinite(exact).all() and se.shape == (144, 2) and (se[:, 1] == 0).all()
+    assert np.isfinite(se).all() and (se[:, 0] > 0).all()
     shutil.rmtree(tmp_path / "fit")
-    plain, _ = error_table(proc, maps, obs)
+    plain, none = error_table(proc, maps, obs)
+    assert none is None
     np.testing.assert_allclose(plain[:, 1], exact[:, 1])  # diffuse: the same either way
     fin = np.isfinite(plain[:, 0])
     assert np.median(plain[fin, 0]) > 1.1 * np.median(exact[:, 0])  # 1.18 measured
+
+
+def test_the_mean_of_two_models_is_judged_exactly_and_taken_where_their_errors_cancel(
+        tmp_path):
+    """Two maps biased in opposite directions (Kd 30 % high and 30 % low): each alone
+    predicts the left-out views badly, their mean is the least-squares diffuse fit.
+    A pair's left-out error is exactly that of a map of the mean of the two (linear
+    models), the stage takes the pair everywhere, and its render is that mean."""
+    from parammap.best import candidates, error_table
+    from parammap.observation import open_observation_map
+    from parammap.paths import Processed
+
+    case, _ = patches_case(texels=12, noise=0.01, seed=3)
+    write_observation_arrays(tmp_path / "observation.zarr", case.radiance, case.direction,
+                             case.valid, 1000.0, 1000.0, tile=6)
+    (tmp_path / "params").mkdir()
+    kd = diffuse_map(tmp_path / "observation.zarr")
+    maps = {}
+    for name, f in (("high", 1.3), ("low", 0.7), ("mean", 1.0)):
+        maps[name] = ParamMap("diffuse", kd.params * f, kd.width_mm, kd.height_mm)
+        write_param_map(tmp_path / "params" / f"{name}.exr", maps[name])
+    proc = Processed(tmp_path)
+    obs = open_observation_map(proc.observation)
+    B, _ = error_table(proc, {k: maps[k] for k in ("high", "low")}, obs,
+                       cands=candidates(2))
+    ref, _ = error_table(proc, {"mean": maps["mean"]}, obs)
+    np.testing.assert_allclose(B[:, 2], ref[:, 0], rtol=1e-5)
+    assert (B[:, 2] < B[:, :2].min(1)).mean() > 0.9
+    cfg = validate_config({"captures": {"x": "."}})
+    m = run_best(tmp_path, ["high", "low"], cfg)
+    assert m["default"] == "high+low" and m["chosen_fraction"]["high+low"] > 0.9
+    assert m["values_per_texel"] > 3  # a pair stores both maps' values
+    best = read_param_map(tmp_path / "params" / "best.exr")
+    intr = Intrinsics(np.array([[800.0, 0, 160], [0, 800.0, 120], [0, 0, 1]]), np.zeros(5),
+                      (320, 240))
+    R, t = look_at(np.array([500.0, 500.0, 900.0]), np.array([500.0, 500.0, 0.0]))
+    got, inside = render(best, intr, R, t)
+    want, _ = render(maps["mean"], intr, R, t)
+    pair = np.rint(best.params[..., 0]) != np.rint(best.params[..., 1])
+    assert inside.sum() > 1000 and pair.mean() > 0.9
+    # pixels between texels that all took the pair render as the mean map
+    close = np.isclose(got[inside], want[inside], rtol=1e-5).all(-1)
+    assert close.mean() > 0.8

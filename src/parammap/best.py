@@ -24,20 +24,29 @@ of squared radiance errors, which is ruled by the views on a highlight. A model 
 more freedom than the views support predicts left-out views worse, so neither needs a
 parameter count.
 
-The map's default is the candidate with the least mean error; a texel leaves it only
-for a candidate its own views say is better by more than one standard error of the
-difference (``best.significance``; :func:`choose`): the least of eight noisy errors is
-often least by chance, and taking it cost the demo 0.3 levels on its held-out views.
+With ``best.blend`` (default) a texel's candidates are every model alone and the mean
+of every two (stacking, Wolpert 1992 / Breiman 1996, with weights of one half): the
+left-out prediction of the mean of two fits is the mean of their left-out predictions,
+so it is judged exactly like a model. Where neither model is the true one their errors
+partly cancel: on a physically based capture with two area lights, MH overshoots the
+highlights that SH smooths, and their mean beat both on every held-out view.
+
+The map's default is the candidate with the least mean error (over a sample of up to 64
+tiles); a texel leaves it only for a candidate its own views say is better by more than
+z standard errors of the difference (``best.significance``; :func:`choose`), z the
+one-sided tail of one standard error shared among the other candidates
+(:func:`significance_z`, Bonferroni): the least of many noisy errors is often least by
+chance, and a render shows the texel's true error, not its luckiest estimate.
 An MH map whose fit found no lobe at a texel is written there as the diffuse map (the
 same model, smaller). ``best.pool_radius`` > 0 adds a neighbourhood vote (worse on
 every generator capture: it overrules the minority models where they are right).
-The result is the map
-``params/best.exr``: one channel ``choice`` indexing the candidates named in its
-header (their own EXRs beside it; :func:`parammap.params.read_param_map` loads them and
-:func:`parammap.render.render` draws each texel with its model), so the held-out
+The result is the map ``params/best.exr``: channels ``choice`` and ``partner``
+indexing the candidates named in its header (their own EXRs beside it; equal where a
+texel has one model; :func:`parammap.params.read_param_map` loads them and
+:func:`parammap.render.render` draws each texel as the mean of its two), so the held-out
 comparison scores it like any other map. ``metrics/best.json`` says how often each
-candidate was chosen and what the map costs: the parameters stored per texel (each
-texel only its own model's) against each single model.
+choice was taken and what the map costs: the parameters stored per texel (each texel
+only its own models') against each single model.
 """
 
 from __future__ import annotations
@@ -49,6 +58,7 @@ from typing import Any
 
 import numpy as np
 from scipy.ndimage import uniform_filter
+from scipy.stats import norm
 
 from .conventions import FitStatus, mh_ks, mh_lobes
 from .errors import InputError
@@ -62,11 +72,13 @@ from .paths import Processed
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["BEST_MODEL", "CRITERIA", "choose", "display_gamma", "error_table", "identical", "loo",
-           "pair_index", "run_best"]
+__all__ = ["BEST_MODEL", "CRITERIA", "candidates", "choose", "display_gamma", "error_table",
+           "identical", "loo", "resolve", "run_best", "sample_tiles", "significance_z"]
 
 BEST_MODEL = "best"
 CRITERIA = ("display", "press")
+#: one-sided tail of one standard error of a normal difference
+ONE_SE_TAIL = float(norm.sf(1.0))
 
 
 def loo(name: str, model: str, p: np.ndarray, V: np.ndarray, L: np.ndarray,
@@ -85,22 +97,45 @@ def loo(name: str, model: str, p: np.ndarray, V: np.ndarray, L: np.ndarray,
     return e, bad | ~np.isfinite(p).all(1)
 
 
+def sample_tiles(obs, samples: int = 64, seed: int = 0) -> list[tuple[slice, slice]]:
+    """Up to ``samples`` tiles (rows, cols) of the observation map, at random (all of
+    them on a map of fewer)."""
+    T, S, _ = obs["valid"].shape
+    tiles = _tiles(T, S, int(obs.attrs["tile"]))
+    rng = np.random.default_rng(seed)
+    return [tiles[i] for i in sorted(rng.permutation(len(tiles))[:samples])]
+
+
+def _tiles(T: int, S: int, tile: int) -> list[tuple[slice, slice]]:
+    return [(slice(r, min(r + tile, T)), slice(c, min(c + tile, S)))
+            for r in range(0, T, tile) for c in range(0, S, tile)]
+
+
 def display_gamma(obs, samples: int = 64, seed: int = 0) -> float:
     """The held-out comparison's tone-map gamma (:func:`parammap.holdout.choose_gamma`:
     the 99th percentile at 0.95) from the valid radiance of up to ``samples`` tiles of
     the observation map, at random."""
-    T, S, _ = obs["valid"].shape
-    tile = int(obs.attrs["tile"])
-    starts = [(r, c) for r in range(0, T, tile) for c in range(0, S, tile)]
-    rng = np.random.default_rng(seed)
     vals = []
-    for i in rng.permutation(len(starts))[:samples]:
-        r0, c0 = starts[i]
-        rows, cols = slice(r0, r0 + tile), slice(c0, c0 + tile)
+    for rows, cols in sample_tiles(obs, samples, seed):
         _, L, W, _ = tile_observations(obs, rows, cols)
         vals.append(L[W].ravel())
     vals = np.concatenate(vals)
     return math.log(20.0) / max(float(np.percentile(vals, 99)) if vals.size else 1.0, 1e-12)
+
+
+def candidates(J: int, blend: bool = True) -> list[tuple[int, int]]:
+    """The choices a texel has among J models: each alone, ``(j, j)``, then with
+    ``blend`` the mean of every two, ``(a, b)`` with a < b."""
+    return [(j, j) for j in range(J)] + ([(a, b) for a in range(J) for b in range(a + 1, J)]
+                                         if blend else [])
+
+
+def significance_z(n_candidates: int) -> float:
+    """How many standard errors better than the default a texel's own views must find
+    another candidate: one standard error's one-sided tail (15.9 %) shared among the
+    ``n_candidates - 1`` others (Bonferroni), so that the chance that noise alone moves a
+    texel stays that of one comparison at one standard error however many there are."""
+    return float(norm.isf(ONE_SE_TAIL / max(n_candidates - 1, 1)))
 
 
 def _sh_loo(g, obs, rows: slice, cols: slice) -> tuple[np.ndarray, np.ndarray] | None:
@@ -137,24 +172,31 @@ def _stored(pm: ParamMap) -> int:
 
 
 def error_table(proc: Processed, maps: dict[str, ParamMap], obs,
-                criterion: str = "display") -> tuple[np.ndarray, np.ndarray]:
+                criterion: str = "display", cands: list[tuple[int, int]] | None = None,
+                default: int | None = None,
+                tiles: list[tuple[slice, slice]] | None = None,
+                ) -> tuple[np.ndarray, np.ndarray | None]:
     """Leave-one-view-out error of every candidate at every texel by ``criterion``
-    (module docstring), row-major texels, candidates in the order of ``maps``.
+    (module docstring), row-major texels.
+
+    ``cands``: the candidates, pairs of indices into ``maps`` (:func:`candidates`; default
+    each model alone); a pair's left-out prediction is the mean of its two models' (the
+    left-out prediction of the mean of two fits, exactly). ``tiles``: only these tiles
+    (default all; the other texels inf).
 
     Returns
     -------
-    B : (T S, J) the error (display: weighted mean over the views; press: weighted sum;
-        inf where undefined or not fitted).
-    SE : (T S, J (J - 1) / 2) float32 standard error of the difference ``B_a - B_b``
-        for every pair a > b (:func:`pair_index`), from the spread of the per-view
-        differences (how far the texel's views can tell two candidates apart; inf where
-        either is undefined). Each pair once: 29 MB at 512 x 512 with eight candidates,
-        where the full (J, J) table took 67 MB.
+    B : (T S, C) float32 the error (display: weighted mean over the views; press:
+        weighted sum; inf where undefined or not fitted).
+    SE : (T S, C) float32 standard error of the difference ``B_c - B_default`` from the
+        spread of the per-view differences (how far the texel's views can tell the two
+        apart; inf where either is undefined, 0 for the default itself); None without
+        ``default``.
     """
     if criterion not in CRITERIA:
         raise InputError(f"best.criterion: {criterion!r} is not one of {', '.join(CRITERIA)}")
     T, S, _ = obs["valid"].shape
-    J = len(maps)
+    cands = cands or candidates(len(maps), blend=False)
     stores = {name: _fit_store(proc.fit(name)) for name, pm in maps.items()
               if pm.model == "sh"}
     for name, g in stores.items():
@@ -163,38 +205,34 @@ def error_table(proc: Processed, maps: dict[str, ParamMap], obs,
                            f"coefficients ({proc.fit(name)}: no fit store on the sampled "
                            "cap to rerun), which overstates its error at the cap's edge")
     gamma = display_gamma(obs) if criterion == "display" else None
-    tile = int(obs.attrs["tile"])
     flat_of = np.arange(T * S).reshape(T, S)
-    B = np.full((T * S, J), np.inf)
-    SE = np.full((T * S, J * (J - 1) // 2), np.inf, np.float32)
-    for r0 in range(0, T, tile):
-        for c0 in range(0, S, tile):
-            rows, cols = slice(r0, min(r0 + tile, T)), slice(c0, min(c0 + tile, S))
-            flat = flat_of[rows, cols].ravel()
-            V, L, W, w = tile_observations(obs, rows, cols)
-            E = np.empty((len(flat), J, W.shape[1]))
-            for j, (name, pm) in enumerate(maps.items()):
-                e = _sh_loo(stores[name], obs, rows, cols) if stores.get(name) else None
-                if e is None:
-                    p = pm.params.reshape(T * S, -1)[flat].astype(float)
-                    e = loo(name, pm.model, p, V, L, W, w)
-                E[:, j] = view_errors(e, L, W, gamma)
-            B[flat], SE[flat] = _aggregate(E, W, w, criterion)
+    B = np.full((T * S, len(cands)), np.inf, np.float32)
+    SE = None if default is None else np.full(B.shape, np.inf, np.float32)
+    for rows, cols in tiles or _tiles(T, S, int(obs.attrs["tile"])):
+        flat = flat_of[rows, cols].ravel()
+        V, L, W, w = tile_observations(obs, rows, cols)
+        res = []
+        for name, pm in maps.items():
+            e = _sh_loo(stores[name], obs, rows, cols) if stores.get(name) else None
+            if e is None:
+                p = pm.params.reshape(T * S, -1)[flat].astype(float)
+                e = loo(name, pm.model, p, V, L, W, w)
+            res.append(e)
+        E = np.empty((len(flat), len(cands), W.shape[1]), np.float32)
+        for c, (a, b) in enumerate(cands):
+            e = res[a] if a == b else (0.5 * (res[a][0] + res[b][0]), res[a][1] | res[b][1])
+            E[:, c] = view_errors(e, L, W, gamma)
+        B[flat], se = _aggregate(E, W, w, criterion, default)
+        if SE is not None:
+            SE[flat] = se
     return B, SE
 
 
-def pair_index(a: int, b: int) -> int:
-    """Column of the pair of candidates (a, b), a != b, in :func:`error_table`'s SE."""
-    a, b = max(a, b), min(a, b)
-    return a * (a - 1) // 2 + b
-
-
-def _aggregate(E: np.ndarray, W: np.ndarray, w: np.ndarray,
-               criterion: str) -> tuple[np.ndarray, np.ndarray]:
-    """Per-texel error (n, J) and the standard error of pairwise differences
-    (n, J (J - 1) / 2, :func:`pair_index`) from per-view errors E (n, J, N): the weighted
-    mean (display) or sum (press) of the valid views, the standard error of that
-    statistic for the differences."""
+def _aggregate(E: np.ndarray, W: np.ndarray, w: np.ndarray, criterion: str,
+               default: int | None) -> tuple[np.ndarray, np.ndarray | None]:
+    """Per-texel error (n, C) from per-view errors E (n, C, N): the weighted mean
+    (display) or sum (press) of the valid views; with ``default``, the standard error
+    (n, C) of that statistic for each candidate's difference from the default."""
     ww = np.where(W, w, 0.0)
     sw = ww.sum(1)
     scale = np.ones(len(E)) if criterion == "display" else W.sum(1).astype(float)
@@ -202,67 +240,66 @@ def _aggregate(E: np.ndarray, W: np.ndarray, w: np.ndarray,
         X = np.where(W[:, None], E, 0.0)
         mean = (ww[:, None] * X).sum(2) / sw[:, None]
         B = np.where(np.isfinite(mean), mean * scale[:, None], np.inf)
+        if default is None:
+            return B, None
         # effective number of views of the weighted mean (Kish)
         neff = sw ** 2 / np.maximum((ww ** 2).sum(1), 1e-300)
-        J = B.shape[1]
-        se = np.full((len(B), J * (J - 1) // 2), np.inf)
-        fin = np.isfinite(B)
-        for a in range(J):
-            for b in range(a):
-                d = X[:, a] - X[:, b]
-                md = (ww * d).sum(1) / sw
-                vd = (ww * (d - md[:, None]) ** 2).sum(1) / sw
-                v = np.sqrt(vd / np.maximum(neff - 1, 1)) * scale
-                ok = fin[:, a] & fin[:, b] & np.isfinite(v)
-                se[:, pair_index(a, b)] = np.where(ok, v, np.inf)
-    return B, se.astype(np.float32)
+        d = X - X[:, default:default + 1]
+        md = (ww[:, None] * d).sum(2) / sw[:, None]
+        vd = (ww[:, None] * (d - md[..., None]) ** 2).sum(2) / sw[:, None]
+        v = np.sqrt(vd / np.maximum(neff - 1, 1)[:, None]) * scale[:, None]
+    ok = np.isfinite(B) & np.isfinite(B[:, default:default + 1]) & np.isfinite(v)
+    se = np.where(ok, v, np.inf)
+    se[:, default] = 0.0
+    return B, se
 
 
-def choose(B: np.ndarray, SE: np.ndarray | None, pool_radius: int,
-           shape: tuple[int, int], same: np.ndarray | None = None) -> np.ndarray:
+def choose(B: np.ndarray, SE: np.ndarray | None, default: int, pool_radius: int,
+           shape: tuple[int, int], z: float = 1.0) -> np.ndarray:
     """(T, S) index of the candidate each texel takes.
 
-    From errors B (T S, J) and the standard errors of their differences SE
-    (T S, J (J - 1) / 2, by :func:`pair_index`; :func:`error_table`):
+    From errors B (T S, C) and the standard errors SE (T S, C) of their differences
+    from the candidate ``default`` (:func:`error_table`):
 
     1. the default is the candidate with the least mean error over the map;
     2. a texel takes another only where its own views say that one is better by more
-       than one standard error of the difference (with eight candidates and a few
-       dozen views, the least of eight noisy errors is often least by chance, and a
-       render shows the texel's true error, not its luckiest estimate); among those,
-       the least error. Where the default's error is undefined (one view alone
-       determines its lobe, which leaving that view out cannot judge) the texel keeps
-       the default, as the MH fitter keeps such a lobe. Without SE: the least error;
-    3. ``same`` (T S, J): per texel, the index of the smallest candidate identical to
-       each there (an MH map whose fit found no lobe is the diffuse one), taken instead;
-    4. with ``pool_radius`` > 0, the choice most texels of the (2 r + 1)^2
+       than ``z`` standard errors of the difference (:func:`significance_z`: the least
+       of many noisy errors is often least by chance, and a render shows the texel's
+       true error, not its luckiest estimate); among those, the least error. Where the
+       default's error is undefined (one view alone determines its lobe, which leaving
+       that view out cannot judge) the texel keeps the default, as the MH fitter keeps
+       such a lobe. Without SE: the least error;
+    3. with ``pool_radius`` > 0, the choice most texels of the (2 r + 1)^2
        neighbourhood made.
     """
     T, S = shape
-    n, J = B.shape
-    rows = np.arange(n)
-    fin = np.isfinite(B).all(1)
-    if SE is not None and fin.any():
-        default = int(np.argmin(B[fin].mean(0)))
-        col = np.zeros(B.shape, np.float32)
-        for j in range(J):
-            if j != default:
-                col[:, j] = SE[:, pair_index(j, default)]
-        better = B + col < B[:, [default]]
+    n, C = B.shape
+    if SE is not None:
+        better = B + z * SE < B[:, [default]]
         better[:, default] = True
         own = np.argmin(np.where(better, B, np.inf), 1)
         own = np.where(np.isfinite(B[:, default]), own, default)
     else:
         own = np.argmin(B, 1)
-    if same is not None:
-        own = same[rows, own]
     pool = 2 * pool_radius + 1
     if pool == 1:
         return own.reshape(T, S)
     votes = np.stack([uniform_filter((own == j).reshape(T, S).astype(float), pool,
-                                     mode="constant").ravel() for j in range(J)], 1)
-    votes[rows, own] += 0.5 / pool**2  # a tie keeps the texel's own choice
+                                     mode="constant").ravel() for j in range(C)], 1)
+    votes[np.arange(n), own] += 0.5 / pool**2  # a tie keeps the texel's own choice
     return np.argmax(votes, 1).reshape(T, S)
+
+
+def resolve(cands: list[tuple[int, int]], chosen: np.ndarray,
+            same: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The two models, ``choice`` <= ``partner`` (equal for one model), of the chosen
+    candidates (T, S); ``same`` (T S, J) per texel the smallest model identical to each
+    (:func:`identical`), taken instead."""
+    ab = np.asarray(cands)[chosen.ravel()]
+    if same is not None:
+        rows = np.arange(len(ab))
+        ab = np.stack([same[rows, ab[:, 0]], same[rows, ab[:, 1]]], 1)
+    return ab.min(1).reshape(chosen.shape), ab.max(1).reshape(chosen.shape)
 
 
 def identical(maps: dict[str, ParamMap]) -> np.ndarray:
@@ -282,6 +319,10 @@ def identical(maps: dict[str, ParamMap]) -> np.ndarray:
             ks = sum(np.nan_to_num(P[:, mh_ks(k)]).sum(1) for k in range(K))
             same[(ks <= 0) & np.isfinite(P).all(1), j] = diffuse[0]
     return same
+
+
+def _label(names: list[str], a: int, b: int) -> str:
+    return names[a] if a == b else f"{names[a]}+{names[b]}"
 
 
 def run_best(processed: str | Path, models: list[str], config: dict[str, Any],
@@ -307,50 +348,75 @@ def run_best(processed: str | Path, models: list[str], config: dict[str, Any],
         if pm.shape != (T, S):
             raise InputError(f"best: {name} is {pm.shape[1]}x{pm.shape[0]} texels, the "
                              f"observation map {S}x{T}")
-    criterion = config["best"].get("criterion", "display")
-    B, SE = error_table(proc, maps, obs, criterion)
-    stored = np.array([_stored(m) for m in maps.values()], float)
-    choice = choose(B, SE if config["best"].get("significance", True) else None,
-                    int(config["best"]["pool_radius"]), (T, S), identical(maps))
+    cfg = config["best"]
+    criterion = cfg.get("criterion", "display")
+    names = list(maps)
+    cands = candidates(len(maps), cfg.get("blend", True))
+    labels = [_label(names, a, b) for a, b in cands]
+    # the default from a sample of tiles (the map's mean needs no more), so that the
+    # full pass keeps each candidate's difference from it alone
+    B0, _ = error_table(proc, maps, obs, criterion, cands, tiles=sample_tiles(obs))
+    fin0 = np.isfinite(B0).all(1)
+    default = int(np.argmin(B0[fin0].mean(0))) if fin0.any() else 0
+    logger.info(f"best: default {labels[default]} (least mean leave-one-out error of "
+                f"{len(cands)} candidates over {int(fin0.sum())} sampled texels)")
+    B, SE = error_table(proc, maps, obs, criterion, cands, default)
+    significance = cfg.get("significance", True)
+    z = significance_z(len(cands)) if significance else None
+    chosen = choose(B, SE if significance else None, default, int(cfg["pool_radius"]),
+                    (T, S), z or 1.0)
+    choice, partner = resolve(cands, chosen, identical(maps))
     any_map = next(iter(maps.values()))
-    pm = ParamMap("best", choice[..., None].astype(np.float32), any_map.width_mm,
-                  any_map.height_mm, attrs={"candidates": " ".join(maps)})
+    pm = ParamMap("best", np.stack([choice, partner], -1).astype(np.float32),
+                  any_map.width_mm, any_map.height_mm, attrs={"candidates": " ".join(maps)})
     write_param_map(proc.params(BEST_MODEL), pm)
-    share = {name: float((choice == j).mean()) for j, name in enumerate(maps)}
+    stored = np.array([_stored(m) for m in maps.values()], float)
+    kept = [_label(names, a, b) for a, b in zip(choice.ravel(), partner.ravel(), strict=True)]
+    tally = dict(zip(*np.unique(kept, return_counts=True), strict=True))
+    share = {k: float(v / (T * S)) for k, v in sorted(tally.items(), key=lambda kv: -kv[1])}
     fin = np.isfinite(B).all(1)
-    m = {"candidates": list(maps), "criterion": criterion,
-         # the leave-one-out error of each candidate and of the map (texels where
+    flat_chosen = chosen.ravel()
+    m = {"candidates": names, "criterion": criterion, "default": labels[default],
+         "blend": bool(cfg.get("blend", True)), "significance_z": z,
+         # the leave-one-out error of each model alone and of the map (texels where
          # every candidate is defined): the saving the choice predicts
          "loo_error_median": {name: float(np.median(B[fin, j])) if fin.any() else None
-                              for j, name in enumerate(maps)}
-         | {BEST_MODEL: float(np.median(B[fin, choice.ravel()[fin]])) if fin.any()
-            else None},
+                              for j, name in enumerate(names)}
+         | {BEST_MODEL: float(np.median(B[fin, flat_chosen[fin]])) if fin.any() else None},
          "chosen_fraction": share,
-         "values_per_texel": float(stored[choice].mean()),
+         "values_per_texel": float((stored[choice] + np.where(choice != partner,
+                                                               stored[partner], 0)).mean()),
          "values_per_texel_single": {name: int(s) for name, s in zip(maps, stored,
                                                                         strict=True)}}
     write_metrics(proc.metrics(BEST_MODEL), m)
     logger.info("best: " + ", ".join(f"{k} {100 * v:.1f} %" for k, v in share.items())
                 + f" of the texels; {m['values_per_texel']:.1f} values per texel")
     if figures:
-        _figure(Path(figures) / "best_choice.png", choice, list(maps), share)
+        _figure(Path(figures) / "best_choice.png", kept, (T, S), share)
     return m
 
 
-def _figure(path: Path, choice: np.ndarray, names: list[str], share: dict) -> Path:
+def _figure(path: Path, kept: list[str], shape: tuple[int, int], share: dict,
+            shown: int = 9) -> Path:
+    """The choice map: the ``shown`` most frequent choices, the rest as one colour."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.colors import ListedColormap
 
-    cmap = ListedColormap(plt.get_cmap("tab10").colors[:len(names)])
+    top = list(share)[:shown]
+    cats = top + (["other"] if len(share) > shown else [])
+    index = {k: i for i, k in enumerate(top)}
+    img = np.array([index.get(k, len(top)) for k in kept]).reshape(shape)
+    frac = {k: share[k] for k in top} | {"other": 1 - sum(share[k] for k in top)}
+    cmap = ListedColormap(plt.get_cmap("tab10").colors[:len(cats)])
     fig, ax = plt.subplots(figsize=(6.4, 5.2))
-    im = ax.imshow(choice, cmap=cmap, vmin=-0.5, vmax=len(names) - 0.5,
-                   interpolation="nearest")
-    cb = fig.colorbar(im, ax=ax, ticks=range(len(names)))
-    cb.ax.set_yticklabels([f"{n} ({100 * share[n]:.0f} %)" for n in names], fontsize=7)
-    ax.set_title("Model chosen per texel (leave-one-view-out error)", fontsize=9)
+    im = ax.imshow(img, cmap=cmap, vmin=-0.5, vmax=len(cats) - 0.5, interpolation="nearest")
+    cb = fig.colorbar(im, ax=ax, ticks=range(len(cats)))
+    cb.ax.set_yticklabels([f"{n} ({100 * frac[n]:.0f} %)" for n in cats], fontsize=7)
+    ax.set_title("Model chosen per texel (leave-one-view-out error; a+b: their mean)",
+                 fontsize=9)
     ax.set_xticks([])
     ax.set_yticks([])
     path.parent.mkdir(parents=True, exist_ok=True)

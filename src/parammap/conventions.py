@@ -157,9 +157,10 @@ def mhx_phi(k: int) -> int:
 
 #: A diffuse-only map (the baseline): Kd alone.
 DIFFUSE_CHANNELS = ("Kd.R", "Kd.G", "Kd.B")
-# the best-model-per-texel map (parammap.best): one channel, the index of each texel's
-# model in the header's space-separated "parammap_candidates" (their own EXRs beside it)
-BEST_CHANNELS = ("choice",)
+# the best-model-per-texel map (parammap.best): the indices of each texel's two models in
+# the header's space-separated "parammap_candidates" (their own EXRs beside it), rendered
+# as the mean of the two's radiance; partner == choice where the texel has one model
+BEST_CHANNELS = ("choice", "partner")
 
 
 # --- Spherical harmonics (conventions.md, 004 eqs. 12.1-12.5) -------------------------

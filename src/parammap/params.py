@@ -38,12 +38,12 @@ from .conventions import (
 )
 from .exr import ExrError, read_exr, write_exr
 
-__all__ = ["MODELS", "ParamMap", "channel_names", "export_maps", "param_map_from_fit",
-           "read_param_map", "write_param_map"]
+__all__ = ["MODELS", "ParamMap", "best_shares", "channel_names", "export_maps",
+           "param_map_from_fit", "read_param_map", "write_param_map"]
 
 logger = logging.getLogger(__name__)
 
-MODELS = {"mh": 1, "sh": 1, "diffuse": 1, "best": 1}
+MODELS = {"mh": 1, "sh": 1, "diffuse": 1, "best": 2}
 
 
 class ParamMapError(ExrError):
@@ -58,7 +58,8 @@ def channel_names(model: str, n_params: int) -> list[str]:
         return list(DIFFUSE_CHANNELS)
     if model == "best":
         if n_params != len(BEST_CHANNELS):
-            raise ParamMapError(f"best maps have one channel, choice (got {n_params})")
+            raise ParamMapError(f"best maps have {len(BEST_CHANNELS)} channels, "
+                                 f"{', '.join(BEST_CHANNELS)} (got {n_params})")
         return list(BEST_CHANNELS)
     if model == "mh":
         try:
@@ -88,7 +89,7 @@ class ParamMap:
     hemisphere: str | None = None
     attrs: dict[str, Any] = field(default_factory=dict)
     sd: np.ndarray | None = None  # (T, S, ...) standard deviations (sd_channels), or None
-    # model "best": the candidate maps, by name, that ``params[..., 0]`` indexes
+    # model "best": the candidate maps, by name, that its channels index
     parts: dict[str, ParamMap] | None = None
 
     @property
@@ -159,6 +160,15 @@ def read_param_map(path: str | Path) -> ParamMap:
         parts = {n: read_param_map(Path(path).parent / f"{n}.exr") for n in names}
     return ParamMap(model, params, float(h["width_mm"]), float(h["height_mm"]),
                     h.get("parammap_hemisphere"), extra, sd, parts)
+
+
+def best_shares(params: np.ndarray, n_candidates: int) -> np.ndarray:
+    """(..., J) weight of each candidate in a best map's texels (params (..., 2):
+    ``choice``, ``partner``; conventions.py ``BEST_CHANNELS``): half each where the two
+    differ, all of one where they are the same."""
+    idx = np.rint(np.nan_to_num(np.asarray(params, float)[..., :2])).astype(int)
+    j = np.arange(n_candidates)
+    return 0.5 * ((idx[..., :1] == j).astype(np.float32) + (idx[..., 1:2] == j))
 
 
 def param_map_from_fit(fit_path: str | Path) -> ParamMap:

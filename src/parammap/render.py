@@ -24,7 +24,7 @@ from .geometry import (
     sample_image,
     unit,
 )
-from .params import ParamMap
+from .params import ParamMap, best_shares
 
 __all__ = ["bilinear_corners", "evaluate", "evaluate_bilinear", "lookup_bilinear", "render",
            "reproject_frame", "surface_points", "tone_map"]
@@ -130,11 +130,12 @@ def render(pm: ParamMap, intr: Intrinsics, R: np.ndarray, t: np.ndarray,
     out = np.full(P.shape[:2] + (3,), np.nan, np.float32)
     Pi = P[inside]
     row, col = plane_to_texel(Pi[:, 0], Pi[:, 1], S, T, pm.width_mm, pm.height_mm)
-    if pm.model == "best":  # each candidate where it was chosen, blended like texels
-        choice = np.rint(pm.params[..., 0]).astype(int)
+    if pm.model == "best":  # each candidate with its share of the texels, blended like texels
+        parts = list((pm.parts or {}).values())
+        shares = best_shares(pm.params, len(parts))
         acc = np.zeros((len(Pi), 3))
-        for j, part in enumerate((pm.parts or {}).values()):
-            share = (choice == j).astype(float)[..., None]
+        for j, part in enumerate(parts):
+            share = shares[..., j:j + 1]
             w = (share[np.clip(row.astype(int), 0, T - 1), np.clip(col.astype(int), 0, S - 1)]
                  if interpolation == "nearest" else lookup_bilinear(share, row, col))[:, 0]
             if (w > 0).any():

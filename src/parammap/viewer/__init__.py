@@ -168,7 +168,7 @@ def viewer_layers(pm: ParamMap) -> tuple[np.ndarray, dict]:
         c = p.reshape(T, S, 3, nc).transpose(3, 0, 1, 2)
         layers = list(np.concatenate([c, np.zeros((nc, T, S, 1), np.float32)], -1))
     elif pm.model == "best":
-        layers = [np.concatenate([p[..., :1], np.zeros((T, S, 3), np.float32)], -1)]
+        layers = [np.concatenate([p[..., :2], np.zeros((T, S, 2), np.float32)], -1)]
     else:
         layers = [np.concatenate([p[..., MH_KD], np.zeros((T, S, 1), np.float32)], -1)]
     return np.stack(layers).astype("<f4"), info

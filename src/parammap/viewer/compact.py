@@ -526,7 +526,7 @@ def layers_to_params(layers: np.ndarray, info: dict[str, Any]) -> np.ndarray:
     if info["model"] == "sh":
         return layers[..., :3].transpose(1, 2, 3, 0).reshape(T, S, 3 * L)
     if info["model"] == "best":  # candidate indices
-        return np.rint(layers[0, ..., :1])
+        return np.rint(layers[0, ..., :2])
     return layers[0, ..., :3].copy()
 
 

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from ..conventions import LUMINANCE
-from ..params import ParamMap, channel_names
+from ..params import ParamMap, best_shares, channel_names
 
 __all__ = ["INSPECTOR_BYTES", "decode_inspector", "inspector_payload"]
 
@@ -75,10 +75,11 @@ def inspector_payload(maps: dict[str, ParamMap], radiance: np.ndarray, direction
 
     def predict(pm) -> np.ndarray:
         P = np.nan_to_num(np.asarray(pm.params[sel], float))  # (t, s, P)
-        if pm.model == "best":  # each texel's chosen candidate
-            choice = np.rint(P[..., 0]).astype(int).reshape(-1, 1)
-            return sum(np.where(np.repeat(choice == j, N, axis=0), predict(part), 0.0)
-                       for j, part in enumerate((pm.parts or {}).values()))
+        if pm.model == "best":  # each texel's candidates, with their shares
+            parts = list((pm.parts or {}).values())
+            shares = best_shares(P, len(parts)).reshape(-1, len(parts))
+            return sum(np.repeat(shares[:, j:j + 1], N, axis=0) * predict(part)
+                       for j, part in enumerate(parts))
         return evaluate(pm.model, np.repeat(P.reshape(t * s, -1), N, axis=0), dd)
 
     for name, pm in maps.items():
