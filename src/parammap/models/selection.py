@@ -21,10 +21,15 @@ import numpy as np
 
 from ..conventions import MH_KD, mh_ks, mh_lobes
 from .mh.model import mh_eval
-from .sh import sh_basis
+from .sh import sh_basis, sh_eval
 
-__all__ = ["display_error", "view_errors", "loo_amplitudes", "loo_diffuse", "loo_linear", "loo_sh",
-           "press", "press_linear"]
+__all__ = ["INFLUENCE", "display_error", "influential", "loo_amplitudes", "loo_diffuse",
+           "loo_linear", "loo_sh", "predict", "press", "press_linear", "view_errors"]
+
+#: a view whose left-out residual exceeds its in-sample residual this many times
+#: (leverage above one half for a linear smoother, ``e = r / (1 - h)``) carries more of
+#: its own fitted value than all the other views together
+INFLUENCE = 2.0
 
 Loo = tuple[np.ndarray, np.ndarray]
 
@@ -147,3 +152,29 @@ def loo_sh(C: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
         bad = (h > 1 - 1e-9) & W
         loo = r / np.where(bad, 1.0, 1 - h)[..., None]
     return np.where(W[..., None], loo, 0.0), bad.any(1)
+
+
+def predict(model: str, P: np.ndarray, V: np.ndarray) -> np.ndarray:
+    """(n, N, 3) radiance of parameter rows P (n, p) of ``model`` (``mh``, ``sh``,
+    ``diffuse``; conventions.md layouts) seen from directions V (n, N, 3)."""
+    P = np.nan_to_num(np.asarray(P, float))
+    if model == "diffuse":
+        return np.broadcast_to(P[:, None, MH_KD], V.shape)
+    if model == "sh":
+        return sh_eval(P.reshape(len(P), 3, -1), V)
+    return mh_eval(P, V)
+
+
+def influential(e: np.ndarray, r: np.ndarray, W: np.ndarray,
+                factor: float = INFLUENCE) -> np.ndarray:
+    """(n, N) bool: valid views whose leave-one-out residual e (n, N, 3) exceeds
+    ``factor`` times the in-sample residual r (n, N, 3) of the fit.
+
+    Leaving out such a view measures what the fit loses without it (a lobe that only
+    this view saw is gone), not how the fit with it predicts a new direction; a model
+    that resolves texel detail loses most there, so judged on those views it loses to
+    a smoother one whose new-view predictions are worse (on the analytic demo, 0.2 % of
+    the views with left-out errors above 80 levels ranked the basis materials ahead of
+    mh-auto, which predicts 200 random directions 3 % better)."""
+    with np.errstate(invalid="ignore"):
+        return W & (np.linalg.norm(e, axis=-1) > factor * np.linalg.norm(r, axis=-1))
