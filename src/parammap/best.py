@@ -89,7 +89,8 @@ from .paths import Processed
 logger = logging.getLogger(__name__)
 
 __all__ = ["BEST_MODEL", "CRITERIA", "candidates", "choose", "display_gamma", "error_table",
-           "identical", "loo", "resolve", "run_best", "sample_tiles", "significance_z"]
+           "identical", "loo", "resolve", "run_best", "sample_tiles", "significance_z",
+           "tile_errors"]
 
 BEST_MODEL = "best"
 CRITERIA = ("display", "press")
@@ -211,10 +212,25 @@ def error_table(proc: Processed, maps: dict[str, ParamMap], obs,
         apart; inf where either is undefined, 0 for the default itself); None without
         ``default``.
     """
+    T, S, _ = obs["valid"].shape
+    cands = cands or candidates(len(maps), blend=False)
+    B = np.full((T * S, len(cands)), np.inf, np.float32)
+    SE = None if default is None else np.full(B.shape, np.inf, np.float32)
+    for flat, b, se in tile_errors(proc, maps, obs, criterion, cands, default, tiles):
+        B[flat] = b
+        if SE is not None:
+            SE[flat] = se
+    return B, SE
+
+
+def tile_errors(proc: Processed, maps: dict[str, ParamMap], obs, criterion: str,
+                cands: list[tuple[int, int]], default: int | None = None,
+                tiles: list[tuple[slice, slice]] | None = None):
+    """:func:`error_table` a tile at a time: yields (row-major texel indices (n,), B
+    (n, C), SE (n, C) or None), so that a big map's stage holds one tile's table."""
     if criterion not in CRITERIA:
         raise InputError(f"best.criterion: {criterion!r} is not one of {', '.join(CRITERIA)}")
     T, S, _ = obs["valid"].shape
-    cands = cands or candidates(len(maps), blend=False)
     stores = {name: _fit_store(proc.fit(name)) for name, pm in maps.items()
               if pm.model == "sh"}
     for name, g in stores.items():
@@ -224,8 +240,6 @@ def error_table(proc: Processed, maps: dict[str, ParamMap], obs,
                            "cap to rerun), which overstates its error at the cap's edge")
     gamma = display_gamma(obs) if criterion == "display" else None
     flat_of = np.arange(T * S).reshape(T, S)
-    B = np.full((T * S, len(cands)), np.inf, np.float32)
-    SE = None if default is None else np.full(B.shape, np.inf, np.float32)
     for rows, cols in tiles or _tiles(T, S, int(obs.attrs["tile"])):
         flat = flat_of[rows, cols].ravel()
         V, L, W, w = tile_observations(obs, rows, cols)
@@ -246,10 +260,8 @@ def error_table(proc: Processed, maps: dict[str, ParamMap], obs,
         for c, (a, b) in enumerate(cands):
             e = res[a] if a == b else (0.5 * (res[a][0] + res[b][0]), res[a][1] | res[b][1])
             E[:, c] = view_errors(e, L, Wc, gamma)
-        B[flat], se = _aggregate(E, Wc, w, criterion, default)
-        if SE is not None:
-            SE[flat] = se
-    return B, SE
+        b, se = _aggregate(E, Wc, w, criterion, default)
+        yield flat, b.astype(np.float32), None if se is None else se.astype(np.float32)
 
 
 def _aggregate(E: np.ndarray, W: np.ndarray, w: np.ndarray, criterion: str,
@@ -296,21 +308,28 @@ def choose(B: np.ndarray, SE: np.ndarray | None, default: int, pool_radius: int,
     3. with ``pool_radius`` > 0, the choice most texels of the (2 r + 1)^2
        neighbourhood made.
     """
+    return _pool(_own_choice(B, SE, default, z), B.shape[1], pool_radius, shape)
+
+
+def _own_choice(B: np.ndarray, SE: np.ndarray | None, default: int, z: float) -> np.ndarray:
+    """(n,) each texel's own choice (:func:`choose`, steps 1-2)."""
+    if SE is None:
+        return np.argmin(B, 1)
+    better = B + z * SE < B[:, [default]]
+    better[:, default] = True
+    own = np.argmin(np.where(better, B, np.inf), 1)
+    return np.where(np.isfinite(B[:, default]), own, default)
+
+
+def _pool(own: np.ndarray, C: int, pool_radius: int, shape: tuple[int, int]) -> np.ndarray:
+    """(T, S) the choice most texels of each (2 r + 1)^2 neighbourhood made."""
     T, S = shape
-    n, C = B.shape
-    if SE is not None:
-        better = B + z * SE < B[:, [default]]
-        better[:, default] = True
-        own = np.argmin(np.where(better, B, np.inf), 1)
-        own = np.where(np.isfinite(B[:, default]), own, default)
-    else:
-        own = np.argmin(B, 1)
     pool = 2 * pool_radius + 1
     if pool == 1:
         return own.reshape(T, S)
     votes = np.stack([uniform_filter((own == j).reshape(T, S).astype(float), pool,
                                      mode="constant").ravel() for j in range(C)], 1)
-    votes[np.arange(n), own] += 0.5 / pool**2  # a tie keeps the texel's own choice
+    votes[np.arange(len(own)), own] += 0.5 / pool**2  # a tie keeps the texel's own choice
     return np.argmax(votes, 1).reshape(T, S)
 
 
@@ -385,11 +404,16 @@ def run_best(processed: str | Path, models: list[str], config: dict[str, Any],
     default = int(np.argmin(B0[fin0].mean(0))) if fin0.any() else 0
     logger.info(f"best: default {labels[default]} (least mean leave-one-out error of "
                 f"{len(cands)} candidates over {int(fin0.sum())} sampled texels)")
-    B, SE = error_table(proc, maps, obs, criterion, cands, default)
     significance = cfg.get("significance", True)
     z = significance_z(len(cands)) if significance else None
-    chosen = choose(B, SE if significance else None, default, int(cfg["pool_radius"]),
-                    (T, S), z or 1.0)
+    # a tile at a time: each texel's own choice, its error and each model's alone
+    own = np.zeros(T * S, np.int64)
+    B = np.full((T * S, len(maps) + 1), np.inf, np.float32)
+    for flat, b, se in tile_errors(proc, maps, obs, criterion, cands, default):
+        own[flat] = _own_choice(b, se if significance else None, default, z or 1.0)
+        B[flat, :-1] = b[:, :len(maps)]
+        B[flat, -1] = b[np.arange(len(flat)), own[flat]]
+    chosen = _pool(own, len(cands), int(cfg["pool_radius"]), (T, S))
     choice, partner = resolve(cands, chosen, identical(maps))
     any_map = next(iter(maps.values()))
     pm = ParamMap("best", np.stack([choice, partner], -1).astype(np.float32),
@@ -400,14 +424,13 @@ def run_best(processed: str | Path, models: list[str], config: dict[str, Any],
     tally = dict(zip(*np.unique(kept, return_counts=True), strict=True))
     share = {k: float(v / (T * S)) for k, v in sorted(tally.items(), key=lambda kv: -kv[1])}
     fin = np.isfinite(B).all(1)
-    flat_chosen = chosen.ravel()
     m = {"candidates": names, "criterion": criterion, "default": labels[default],
          "blend": bool(cfg.get("blend", True)), "significance_z": z,
          # the leave-one-out error of each model alone and of the map (texels where
          # every candidate is defined): the saving the choice predicts
          "loo_error_median": {name: float(np.median(B[fin, j])) if fin.any() else None
                               for j, name in enumerate(names)}
-         | {BEST_MODEL: float(np.median(B[fin, flat_chosen[fin]])) if fin.any() else None},
+         | {BEST_MODEL: float(np.median(B[fin, -1])) if fin.any() else None},
          "chosen_fraction": share,
          "values_per_texel": float((stored[choice] + np.where(choice != partner,
                                                                stored[partner], 0)).mean()),
