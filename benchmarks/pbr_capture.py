@@ -78,7 +78,7 @@ def run(preset: str, root: Path, models: list[str], seed: int, reuse_hdr: bool =
     T, S, _ = g["valid"].shape
     dt = ev.true_directions(truth, g.attrs["view_ids"], S, T, g.attrs["width_mm"],
                             g.attrs["height_mm"])
-    ang = np.degrees(np.arccos(np.clip((g["direction"][:] * dt).sum(-1), -1, 1)))[g["valid"][:]]
+    ang = ev.angle_deg(g["direction"][:], dt)[g["valid"][:]]
     res["directions_deg"] = {"median": float(np.median(ang)), "max": float(ang.max())}
     res["holdout_vs_clean"] = ev.holdout_against_truth(
         cap, truth, out, models + extra + (["best"] if materials else []) + ["diffuse"])

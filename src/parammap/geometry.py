@@ -108,15 +108,44 @@ def _distort_with_jacobian(xy: np.ndarray, dist: np.ndarray):
     return np.stack([xd, yd], axis=-1), (a, b, c, d)
 
 
-def undistort_normalized(xy_d: np.ndarray, dist: np.ndarray, iters: int = 40) -> np.ndarray:
+def ray_jacobian(xy: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """How the undistorted normalised point ``xy`` (..., 2) of a fixed pixel moves with
+    the intrinsics: (..., 2, 9) derivatives by fx, fy, cx, cy, k1, k2, p1, p2, k3.
+
+    The pixel fixes the distorted point ``xd = K^-1 (u, v)``; ``xy`` solves
+    ``distort(xy) = xd``, so ``d xy = J^-1 (d xd - d distort / d dist)`` with J the
+    distortion's Jacobian at ``xy`` (implicit function theorem).
+    """
+    xy = np.asarray(xy, float)
+    xd, (a, b, c, d) = _distort_with_jacobian(xy, dist)
+    fx, s, fy = float(K[0, 0]), float(K[0, 1]), float(K[1, 1])
+    x, y = xy[..., 0], xy[..., 1]
+    r2 = x * x + y * y
+    zero = np.zeros_like(x)
+    # the distorted point's change by fx, fy, cx, cy (xd = (u - cx - s yd) / fx,
+    # yd = (v - cy) / fy), then minus the distortion's change by its coefficients
+    dyd = [zero, -xd[..., 1] / fy, zero, np.full_like(x, -1.0 / fy)]
+    dxd = [-xd[..., 0] / fx, -s / fx * dyd[1], np.full_like(x, -1.0 / fx), -s / fx * dyd[3]]
+    dxd += [-x * r2, -x * r2 * r2, -2 * x * y, -(r2 + 2 * x * x), -x * r2 ** 3]
+    dyd += [-y * r2, -y * r2 * r2, -(r2 + 2 * y * y), -2 * x * y, -y * r2 ** 3]
+    ex, ey = np.stack(dxd, -1), np.stack(dyd, -1)
+    det = a * d - b * c
+    det = np.where(np.abs(det) > 1e-12, det, 1e-12)[..., None]
+    return np.stack([(d[..., None] * ex - b[..., None] * ey) / det,
+                     (-c[..., None] * ex + a[..., None] * ey) / det], -2)
+
+
+def undistort_normalized(xy_d: np.ndarray, dist: np.ndarray, iters: int = 40,
+                         guess: np.ndarray | None = None) -> np.ndarray:
     """Invert :func:`distort_normalized` by Newton iterations with the analytic
-    Jacobian (vectorised).
+    Jacobian (vectorised), started at ``guess`` (the points of a nearby camera: two
+    iterations instead of about eight) or at ``xy_d``.
 
     Accurate to ~1e-13 for the moderate distortion of real lenses; OpenCV's
     ``undistortPoints`` stops after 5 fixed-point steps, too few for sub-0.01 px work.
     """
     xy_d = np.asarray(xy_d, float)
-    xy = xy_d.copy()
+    xy = xy_d.copy() if guess is None else np.array(guess, float, copy=True)
     for _ in range(iters):
         dxy, (a, b, c, d) = _distort_with_jacobian(xy, dist)
         f = dxy - xy_d

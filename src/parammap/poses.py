@@ -45,7 +45,13 @@ import cv2
 import numpy as np
 import yaml
 
-from .calibration import Intrinsics, estimate_pose, load_intrinsics, to_gray8
+from .calibration import (
+    PATTERN_NOISE_FACTOR,
+    Intrinsics,
+    estimate_pose,
+    load_intrinsics,
+    to_gray8,
+)
 from .capture import Capture
 from .exr import ExrError
 from .geometry import unit
@@ -209,11 +215,6 @@ def _view_pose(job: tuple) -> dict[str, Any]:
         return {"ok": False, "reason": str(exc)}
     return estimate_pose(cap, intr, to_gray8(rad), cfg["min_markers"], radiance=rad)
 
-
-# A view whose markers' pattern fits with a residual at most this many times the
-# capture's median is not judged by its corners: one misidentified marker among a view's
-# markers leaves about half of its cells wrong, which about doubles the residual sd.
-PATTERN_NOISE_FACTOR = 1.5
 
 
 def corner_gate(recs: list[dict], max_rms_px: float) -> None:
