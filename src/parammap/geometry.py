@@ -18,6 +18,8 @@ __all__ = [
     "camera_centre",
     "distort_normalized",
     "look_at",
+    "normalized_to_plane",
+    "pixel_to_normalized",
     "pixel_to_plane",
     "plane_to_texel",
     "project_points",
@@ -182,11 +184,23 @@ def pixel_to_plane(
     points : (..., 3) intersection points in the surface frame (mm).
     hit : (...) bool, True where the ray meets the plane in front of the camera.
     """
+    return normalized_to_plane(pixel_to_normalized(uv, K, dist), R, t)
+
+
+def pixel_to_normalized(uv: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Undistorted normalised image coordinates (..., 2) of pixel coordinates
+    (..., 2): the camera-frame ray (x, y, 1) of each pixel."""
     uv = np.asarray(uv, float)
     K = np.asarray(K, float)
     xd = np.stack([(uv[..., 0] - K[0, 2] - K[0, 1] * (uv[..., 1] - K[1, 2]) / K[1, 1]) / K[0, 0],
                    (uv[..., 1] - K[1, 2]) / K[1, 1]], axis=-1)
-    xn = undistort_normalized(xd, dist)
+    return undistort_normalized(xd, dist)
+
+
+def normalized_to_plane(xn: np.ndarray, R: np.ndarray, t: np.ndarray,
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`pixel_to_plane` of camera rays (x, y, 1) given by their undistorted
+    normalised coordinates xn (..., 2) (:func:`pixel_to_normalized`)."""
     ray_cam = np.concatenate([xn, np.ones(xn.shape[:-1] + (1,))], axis=-1)
     R = np.asarray(R, float)
     ray = ray_cam @ R  # R.T @ ray for each ray

@@ -337,6 +337,8 @@ def run_poses(cap: Capture, processed: str | Path, cfg: dict, obs_cfg: dict,
         if "solution" in rec:
             row["pose_solution"] = rec["solution"]
             row["pattern_pixels"] = int(rec["pattern_pixels"])
+            if rec.get("pattern_markers"):
+                row["pattern_markers"] = [int(i) for i in rec["pattern_markers"]]
         if rec["ok"] and "rms_waived" in rec:
             row["rms_waived"] = rec["rms_waived"]
         row["markers"] = rec.get("markers", [])

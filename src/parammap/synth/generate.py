@@ -8,6 +8,7 @@ same bytes.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import shutil
@@ -23,6 +24,8 @@ from ..capture import aruco_dictionary
 from ..errors import InputError
 from ..geometry import (
     look_at,
+    normalized_to_plane,
+    pixel_to_normalized,
     pixel_to_plane,
     plane_to_texel,
     project_points,
@@ -192,17 +195,18 @@ def render_radiance(shade, size, K, dist, R, t, ss: int = 2, block: int = 64,
     cheap = np.ones((h, w), bool)
     C = -np.asarray(R).T @ np.asarray(t).ravel()
     n = ss * ss
+    K, dist = np.asarray(K, float), np.asarray(dist, float)
     for r0 in range(0, h, block):
         rows = slice(r0, min(h, r0 + block))
-        uv = _rays(size, K, dist, ss, rows)
-        rad, ok = _shade_samples(shade, uv.reshape(-1, 2), K, dist, R, t, C, refine)
-        rad = rad.reshape(uv.shape[0], w, n, 3)
+        xn = _block_rays(tuple(size), K.tobytes(), dist.tobytes(), ss, rows.start, rows.stop)
+        rad, ok = _shade_samples(shade, None, K, dist, R, t, C, refine, xn=xn)
+        rad = rad.reshape(rows.stop - rows.start, w, n, 3)
         out[rows] = rad.mean(axis=2)
         if edge_ss > ss:
             spread = (rad.max(axis=2) - rad.min(axis=2)).max(-1)
             inner[rows] = spread > 0.02 * rad.mean(axis=2).max(-1)
             if refine is not None:
-                cheap[rows] = ok.reshape(uv.shape[0], w, n).all(-1)
+                cheap[rows] = ok.reshape(rows.stop - rows.start, w, n).all(-1)
     if edge_ss <= ss:
         return out
     # An edge, not smooth shading: samples, or neighbouring pixels, differ by more than
@@ -223,10 +227,23 @@ def render_radiance(shade, size, K, dist, R, t, ss: int = 2, block: int = 64,
     return out
 
 
-def _shade_samples(shade, uv, K, dist, R, t, C, refine=None):
-    """Radiance (M, 3) at pixel positions uv (M, 2) (0 where the ray misses the plane)
-    and, with ``refine``, whether each sample's plane point satisfies it (M,)."""
-    P, hit = pixel_to_plane(uv, K, dist, R, t)
+@functools.lru_cache(maxsize=128)
+def _block_rays(size: tuple[int, int], K: bytes, dist: bytes, ss: int, r0: int, r1: int,
+                ) -> np.ndarray:
+    """Undistorted normalised coordinates (M, 2) of the samples of image rows r0:r1
+    (:func:`_rays`; K and dist as float64 bytes): the same for every view of a camera,
+    so undistorted once (the generator's most expensive step otherwise)."""
+    Km, dm = np.frombuffer(K).reshape(3, 3), np.frombuffer(dist)
+    xn = pixel_to_normalized(_rays(size, Km, dm, ss, slice(r0, r1)).reshape(-1, 2), Km, dm)
+    xn.flags.writeable = False
+    return xn
+
+
+def _shade_samples(shade, uv, K, dist, R, t, C, refine=None, xn=None):
+    """Radiance (M, 3) at pixel positions uv (M, 2) (or at the undistorted normalised
+    coordinates ``xn`` of their rays) (0 where the ray misses the plane) and, with
+    ``refine``, whether each sample's plane point satisfies it (M,)."""
+    P, hit = pixel_to_plane(uv, K, dist, R, t) if xn is None else normalized_to_plane(xn, R, t)
     rad = np.zeros((P.shape[0], 3))
     ok = np.zeros(P.shape[0], bool)
     if hit.any():
