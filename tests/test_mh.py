@@ -315,6 +315,40 @@ def test_repair_weights_by_noise_and_keeps_chi2_current():
     assert 0.5 * np.median(good) < out["chi2"][4, 4] < 2 * np.median(good)
 
 
+def test_repair_takes_the_neighbours_shininess_only_where_a_texel_lacks_its_own():
+    """A texel whose fit left m undetermined (issue 15: a lobe narrower than the view
+    spacing, seen by one view, left m = 150 to 1000 with an sd of ln m of 1 to 100 in
+    the demo's sharp patches) takes what its neighbours say (their precision-weighted
+    mean), its own data permitting. A texel whose own views determine another m keeps
+    it, and the well-observed texels stay as they were."""
+    from parammap.models.mh import repair_mh_tile
+
+    rng = np.random.default_rng(3)
+    p, rad, dirs, valid = _one_material_tile(noise=0.01)
+    rad, valid = rad.copy(), valid.copy()
+    V = dirs[0, 0].astype(float)
+    c = V @ p[7:10]
+    # the centre texel: one view near its highlight; a texel of another
+    # shininess, well observed
+    valid[4, 4] = c < np.cos(np.radians(15.0))
+    valid[4, 4, np.argmax(c)] = True
+    rad[4, 4] *= 1 + 0.02 * rng.standard_normal(rad[4, 4].shape)
+    other = p.copy()
+    other[3] = 10.0
+    rad[1, 1] = mh_eval(other, V)
+    fields = fit_mh_tile(rad, dirs, valid, 1)
+    assert fields["k_used"][4, 4] == 1 and abs(fields["params"][1, 1, 3] / 10.0 - 1) < 0.02
+    fields["params"][4, 4, 3] = 150.0
+    fields["sd"][4, 4, 3] = np.nan
+    before = {k: v.copy() for k, v in fields.items()}
+    out = repair_mh_tile(fields, rad, dirs, valid, (0, 0), K=1)
+    assert out["changed"][4, 4] == 1
+    assert abs(np.log(out["params"][4, 4, 3] / 40.0)) < 0.05, out["params"][4, 4]
+    keep = np.ones((9, 9), bool)
+    keep[4, 4] = False
+    np.testing.assert_array_equal(out["params"][keep], before["params"][keep])
+
+
 def test_repair_clears_a_stain_wider_than_the_neighbourhood():
     """A 7x7 blob of poor minima in a 9x9 neighbourhood hides its own core (the
     neighbourhood median is itself poor there): rounds repair it from the rim inwards,

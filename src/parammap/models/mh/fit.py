@@ -431,7 +431,7 @@ def _objective(V: np.ndarray, L: np.ndarray, K: int, loss: str, f: float,
 
 def fit_texel(V: np.ndarray, L: np.ndarray, p0: np.ndarray,
               cfg: MhFitConfig = MhFitConfig(), w: np.ndarray | None = None,
-              polish: bool = True, lm: bool = True) -> FitResult:
+              polish: bool = True, lm: bool = True, fixed_m: bool = False) -> FitResult:
     """Bounded nlopt fit of one texel from initial parameters ``p0`` (4 + 6K), after
     compiled Levenberg-Marquardt steps (where numba is present; ``polish=False``: those
     steps only, to rank several starts before polishing the best; ``lm=False``: none,
@@ -442,6 +442,7 @@ def fit_texel(V: np.ndarray, L: np.ndarray, p0: np.ndarray,
     V : (n, 3) unit view directions of the valid observations.
     L : (n, 3) their radiance.
     w : (n,) observation weights (:mod:`.weights`; default 1); the RSS is weighted.
+    fixed_m : keep the shininess of ``p0`` (its bounds closed on it).
 
     Returns
     -------
@@ -455,6 +456,8 @@ def fit_texel(V: np.ndarray, L: np.ndarray, p0: np.ndarray,
     nx = len(x0)
     lb, ub = _bounds(K, KS_CAP * float(Ls.max()))
     x0 = np.clip(x0, lb, ub)
+    if fixed_m:
+        lb[MHX_LNM] = ub[MHX_LNM] = x0[MHX_LNM]
     if lm and lm_batch is not None and cfg.loss == "linear" and K > 0:
         # compiled LM steps first (cheap, and quadratic near the optimum): nlopt polishes
         X = x0[None].copy()

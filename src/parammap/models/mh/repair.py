@@ -1,12 +1,17 @@
 """Repair of MH \"stains\": texels stuck in a poor local minimum beside well-fitted
 neighbours of the same material are refit from the neighbours' parameters; so are
 texels that missed a lobe their neighbours found (a whole patch can miss a second
-highlight, and then its neighbourhood median does not expose it)."""
+highlight, and then its neighbourhood median does not expose it). Texels whose own
+views leave the shininess undetermined take their neighbours'."""
 
 from __future__ import annotations
 
+import math
+import warnings
+
 import numpy as np
 from scipy.ndimage import maximum_filter
+from scipy.stats import chi2
 
 from ...conventions import (
     MH_KD,
@@ -37,6 +42,15 @@ REPAIR_ROUNDS = 32  # a stain wider than the neighbourhood is repaired from its 
 # LM steps that rank a texel's starts (the best is then converged and polished): on
 # the demo the same repaired RMSE as 60 steps to three digits, the repair 1.25x faster
 RANK_ITERS = 20
+# Shininess pooled from the neighbours (:func:`_pool_shininess`): a refit with m held
+# at the pooled value is taken while its likelihood ratio against the texel's own fit
+# stays below chi-square(1 dof) at 99 %; pulls below POOL_MIN_SHIFT in ln m (5 % in m)
+# are not refitted; a window needs POOL_MIN_NEIGHBOURS texels with a lobe to say
+# anything; no texel's sd of ln m counts below POOL_SD_FLOOR (a weight, not infinity).
+POOL_LR = float(chi2.ppf(0.99, 1))
+POOL_MIN_SHIFT = 0.05
+POOL_MIN_NEIGHBOURS = 5
+POOL_SD_FLOOR = 1e-3
 
 
 def _neighbourhood_median(e: np.ndarray, radius: int, strip_elements: int = 1 << 22,
@@ -164,7 +178,8 @@ def repair_mh_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
                    K: int | str, cfg: MhFitConfig | None = None,
                    noise: np.ndarray | None = None,
                    factor: float = REPAIR_FACTOR, radius: int = REPAIR_RADIUS,
-                   starts: int = REPAIR_STARTS) -> dict[str, np.ndarray] | None:
+                   starts: int = REPAIR_STARTS, pool: bool = True,
+                   ) -> dict[str, np.ndarray] | None:
     """Refit the texels of a tile that stand out from their neighbourhood.
 
     A texel whose RMSE (mean over channels) exceeds ``factor`` times the median over its
@@ -186,6 +201,9 @@ def repair_mh_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
     noise : (t, u, N) relative sd per observation: the refits weight the observations
         as the tile pass did (:func:`~parammap.models.weights.noise_weights`; RSS and
         BIC weighted alike), and ``chi2`` of a repaired texel is recomputed.
+
+    Then, with ``pool``, texels whose own views leave m undetermined take their
+    neighbours' (:func:`_pool_shininess`).
 
     Texels repaired in one round serve as starts in the next, up to
     :data:`REPAIR_ROUNDS` rounds: a stain larger than the neighbourhood raises the
@@ -216,6 +234,23 @@ def repair_mh_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
     tried = np.zeros((t, u), bool)
     data = _tile_data(radiance, direction, valid, noise)
     NZ = None if noise is None else noise.reshape(t * u, -1)
+
+    def take(i: int, j: int, p: np.ndarray, k: int) -> None:
+        """Write a refit of the tile's texel (i, j) into the tile and the halo copies."""
+        w = data[2][i * u + j] > 0
+        V, L = data[0][i * u + j][w], data[1][i * u + j][w]
+        fitted = mh_eval(p, V)
+        out["params"][i, j] = params[i + oy, j + ox] = p
+        out["k_used"][i, j] = kused[i + oy, j + ox] = k
+        out["status"][i, j] = status[i + oy, j + ox] = FitStatus.OK
+        out["rmse"][i, j] = rmse[i + oy, j + ox] = np.sqrt(((fitted - L) ** 2).mean(0))
+        out["mpr"][i, j] = mean_percentage_residual(L, fitted)
+        if "chi2" in out:
+            out["chi2"][i, j] = reduced_chi2(
+                L[None], fitted[None], None if NZ is None else NZ[i * u + j][w][None],
+                np.ones((1, len(L)), bool), mhx_size(k))[0]
+        out["changed"][i, j] = 1
+
     fresh = None  # texels changed in the last round: their neighbours are tried again
     for _ in range(REPAIR_ROUNDS):
         e = np.where(status == FitStatus.OK, np.nanmean(rmse, -1), np.nan)
@@ -247,29 +282,151 @@ def repair_mh_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
             out["evals"][i, j] += evals
             if p is None:
                 continue
-            w = data[2][i * u + j] > 0
-            V, L = data[0][i * u + j][w], data[1][i * u + j][w]
-            fitted = mh_eval(p, V)
-            out["params"][i, j] = params[i + oy, j + ox] = p
-            out["k_used"][i, j] = kused[i + oy, j + ox] = k
-            out["status"][i, j] = status[i + oy, j + ox] = FitStatus.OK
-            out["rmse"][i, j] = rmse[i + oy, j + ox] = np.sqrt(((fitted - L) ** 2).mean(0))
-            out["mpr"][i, j] = mean_percentage_residual(L, fitted)
-            if "chi2" in out:
-                out["chi2"][i, j] = reduced_chi2(
-                    L[None], fitted[None], None if NZ is None else NZ[i * u + j][w][None],
-                    np.ones((1, len(L)), bool), mhx_size(k))[0]
-            out["changed"][i, j] = 1
+            take(i, j, p, k)
             fresh[i + oy, j + ox] = True
         if not fresh.any():
             break
     if "sd" in out and out["changed"].any():
-        # the uncertainties of every repaired texel at once (nothing above reads them)
-        ci, cj = np.nonzero(out["changed"])
-        b = ci * u + cj
-        out["sd"][ci, cj] = parameter_sd(out["params"][ci, cj].astype(float), data[0][b],
-                                         data[1][b], data[2][b] > 0, data[2][b])
+        _update_sd(out, data, u, out["changed"] > 0)
+    if pool and "sd" in out and "sd" in fields:
+        sd = np.array(fields["sd"], copy=True)
+        sd[sl] = out["sd"]
+        pooled = _pool_shininess(params, sd, kused, status, data, offset, (t, u), take,
+                                 out, cfg=cfg, radius=radius)
+        if pooled.any():
+            _update_sd(out, data, u, pooled)
     return out if out["changed"].any() or tried.any() else None
+
+
+def _update_sd(out: dict[str, np.ndarray], data: tuple[np.ndarray, np.ndarray, np.ndarray],
+               width: int, which: np.ndarray) -> None:
+    """The parameter uncertainties of the tile's texels ``which`` (t, u), all at once."""
+    ci, cj = np.nonzero(which)
+    b = ci * width + cj
+    out["sd"][ci, cj] = parameter_sd(out["params"][ci, cj].astype(float), data[0][b],
+                                     data[1][b], data[2][b] > 0, data[2][b])
+
+
+def shininess_prior(lnm: np.ndarray, s: np.ndarray, use: np.ndarray, at: np.ndarray,
+                    radius: int = REPAIR_RADIUS,
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What each point's neighbours say of its ln m: a random-effects mean (DerSimonian
+    and Laird 1986) over its (2 ``radius`` + 1)^2 window, itself left out.
+
+    Each neighbour's ln m counts with weight 1 / (s^2 + tau^2): s its own sd (from its
+    fit's Jacobian), tau^2 the spread between neighbours beyond their own noise, by the
+    moments of the fixed-effect fit, after leaving out the neighbours far from the
+    median (another material beside the patch). A window that
+    straddles two materials evenly has a large tau^2, so its mean says little; one
+    within a uniform patch says as much as its well-determined texels together.
+
+    Parameters
+    ----------
+    lnm, s : (H, W) ln m and its sd (inf where undetermined); use : (H, W) bool, the
+    texels that count (a lobe fitted); at : (n, 2) points (row, col).
+
+    Returns
+    -------
+    (n,) prior mean, (n,) its variance for the point (tau^2 plus the mean's own), (n,)
+    neighbours counted.
+    """
+    Y, X, inside = _window(at, radius, lnm.shape)
+    ok = inside & use[Y, X] & np.isfinite(s[Y, X]) \
+        & ~((Y == at[:, :1]) & (X == at[:, 1:]))
+    x = np.where(ok, lnm[Y, X], 0.0)
+    v = np.where(ok, np.maximum(s[Y, X], POOL_SD_FLOOR) ** 2, 1.0)
+    # the material most of the window's texels belong to: neighbours far from their
+    # median (beyond 3 sd of their own noise and of the window's robust spread) are
+    # another material's and left out (a precision-weighted median would follow one
+    # texel of exact data)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a window with no neighbour
+        centre = np.nanmedian(np.where(ok, x, np.nan), 1)
+        dev = np.abs(x - centre[:, None])
+        spread = 1.4826 * np.nanmedian(np.where(ok, dev, np.nan), 1)
+    ok &= dev <= 3.0 * np.sqrt(v + np.nan_to_num(spread)[:, None] ** 2)
+    w = np.where(ok, 1.0 / v, 0.0)
+    k = ok.sum(1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sw = w.sum(1)
+        fixed = (w * x).sum(1) / sw
+        Q = (w * (x - fixed[:, None]) ** 2).sum(1)
+        tau2 = np.maximum((Q - (k - 1)) / (sw - (w * w).sum(1) / sw), 0.0)
+        ws = np.where(ok, 1.0 / (v + tau2[:, None]), 0.0)
+        mean = (ws * x).sum(1) / ws.sum(1)
+        var = tau2 + 1.0 / ws.sum(1)
+    return mean, var, k
+
+
+def _pool_shininess(params: np.ndarray, sd: np.ndarray, kused: np.ndarray,
+                    status: np.ndarray, data: tuple[np.ndarray, np.ndarray, np.ndarray],
+                    offset: tuple[int, int], shape: tuple[int, int], take, out: dict,
+                    *, cfg: MhFitConfig, radius: int) -> np.ndarray:
+    """Shininess its own views leave undetermined, taken from the neighbours.
+
+    Where a lobe is narrower than the spacing of the views, one or two views see it and
+    a texel's m is not determined by its own data (sd of ln m of 1 to 100 in the demo's
+    m = 150 and 900 patches) and scatters around the patch's. Each texel's ln m is
+    combined with what its neighbours say (:func:`shininess_prior`), each weighted by
+    its precision: a texel whose own data determine m keeps it, an undetermined one
+    takes the neighbours'. Where that moves m by more than :data:`POOL_MIN_SHIFT`, the
+    texel is refit with m held there (where the move is also more than twice the sd of
+    what the neighbours say), and the refit is taken only where its own data
+    do not reject it (likelihood ratio of one parameter fixed below :data:`POOL_LR`,
+    99 %): a prior that would bias a texel whose data are good is never applied.
+    Returns (t, u) bool: the texels changed (``take(i, j, params, lobes)`` applied).
+    """
+    oy, ox = offset
+    t, u = shape
+    Vt, Lt, Wt = data
+    m = params[..., MH_M].astype(float)
+    Kmax = mh_lobes(params.shape[-1])
+    ks = sum(np.nan_to_num(params[..., mh_ks(k)].astype(float)).sum(-1) for k in range(Kmax))
+    use = (status == FitStatus.OK) & (kused >= 1) & (ks > 0) & np.isfinite(m) & (m > 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        lnm = np.where(use, np.log(np.where(use, m, 1.0)), 0.0)
+        s = np.where(use, sd[..., MH_M] / np.where(use, m, 1.0), np.inf)
+    s = np.where(np.isfinite(s) & (s > 0), s, np.inf)
+    changed = np.zeros((t, u), bool)
+    ci, cj = np.nonzero(use[oy:oy + t, ox:ox + u])
+    if len(ci) == 0:
+        return changed
+    at = np.stack([ci + oy, cj + ox], 1)
+    mean, var, k = shininess_prior(lnm, s, use, at, radius)
+    own, si = lnm[at[:, 0], at[:, 1]], s[at[:, 0], at[:, 1]]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        prec = np.where(np.isfinite(si), 1.0 / np.maximum(si, POOL_SD_FLOOR) ** 2, 0.0)
+        post = (prec * own + mean / var) / (prec + 1.0 / var)
+    # a move is made where it is larger than POOL_MIN_SHIFT and than twice the prior's
+    # own sd: neighbours that disagree among themselves (a window across two materials)
+    # say too little to move a texel by
+    shift = np.abs(post - own)
+    go = (k >= POOL_MIN_NEIGHBOURS) & np.isfinite(post) & (shift > POOL_MIN_SHIFT) \
+        & (shift > 2.0 * np.sqrt(var))
+    for n in np.flatnonzero(go):
+        i, j = int(ci[n]), int(cj[n])
+        b = i * u + j
+        w = Wt[b] > 0
+        V, L, wt = Vt[b][w], Lt[b][w], Wt[b][w]
+        lobes = int(kused[i + oy, j + ox])
+        p0 = np.array(params[i + oy, j + ox, : mh_size(lobes)], float)
+        rss0 = float(np.sum(wt[:, None] * (mh_eval(p0, V) - L) ** 2))
+        p0[MH_M] = math.exp(post[n])
+        try:
+            r = fit_texel(V, L, p0, cfg, w=wt, fixed_m=True)
+        except Exception:  # noqa: BLE001 - the texel keeps its own fit
+            continue
+        out["evals"][i, j] += r.evals
+        if r.status != FitStatus.OK or not (3 * len(V) * math.log(max(r.rss, 1e-300)
+                                                               / max(rss0, 1e-300)) < POOL_LR):
+            continue
+        p = np.zeros(mh_size(Kmax))
+        p[: mh_size(lobes)] = r.params
+        for extra in range(lobes, Kmax):
+            p[mh_dir_z(extra)] = 1.0
+        take(i, j, p, lobes)
+        changed[i, j] = True
+    return changed
 
 
 def _missed_lobes(params: np.ndarray, kused: np.ndarray, rmse: np.ndarray,
