@@ -4,12 +4,12 @@ cut the held-out error more than as many random views?
 From a processed physically based capture (``benchmarks/pbr_capture.py`` first), a
 ``--pool`` of its fitted views is set aside (seeded at random) and the rest are fitted
 (``--model``, an MH fit). The advisor ranks the pool's directions (as seen from the
-region's centre) by the greedy D-optimal design of the ``advise`` stage on that fit;
-its ``--count`` best are added back and the map refitted, and so are the pool views
-that fill the largest gaps between the fitted ones (the advisor's fallback) and
-``--random`` draws of as many pool views at random. Each map is compared with the clean
-renders of the capture's held-out views (mean 8-bit difference, as
-``pbr_capture.py``). The pool's
+region's centre) by the greedy design of the ``advise`` stage on that fit (I-optimal,
+and the D-optimal one for comparison); its ``--count`` best are added back and the
+map refitted, and so are the pool views that fill the largest gaps between the fitted
+ones (the advisor's fallback) and ``--random`` draws of as many pool views at random.
+Each map is compared with the clean renders of the capture's held-out views (mean 8-bit
+difference, as ``pbr_capture.py``). The pool's
 views are real photos of the capture, so no view is rendered anew.
 
     python benchmarks/advisor_pbr.py --preset pbr-tiny --pool 8 --count 3 --random 3
@@ -64,7 +64,7 @@ def _fit(cap: Path, truth: Path, work: Path, poses: dict, kept: set[str],
 
 
 def _advise(work: Path, model: str, pool_dirs: np.ndarray, count: int,
-            seed: int) -> list[int]:
+            seed: int, criterion: str = "prediction") -> list[int]:
     """Indices into the pool of the ``count`` directions the advisor ranks first."""
     cfg = validate_config({"captures": {"x": "."}})["advisor"]
     _, obs, P, fitted = open_mh_source(work, model, "advisor.source")
@@ -73,7 +73,7 @@ def _advise(work: Path, model: str, pool_dirs: np.ndarray, count: int,
     idx, V, L, W, w = sample_texel_observations(obs, np.flatnonzero(fitted), S,
                                                 int(obs.attrs["tile"]), int(cfg["sample"]),
                                                 rng)
-    order, _, _ = advise_directions(P[idx], V, L, W, w, pool_dirs, count)
+    order, _, _ = advise_directions(P[idx], V, L, W, w, pool_dirs, count, criterion)
     return [int(i) for i in order]
 
 
@@ -95,8 +95,13 @@ def run(preset: str, root: Path, pool: int, count: int, draws: int, model: str,
     t0 = time.perf_counter()
     res["base"] = _fit(cap, truth, work, poses, base, model)
     picked = [pool_ids[i] for i in _advise(work, model, pool_dirs, count, seed)]
+    # the D-optimal design on the parameters, which the I-optimal default replaced
+    volume = [pool_ids[i] for i in _advise(work, model, pool_dirs, count, seed, "volume")]
     res["advised_views"] = picked
     res["advised"] = _fit(cap, truth, work, poses, base | set(picked), model)
+    res["volume_views"] = volume
+    res["volume"] = res["advised"] if set(volume) == set(picked) else \
+        _fit(cap, truth, work, poses, base | set(volume), model)
     # the advisor's own fallback: fill the largest gaps between the views (greedy)
     have = unit(np.array([centre[i] for i in base]) - X0)
     gap = np.degrees(np.arccos(np.clip((pool_dirs @ have.T).max(1), -1, 1)))
@@ -119,6 +124,7 @@ def run(preset: str, root: Path, pool: int, count: int, draws: int, model: str,
         return float(np.mean([row[model] for row in errs.values()]))
 
     res["mean"] = {"base": mean(res["base"]), "advised": mean(res["advised"]),
+                   "volume": mean(res["volume"]),
                    "gaps": mean(res["gaps"]),
                    "random": [mean(r["errors"]) for r in res["random"]]}
     return res
@@ -139,7 +145,8 @@ if __name__ == "__main__":
     m = r["mean"]
     print(f"{a.preset} {a.model}: held-out mean 8-bit difference with {r['fitted_before']} "
           f"views {m['base']:.2f}; + {a.count} advised {r['advised_views']} "
-          f"{m['advised']:.2f}; + {a.count} filling gaps {r['gap_views']} {m['gaps']:.2f}; "
+          f"{m['advised']:.2f}; + {a.count} D-optimal {r['volume_views']} {m['volume']:.2f}; "
+          f"+ {a.count} filling gaps {r['gap_views']} {m['gaps']:.2f}; "
           f"+ {a.count} random " + ", ".join(f"{x:.2f}" for x in
                                                               m["random"])
           + f" (mean {np.mean(m['random']):.2f}); {r['seconds']:.0f} s")

@@ -4,10 +4,12 @@ From a finished MH fit (``advisor.source``, default ``mh-auto``) and its observa
 map: a sample of the fitted texels (whole tiles, as the materials stage samples) and
 their own views give each texel's information matrix; candidate camera directions
 spread evenly over the hemisphere up to ``observation.max_zenith_deg`` are ranked by
-greedy D-optimal design. Texels without a lobe gain little from any view: where no
-sampled texel has one (every highlight fell between the views, or the surface is
-matte), the candidates are ranked by their angle to the nearest captured view instead
-(filling the largest gaps), and the advice says so.
+greedy design (``advisor.criterion``): ``prediction`` (default, I-optimal), by how much
+a view there would lower the variance of the texels' renders over the hemisphere;
+``volume`` (D-optimal), the volume of their parameters' uncertainty. Texels without a
+lobe gain little from any view: where no sampled texel has one (every highlight fell
+between the views, or the surface is matte), the candidates are ranked by their angle to
+the nearest captured view instead (filling the largest gaps), and the advice says so.
 
 Writes ``metrics/advice.json`` (the ranked directions: zenith and azimuth in degrees in
 the surface frame, conventions.md, and each one's gain) and, with a report folder,
@@ -72,8 +74,9 @@ def run_advisor(processed: str | Path, config: dict[str, Any],
     count = int(cfg["count"])
     if lobed.any():
         order, gain, first = advise_directions(Ps[lobed], V[lobed], L[lobed], W[lobed],
-                                               w[lobed], cand, count)
-        basis = "D-optimal design on the fitted lobes"
+                                               w[lobed], cand, count, cfg["criterion"])
+        basis = ("I-optimal design: the variance of renders of the fitted lobes"
+                 if cfg["criterion"] == "prediction" else "D-optimal design on the fitted lobes")
     else:  # no highlight to pin down: fill the largest gaps between the views
         order, gain = [], []
         first = np.degrees(np.arccos(np.clip((cand @ captured.T).max(1), -1, 1))) \

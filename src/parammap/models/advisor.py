@@ -22,7 +22,8 @@ import numpy as np
 
 from .mh.uncertainty import _linearised
 
-__all__ = ["advise_directions", "hemisphere_candidates", "view_gains"]
+__all__ = ["CRITERIA", "advise_directions", "hemisphere_candidates", "prediction_gains",
+           "view_gains"]
 
 
 def hemisphere_candidates(count: int = 400, max_zenith_deg: float = 80.0) -> np.ndarray:
@@ -62,10 +63,30 @@ def view_gains(A: np.ndarray, Jc: np.ndarray) -> np.ndarray:
     return np.where(sign > 0, logdet, 0.0)
 
 
+def prediction_gains(A: np.ndarray, Jc: np.ndarray, Mu: np.ndarray) -> np.ndarray:
+    """(n, M) how much a view in each candidate direction would lower each texel's
+    summed prediction variance ``tr(M_U A^-1)`` (in units of the noise variance):
+    ``tr((I + J_v A^-1 J_v^T)^-1 J_v A^-1 M_U A^-1 J_v^T)`` (Woodbury), ``Mu`` (n, nx,
+    nx) the texel's ``sum_u J_u^T J_u`` over the directions its renders are judged in."""
+    Ai = np.linalg.inv(A)
+    G = np.matmul(np.matmul(Ai, Mu), Ai)
+    S = np.einsum("nmik,nkl,nmjl->nmij", Jc, Ai, Jc, optimize=True)
+    T = np.einsum("nmik,nkl,nmjl->nmij", Jc, G, Jc, optimize=True)
+    g = np.trace(np.linalg.solve(np.eye(3) + S, T), axis1=2, axis2=3)
+    return np.where(np.isfinite(g), np.maximum(g, 0.0), 0.0)
+
+
+CRITERIA = ("prediction", "volume")
+
+
 def advise_directions(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
                       weights: np.ndarray | None, cand: np.ndarray, count: int = 10,
+                      criterion: str = "prediction",
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Greedy D-optimal choice of ``count`` new view directions among ``cand``.
+    """Greedy choice of ``count`` new view directions among ``cand``: I-optimal
+    (``prediction``: the largest drop of the variance of the renders over the
+    hemisphere, each texel relative to its own brightness) or D-optimal (``volume``:
+    the parameters' uncertainty volume, module docstring).
 
     Parameters
     ----------
@@ -80,11 +101,24 @@ def advise_directions(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray
     log-det gain of each when chosen; first : (M,) every candidate's gain before any
     choice (the map a figure draws).
     """
-    A, free = _information(np.asarray(P, float), V, L, W, weights)
-    Jc = _candidate_rows(np.asarray(P, float), np.asarray(cand, float), free)
+    if criterion not in CRITERIA:
+        raise ValueError(f"unknown advisor criterion {criterion!r} (one of {CRITERIA})")
+    P = np.asarray(P, float)
+    A, free = _information(P, V, L, W, weights)
+    Jc = _candidate_rows(P, np.asarray(cand, float), free)
+    if criterion == "prediction":
+        # renders judged over the candidates themselves (spread evenly in solid angle),
+        # each texel's variance relative to its mean radiance there: a display error
+        # is about relative (a tone curve), and a bright texel must not rule alone
+        from .mh.model import mh_eval
+
+        level = np.maximum(np.mean(mh_eval(P, np.broadcast_to(cand, (len(P),) + cand.shape)),
+                                   (1, 2)), 1e-12)
+        Mu = np.einsum("nmik,nmil->nkl", Jc, Jc) / level[:, None, None] ** 2
     order, gain, first = [], [], None
     for _ in range(min(count, len(cand))):
-        g = view_gains(A, Jc).sum(0)
+        g = (prediction_gains(A, Jc, Mu) if criterion == "prediction"
+             else view_gains(A, Jc)).sum(0)
         if first is None:
             first = g.copy()
         g[order] = -np.inf
