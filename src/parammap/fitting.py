@@ -487,7 +487,9 @@ def fit_mh_map(obs_path: str | Path, out_path: str | Path, K: int | str, cfg: di
         raise InputError(f"fit.mh.algorithm: unknown {fcfg.algorithm!r} "
                          f"(one of {', '.join(ALGORITHMS)})")
     K_max = cfg.get("K_max", 3) if K == "auto" else K
-    repair = partial(repair_mh_tile, K=K, cfg=fcfg) if cfg.get("repair", True) else None
+    pool = bool(cfg.get("pool_shininess", True))
+    repair = partial(repair_mh_tile, K=K, cfg=fcfg, pool=pool) if cfg.get("repair", True) \
+        else None
     res = fit_map(obs_path, out_path, partial(fit_mh_tile, K=K, cfg=fcfg, K_max=K_max),
                   mh_outputs(K_max),
                   {"model": "mh", "model_version": 1, "lobes": str(K), "K_max": K_max,
@@ -495,7 +497,8 @@ def fit_mh_map(obs_path: str | Path, out_path: str | Path, K: int | str, cfg: di
                              "lobeK.d.Y lobeK.d.Z)*K",
                    "fit": {k: getattr(fcfg, k) for k in MhFitConfig.__dataclass_fields__},
                    "repair": {"factor": REPAIR_FACTOR, "radius": REPAIR_RADIUS,
-                              "starts": REPAIR_STARTS} if repair else None},
+                              "starts": REPAIR_STARTS, "pool_shininess": pool}
+                   if repair else None},
                   scheduler, workers, repair_fn=repair, halo=REPAIR_RADIUS,
                   start_method=start_method)
     g = open_fit(out_path)
