@@ -7,11 +7,13 @@ the viewer was tested."""
 from __future__ import annotations
 
 import base64
+import contextlib
 import io
 import os
 import shutil
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -33,6 +35,36 @@ if IN_CI:  # fail, not skip (issue 17): CI installs the browser
 playwright = pytest.importorskip("playwright.sync_api", reason="playwright not installed")
 pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="system chromium not installed")
 ARGS = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"]
+
+
+@pytest.fixture(scope="module")
+def chromium():
+    """One Chromium for the module's tests (a launch took 2-3 s a test)."""
+    with playwright.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        yield browser
+        browser.close()
+
+
+class _Context:
+    """A fresh browser context of the shared Chromium, standing in for a browser a test
+    launched: closing it closes the context only."""
+
+    def __init__(self, browser):
+        self._ctx = browser.new_context()
+
+    def new_page(self):
+        return self._ctx.new_page()
+
+    def close(self):
+        self._ctx.close()
+
+
+@contextlib.contextmanager
+def _shared(browser):
+    """Stands in for ``playwright.sync_playwright()`` in a test: its
+    ``chromium.launch(...)`` hands out a fresh context of the shared ``browser``."""
+    yield SimpleNamespace(chromium=SimpleNamespace(launch=lambda **_: _Context(browser)))
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +106,7 @@ def tiled_viewer_dir(viewer_dir, tmp_path_factory):
 TILED_BUDGET_MB = 0.02  # the tiled page's float-layer budget: its SH map is reduced
 
 
-def test_page_assembles_tiles_and_reduces_sh_tile_by_tile(viewer_dir, tiled_viewer_dir):
+def test_page_assembles_tiles_and_reduces_sh_tile_by_tile(viewer_dir, tiled_viewer_dir, chromium):
     """A map in tiles decodes to the same layers as in one payload (the quantisation is
     the map's, not the tile's), in numpy and in the page. An SH map above the page's
     float-layer budget (set small) is shown from its stored level where the page's
@@ -88,7 +120,7 @@ def test_page_assembles_tiles_and_reduces_sh_tile_by_tile(viewer_dir, tiled_view
     _, _, vdir = viewer_dir
     whole = {m["name"]: m for m in json.loads((vdir / "manifest.json").read_text())["models"]}
     tiled = json.loads((tiled_viewer_dir / "manifest.json").read_text())["models"]
-    with playwright.sync_playwright() as p:
+    with _shared(chromium) as p:
         browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
         page = browser.new_page()
         errors = []
@@ -155,13 +187,13 @@ def _canvas(page) -> np.ndarray:
 
 
 @pytest.mark.parametrize("exact", [True, False])
-def test_held_out_view_matches_python_renderer(viewer_dir, exact):
+def test_held_out_view_matches_python_renderer(viewer_dir, exact, chromium):
     cap, out, vdir = viewer_dir
     recs = yaml.safe_load((out / "camera" / "poses.yaml").read_text())["views"]
     held = next(r for r in recs if r["holdout"] and r["kept"])
     intr = load_intrinsics(out / "camera" / "intrinsics.yaml")
     gamma = 2.5
-    with playwright.sync_playwright() as p:
+    with _shared(chromium) as p:
         browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
         page = browser.new_page()
         errors = []
@@ -183,9 +215,9 @@ def test_held_out_view_matches_python_renderer(viewer_dir, exact):
     assert not errors
 
 
-def test_page_reports_frame_rate(viewer_dir):
+def test_page_reports_frame_rate(viewer_dir, chromium):
     _, _, vdir = viewer_dir
-    with playwright.sync_playwright() as p:
+    with _shared(chromium) as p:
         browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
         page = browser.new_page()
         page.goto((vdir / "index.html").as_uri())
@@ -197,7 +229,7 @@ def test_page_reports_frame_rate(viewer_dir):
     assert fps > 0 and text.endswith("fps")
 
 
-def test_page_decodes_payloads_as_python_does(viewer_dir):
+def test_page_decodes_payloads_as_python_does(viewer_dir, chromium):
     """The page's dequantisation of every payload matches
     :func:`parammap.viewer.compact.decode_layers` to float32 precision."""
     import json
@@ -206,7 +238,7 @@ def test_page_decodes_payloads_as_python_does(viewer_dir):
 
     _, _, vdir = viewer_dir
     manifest = json.loads((vdir / "manifest.json").read_text())
-    with playwright.sync_playwright() as p:
+    with _shared(chromium) as p:
         browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
         page = browser.new_page()
         page.goto((vdir / "index.html").as_uri())
@@ -220,7 +252,7 @@ def test_page_decodes_payloads_as_python_does(viewer_dir):
         browser.close()
 
 
-def test_page_reduces_sh_maps_by_averaging_their_weights(viewer_dir):
+def test_page_reduces_sh_maps_by_averaging_their_weights(viewer_dir, chromium):
     """An SH map above the page's float-layer budget is built at a reduced resolution
     from its PCA weights averaged over f x f blocks: the same layers as the block
     average of the full decoding (SH and PCA are linear), remainder rows and columns
@@ -233,7 +265,7 @@ def test_page_reduces_sh_maps_by_averaging_their_weights(viewer_dir):
     m = next(x for x in json.loads((vdir / "manifest.json").read_text())["models"]
              if x["name"] == "sh-wls-16")
     full = decode_layers(m["compact"], _payloads(vdir, m), (m["nlayers"], m["T"], m["S"]))
-    with playwright.sync_playwright() as p:
+    with _shared(chromium) as p:
         browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
         page = browser.new_page()
         page.goto((vdir / "index.html").as_uri())
@@ -258,7 +290,7 @@ def _open(p, vdir, hash_: str = ""):
     return browser, page, errors
 
 
-def test_ruler_measures_marker_edges_within_one_percent(viewer_dir):
+def test_ruler_measures_marker_edges_within_one_percent(viewer_dir, chromium):
     """Snapped to a captured view, the ruler between the pixels where a marker's corners
     appear in the photo (projected with the true camera and pose, not the estimated
     ones the page measures with) gives every edge of every marker in view within 1 % of
@@ -275,7 +307,7 @@ def test_ruler_measures_marker_edges_within_one_percent(viewer_dir):
             ["views"] if r["kept"]}
     W, H = cam["image_size"]
     errs = []
-    with playwright.sync_playwright() as p:
+    with _shared(chromium) as p:
         browser, page, errors = _open(p, vdir)
         # before the first model is drawn (as a user may be): the ruler must not wait
         for vid in [v for v in tp["view_ids"] if str(v) in recs][:4]:
@@ -304,13 +336,13 @@ def test_ruler_measures_marker_edges_within_one_percent(viewer_dir):
     assert bar > 20
 
 
-def test_address_keeps_the_view_state(viewer_dir):
+def test_address_keeps_the_view_state(viewer_dir, chromium):
     """The model, view and gamma survive a reload from the address, and the page writes
     them there as they change."""
     cap, out, vdir = viewer_dir
     vid = next(r["id"] for r in yaml.safe_load((out / "camera" / "poses.yaml").read_text())
                ["views"] if r["kept"])
-    with playwright.sync_playwright() as p:
+    with _shared(chromium) as p:
         browser, page, errors = _open(p, vdir, f"#model=sh-wls-16&view={vid}&gamma=0.7")
         page.wait_for_function("document.getElementById('model').selectedOptions[0]"
                                ".text.startsWith('sh-wls-16')", timeout=10000)
@@ -324,7 +356,7 @@ def test_address_keeps_the_view_state(viewer_dir):
     assert not errors
 
 
-def test_texel_inspector_shows_the_clicked_texel(viewer_dir):
+def test_texel_inspector_shows_the_clicked_texel(viewer_dir, chromium):
     """A click on the surface (snapped to a captured view) shows that texel: its
     parameters as in the exported map, its number of observations as in the
     observation map, and each observation against the model's prediction (the plot is
@@ -341,7 +373,7 @@ def test_texel_inspector_shows_the_clicked_texel(viewer_dir):
     valid = g["valid"][:]
     vid = next(r["id"] for r in yaml.safe_load((out / "camera" / "poses.yaml").read_text())
                ["views"] if r["kept"] and not r["holdout"])
-    with playwright.sync_playwright() as p:
+    with _shared(chromium) as p:
         browser, page, errors = _open(p, vdir)
         page.evaluate(f"(async () => {{ await viewer.setModel('mh-2'); viewer.setView('{vid}');"
                       " viewer.draw(); })()")
