@@ -108,13 +108,10 @@ def test_pose_against_truth(tiny_capture, tiny_response):
     assert np.linalg.norm(r["centre_mm"] - C) < 3.0
 
 
-def test_pattern_refinement_recovers_an_oblique_pose(tiny_capture, tiny_response):
-    """The pose refined on the markers' whole pattern (every cell edge, not only the
-    outline) returns to the truth from a start 0.3 deg and 2 mm off, at the capture's
-    most oblique view, and its predicted uncertainty covers the error it makes."""
+def _oblique_view(tiny_capture, tiny_response):
+    """The tiny capture's most oblique view: capture, true intrinsics, its HDR radiance,
+    true (R, t), true camera centre, and a start 0.3 deg and 2 mm off."""
     import cv2
-
-    from parammap.calibration import refine_pose_pattern
 
     cap, g = tiny_response
     cam = yaml.safe_load((tiny_capture[1] / "camera.yaml").read_text())
@@ -127,12 +124,24 @@ def test_pattern_refinement_recovers_an_oblique_pose(tiny_capture, tiny_response
     stack, t = load_bracket(cap.view(ids[k]))
     rad, _, _ = merge_bracket(stack, t, g)
     R0, t0 = poses["R"][k], poses["t"][k]
-    dR = cv2.Rodrigues(np.radians([0.3, -0.2, 0.1]))[0]
-    start_R, start_t = dR @ R0, t0 + np.array([1.5, -1.0, 1.0])
+    start = (cv2.Rodrigues(np.radians([0.3, -0.2, 0.1]))[0] @ R0, t0 + np.array([1.5, -1.0, 1.0]))
+    return cap, intr, rad, (R0, t0), centres[k], start
+
+
+def test_pattern_refinement_recovers_an_oblique_pose(tiny_capture, tiny_response):
+    """The pose refined on the markers' whole pattern (every cell edge, not only the
+    outline) returns to the truth from a start 0.3 deg and 2 mm off, at the capture's
+    most oblique view, and its predicted uncertainty covers the error it makes."""
+    import cv2
+
+    from parammap.calibration import refine_pose_pattern
+
+    cap, intr, rad, (R0, t0), Ct, (start_R, start_t) = _oblique_view(tiny_capture,
+                                                                       tiny_response)
     r = refine_pose_pattern(rad @ LUMINANCE, cap, [int(i) for i in cap.marker_ids],
                             start_R, start_t, intr)
     assert r is not None and r["markers"] >= 2
-    C, Ct = -r["R"].T @ r["t"], centres[k]
+    C = -r["R"].T @ r["t"]
     rot = np.degrees(np.arccos(np.clip((np.trace(r["R"] @ R0.T) - 1) / 2, -1, 1)))
     assert np.linalg.norm(C - Ct) < 0.3 and rot < 0.05, (np.linalg.norm(C - Ct), rot)
     assert np.linalg.norm(-start_R.T @ start_t - Ct) > 5 * np.linalg.norm(C - Ct)
@@ -166,23 +175,13 @@ def test_pattern_fit_finds_the_markers_the_detector_missed(tiny_capture, tiny_re
 
     from parammap.calibration import refine_pose_pattern
 
-    cap, g = tiny_response
-    cam = yaml.safe_load((tiny_capture[1] / "camera.yaml").read_text())
-    intr = Intrinsics(np.array(cam["K"]), np.array(cam["dist"]), tuple(cam["image_size"]))
-    poses = np.load(tiny_capture[1] / "poses.npz")
-    ids = list(poses["view_ids"])
-    centres = np.einsum("nji,nj->ni", poses["R"], -poses["t"])
-    k = int(np.argmax(np.linalg.norm(centres[:, :2] - [cap.width_mm / 2, cap.height_mm / 2],
-                                     axis=1) / centres[:, 2]))
-    stack, t = load_bracket(cap.view(ids[k]))
-    lum = merge_bracket(stack, t, g)[0] @ LUMINANCE
-    R0, t0 = poses["R"][k], poses["t"][k]
-    start_R = cv2.Rodrigues(np.radians([0.3, -0.2, 0.1]))[0] @ R0
-    start_t = t0 + np.array([1.5, -1.0, 1.0])
+    cap, intr, rad, (R0, t0), Ct, (start_R, start_t) = _oblique_view(tiny_capture,
+                                                                       tiny_response)
+    lum = rad @ LUMINANCE
     every = [int(i) for i in cap.marker_ids]
 
     def centre_error(r):
-        return float(np.linalg.norm(-r["R"].T @ r["t"] - centres[k]))
+        return float(np.linalg.norm(-r["R"].T @ r["t"] - Ct))
 
     full = refine_pose_pattern(lum, cap, every, start_R, start_t, intr)
     assert full is not None and len(full["marker_ids"]) >= 3, full
