@@ -63,7 +63,7 @@ def test_advised_views_beat_random_views():
     rng = np.random.default_rng(1)
     random = [error(_fit(scene, np.r_[coarse, pool[rng.choice(len(pool), 3, replace=False)]]))
               for _ in range(6)]
-    assert advised < 0.5 * base  # measured 0.0040 against 0.0166
+    assert advised < 0.5 * base  # measured 0.0040 against 0.0166 (random 0.018)
     assert advised < 0.5 * np.mean(random) and advised < min(random)
 
 
