@@ -24,8 +24,8 @@ from .geometry import (
     Intrinsics,
     camera_centre,
     distort_normalized,
+    pixel_to_normalized,
     ray_jacobian,
-    undistort_normalized,
 )
 from .imageio import ImageReadError, read_image
 from .paths import Processed
@@ -387,10 +387,7 @@ def detect_markers(gray: np.ndarray, dictionary_name: str,
 
 def _to_normalized(uv: np.ndarray, intr: Intrinsics, guess: np.ndarray | None = None,
                    ) -> np.ndarray:
-    K = intr.K
-    y = (uv[..., 1] - K[1, 2]) / K[1, 1]
-    x = (uv[..., 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
-    return undistort_normalized(np.stack([x, y], -1), intr.dist, guess=guess)
+    return pixel_to_normalized(uv, intr.K, intr.dist, guess=guess)
 
 
 def _to_pixels(xy: np.ndarray, intr: Intrinsics) -> np.ndarray:

@@ -187,14 +187,16 @@ def pixel_to_plane(
     return normalized_to_plane(pixel_to_normalized(uv, K, dist), R, t)
 
 
-def pixel_to_normalized(uv: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+def pixel_to_normalized(uv: np.ndarray, K: np.ndarray, dist: np.ndarray,
+                        guess: np.ndarray | None = None) -> np.ndarray:
     """Undistorted normalised image coordinates (..., 2) of pixel coordinates
-    (..., 2): the camera-frame ray (x, y, 1) of each pixel."""
+    (..., 2): the camera-frame ray (x, y, 1) of each pixel (``guess``: a warm start of
+    the undistortion, :func:`undistort_normalized`)."""
     uv = np.asarray(uv, float)
     K = np.asarray(K, float)
     xd = np.stack([(uv[..., 0] - K[0, 2] - K[0, 1] * (uv[..., 1] - K[1, 2]) / K[1, 1]) / K[0, 0],
                    (uv[..., 1] - K[1, 2]) / K[1, 1]], axis=-1)
-    return undistort_normalized(xd, dist)
+    return undistort_normalized(xd, dist, guess=guess)
 
 
 def normalized_to_plane(xn: np.ndarray, R: np.ndarray, t: np.ndarray,
