@@ -252,8 +252,11 @@ def run_poses(cap: Capture, processed: str | Path, cfg: dict, obs_cfg: dict,
     recs = []
     with executor(max(1, min(workers, len(jobs)))) as ex:
         for v, rec in zip(cap.views, ex.map(_view_pose, jobs), strict=True):
+            found = set(rec.get("pattern_markers") or []) - set(rec.get("detected") or [])
             logger.info(f"poses: {v.id} " + (f"{rec.get('solution')} solution, "
                                              f"{len(rec['markers'])} markers"
+                                             + (f" (+{len(found)} the detector missed, "
+                                                "found on their pattern)" if found else "")
                                              if rec["ok"] else rec["reason"]))
             recs.append((v, rec))
     corner_gate([r for _, r in recs], cfg["max_rms_px"])
