@@ -383,6 +383,15 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    import os
+
+    # One BLAS thread per process, set before numpy loads its BLAS: the stages run in
+    # parallel over views and texel tiles (worker processes, Snakemake jobs), and a
+    # BLAS with a thread per core on top oversubscribes the cores; the fits' many
+    # small solves are slower threaded anyway (the demo's sh-rlsop-36 fit: 38-50 s
+    # with the default threads, 6.5 s with one). A value already set is kept.
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
     import cv2
 
     # OpenCV's parallel reductions (calibration, detection) differ in the last bits from
