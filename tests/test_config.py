@@ -79,3 +79,29 @@ def test_numbers_given_as_text_are_read_as_numbers():
     assert cfg["materials"]["enabled"] is False
     with pytest.raises(ConfigError, match="observation.texels_x"):
         validate_config({"captures": {"x": "."}, "observation": {"texels_x": "many"}})
+
+
+@pytest.mark.parametrize("preset", [None, "3"])
+def test_the_command_line_runs_blas_on_one_thread_unless_told(monkeypatch, preset):
+    """The stages are parallel over views and tiles: the command line sets one BLAS
+    thread for itself and its workers, and keeps a thread count the user set."""
+    import os
+
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from parammap.cli import BLAS_THREAD_VARIABLES, main
+
+    for v in BLAS_THREAD_VARIABLES:
+        monkeypatch.delenv(v, raising=False)
+    if preset:
+        monkeypatch.setenv("OPENBLAS_NUM_THREADS", preset)
+    with threadpool_limits(2, user_api="blas"):
+        with pytest.raises(SystemExit):
+            main(["--version"])
+        threads = {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}
+        if preset:
+            assert os.environ["OPENBLAS_NUM_THREADS"] == preset and "MKL_NUM_THREADS" \
+                not in os.environ and threads == {2}
+        else:
+            assert all(os.environ[v] == "1" for v in BLAS_THREAD_VARIABLES)
+            assert threads == {1}

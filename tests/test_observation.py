@@ -143,15 +143,15 @@ def test_texels_read_only_their_own_surface(zenith_deg):
     (8, 6, 82.0, 1.01, False),  # a contrast within the noise
     (8, 6, 0.0, 3.0, False),  # frontal: each texel read on its own
     (64, 48, 0.0, 3.0, False),  # texels of one pixel: every view blurs them alike
+    (64, 48, 75.0, 3.0, False),  # ... a grazing one too: the photos do not resolve them
 ])
 def test_reads_blended_with_the_neighbours_by_foreshortening_are_left_out(
         S, T, zenith_deg, contrast, left_out):
-    """A texel seen so obliquely that its read takes in the texels beside it is not an
-    observation of that texel, where its neighbours differ from it by more than the
-    noise; a map as fine as the photos (texels a pixel across) keeps its frontal
-    reads, which every view blurs alike (a view that blurs a fine checker to grey
-    shows no contrast to judge by, and keeps its reads). The rows of a band are read with their
-    neighbours in the next band, and the map's edge texels with what lies beyond."""
+    """A texel the photo resolves, seen so obliquely that its read takes in the texels
+    beside it, is not observed there, where its neighbours differ from it by more than
+    the noise; a map as fine as the photos (texels a pixel across) keeps its reads,
+    which every view blurs. The rows of a band are read with their neighbours in the
+    next band, and the map's edge texels with what lies beyond."""
     from parammap.observation import sample_view
 
     frame, intr, R, t = _checker_photo(zenith_deg, S, T, 1.0, contrast)

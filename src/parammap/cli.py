@@ -18,6 +18,8 @@ from .errors import InputError
 
 __all__ = ["main"]
 
+BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
 _COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {}
 
 
@@ -385,13 +387,18 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     import os
 
-    # One BLAS thread per process, set before numpy loads its BLAS: the stages run in
-    # parallel over views and texel tiles (worker processes, Snakemake jobs), and a
-    # BLAS with a thread per core on top oversubscribes the cores; the fits' many
-    # small solves are slower threaded anyway (the demo's sh-rlsop-36 fit: 38-50 s
-    # with the default threads, 6.5 s with one). A value already set is kept.
-    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(var, "1")
+    # One BLAS thread per process: the stages run in parallel over views and texel
+    # tiles (worker processes, Snakemake jobs), and a BLAS with a thread per core on
+    # top oversubscribes the cores; the fits' many small solves are slower threaded
+    # anyway (the demo's sh-rlsop-36 fit: 38-50 s with the default threads, 6.5 s with
+    # one). Set for the workers to come (spawned ones read the variables) and for the
+    # BLAS already loaded (a call from Python; forked workers inherit it). A thread
+    # count the user set is kept.
+    if not any(v in os.environ for v in BLAS_THREAD_VARIABLES):
+        from threadpoolctl import threadpool_limits
+
+        os.environ.update(dict.fromkeys(BLAS_THREAD_VARIABLES, "1"))
+        threadpool_limits(1, user_api="blas")
     import cv2
 
     # OpenCV's parallel reductions (calibration, detection) differ in the last bits from
