@@ -470,9 +470,7 @@ def test_uncertain_poses_are_dropped_with_reason(tiny_processed, tmp_path):
                            for r in partial)
     m = json.loads((work / "metrics" / "poses.json").read_text())
     assert set(m["partial"]) == {r["id"] for r in partial}
-    # (reads blended with their neighbours kept: grazing views lose those too)
-    assert main(["observe", str(cap_dir), "--out", str(work), "--set",
-                 "observation.max_blend_sd=null"]) == 0
+    assert main(["observe", str(cap_dir), "--out", str(work)]) == 0
     obs = zarr.open_group(work / "observation.zarr", mode="r")
     off = tmp_path / "off"
     shutil.copytree(work, off)

@@ -23,12 +23,15 @@ centre line. The view direction is the one
 of the texel centre. An observation is valid when all of its points fall inside the
 frame, the texel is in front of the camera, the direction's zenith is below
 ``max_zenith_deg``, no point is saturated in every exposure, the texel does not
-overlap a surface marker, and its read is not blended with its neighbours: a texel
-that the view resolves (3 pixels across or more) but foreshortens to under two
-pixels across one axis takes in the texels beside it, and where their differences in
-that view would bias it by more than ``max_blend`` noise sd (:func:`blend_bias`; a
-grazing view at a material edge, beside a marker or a printed line), the read is not
-of its texel (3.4 % of the demo's reads: the MH fits' median chi-square 6.6 -> 5.9).
+overlap a surface marker. Optionally (``max_blend``, off by default), neither is a
+read blended with its neighbours: a texel that the view resolves (3 pixels across or
+more) but foreshortens to under two pixels across one axis takes in the texels beside
+it, and where their differences in that view would bias it by more than ``max_blend``
+noise sd (:func:`blend_bias`; a grazing view at a material edge, beside a marker or a
+printed line), the read is not of its texel. On the demo, with 2 sd: 2.9 % of its
+reads, held-out mh-auto 6.59 -> 6.56 and its largest stain 11 -> 9 texels, but the
+shininess of its m = 150 patch scattered (CV 0.06 -> 0.28: a few texels that lost the
+views that bound their lobe's width), hence off.
 
 Building streams in two passes, so memory does not grow with the map: (1) each view is
 sampled in row bands into a scratch store chunked per view; (2) the scratch store is
@@ -179,10 +182,6 @@ OBS_UNITS = {"radiance": "relative linear radiance (one global scale)",
 # bilinear read 1.5 (1 of interpolation support, half the pixel's own area), a nearest
 # read 1 (the pixel that holds the point).
 PIXEL_REACH = {"bilinear": 1.5, "nearest": 1.0}
-# An observation whose read takes in its neighbours where the view resolves its texel,
-# by a bias over this many noise sd, is not of its texel (:func:`blend_bias`): twice
-# the noise, as a lobe must stand above it.
-BLEND_SIGMAS = 2.0
 
 
 def outside_fraction(w: np.ndarray, nearest: np.ndarray | bool = False) -> np.ndarray:
@@ -202,19 +201,20 @@ def outside_fraction(w: np.ndarray, nearest: np.ndarray | bool = False) -> np.nd
 def blend_bias(rad: np.ndarray, wx: np.ndarray, wy: np.ndarray, nearest: np.ndarray,
                ) -> np.ndarray:
     """How far a view's reads of texels are pulled toward their neighbours by its
-    foreshortening: (r, S, 3) bias bound of the core of (r + 2, S + 2) reads.
+    foreshortening: (r, S, 3) bias of the core of (r + 2, S + 2) reads.
 
-    A texel seen obliquely is narrow across one axis, and its read takes in the
-    texels beside it there (:func:`outside_fraction` of ``wx`` across its columns,
-    ``wy`` across its rows, in pixels), half from each side: the neighbours'
-    differences from the texel weighted so bound the bias (their absolute values
-    summed), near zero inside a uniform patch, large at a material edge or beside a
-    marker. Only where the view resolves the texel: its unforeshortened footprint
-    (``max(wx, wy)``) at least two pixel reaches (3 px) across, so that its other
-    reads are its own. A map as fine as the photos (the ``auto`` resolution, texels
-    about a pixel across) is blurred alike in every view, and its reads are kept:
-    leaving out the grazing ones there cost every model of the physically based
-    captures 0.5-2 % of held-out accuracy (pbr-bench: 8.7 % of its reads).
+    A texel seen obliquely is narrow across one axis, and its read takes in the texels
+    beside it there (:func:`outside_fraction` of ``wx`` across its columns, ``wy``
+    across its rows, in pixels), half from each side: the bias is that share of the
+    neighbours' second difference (``left + right - 2 x texel``), zero inside a uniform
+    patch and across a smooth gradient (a highlight sweeping over the surface, which a
+    sum of absolute differences would count), large at a material edge, a printed line
+    or beside a marker. Only where the view resolves the texel: its unforeshortened
+    footprint (``max(wx, wy)``) at least two pixel reaches (3 px) across, so that its
+    other reads are its own. A map as fine as the photos (the ``auto`` resolution,
+    texels about a pixel across) is blurred alike in every view, and its reads are kept:
+    leaving out the grazing ones there cost every model of the physically based captures
+    0.5-2 % of held-out accuracy (pbr-bench: 8.7 % of its reads).
 
     Parameters
     ----------
@@ -227,11 +227,12 @@ def blend_bias(rad: np.ndarray, wx: np.ndarray, wy: np.ndarray, nearest: np.ndar
     ey = np.where(resolved, outside_fraction(wy, nearest)[1:-1, 1:-1, None], 0.0)
     c = rad[1:-1, 1:-1]
 
-    def diff(n: np.ndarray) -> np.ndarray:
-        return np.nan_to_num(np.abs(n - c))
+    def curvature(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        # a side beyond the frame counts as the texel's own level
+        return np.nan_to_num(a - c) + np.nan_to_num(b - c)
 
-    return 0.5 * ex * (diff(rad[1:-1, :-2]) + diff(rad[1:-1, 2:])) \
-        + 0.5 * ey * (diff(rad[:-2, 1:-1]) + diff(rad[2:, 1:-1]))
+    return np.abs(0.5 * ex * curvature(rad[1:-1, :-2], rad[1:-1, 2:])
+                  + 0.5 * ey * curvature(rad[:-2, 1:-1], rad[2:, 1:-1]))
 
 
 def sample_view(
@@ -249,7 +250,7 @@ def sample_view(
     max_supersample: int = 6,
     noise: np.ndarray | None = None, cov: np.ndarray | None = None,
     max_texel_shift: float | None = None,
-    max_blend: float | None = BLEND_SIGMAS,
+    max_blend: float | None = None,
     stats: dict[str, int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
     """Sample one HDR frame at the texels of rows ``rows`` of the map.
@@ -434,7 +435,7 @@ def build_observation_map(
     max_supersample: int = 6,
     workers: int = 1,
     config: dict[str, Any] | None = None,
-    max_blend: float | None = BLEND_SIGMAS,
+    max_blend: float | None = None,
 ) -> dict[str, Any]:
     """Build ``observation.zarr`` from a processed capture's poses and HDR frames.
 
