@@ -9,10 +9,15 @@ and the D-optimal one for comparison); its ``--count`` best are added back and t
 map refitted, and so are the pool views that fill the largest gaps between the fitted
 ones (the advisor's fallback) and ``--random`` draws of as many pool views at random.
 Each map is compared with the clean renders of the capture's held-out views (mean 8-bit
-difference, as ``pbr_capture.py``). The pool's
+difference, as ``pbr_capture.py``), or, on a capture of the analytic generator (its
+truth folder holds ``scene.npz``: the demo), with the truth itself in 256 directions up
+to 75 deg at every texel (:func:`parammap.synth.evaluate.directions_against_truth`),
+which three or four held-out views are too few and too noisy to replace. The pool's
 views are real photos of the capture, so no view is rendered anew.
 
     python benchmarks/advisor_pbr.py --preset pbr-tiny --pool 8 --count 3 --random 3
+    python benchmarks/advisor_pbr.py --preset demo --root data/captures \
+        --processed data/processed/demo --model mh-auto --pool 8 --count 3 --random 6
 
 Writes ``<root>/<preset>.advise.json`` and prints the figures.
 """
@@ -36,6 +41,11 @@ from parammap.geometry import unit
 from parammap.models.advisor import advise_directions
 from parammap.observation import sample_texel_observations
 from parammap.synth import evaluate as ev
+from parammap.synth.sampling import stratified
+
+#: directions the analytic generator's truth is compared in: 256, stratified over the
+#: cap up to 75 deg (beyond the demo's 72 deg views, as far as real captures reach)
+DIRECTIONS = stratified(16, 75.0, seed=1)
 
 
 def _workdir(proc: Path, work: Path) -> None:
@@ -45,6 +55,16 @@ def _workdir(proc: Path, work: Path) -> None:
     for f in (proc / "camera").iterdir():
         shutil.copy(f, work / "camera" / f.name)
     (work / "hdr").symlink_to((proc / "hdr").resolve())
+
+
+def _errors(cap: Path, truth: Path, work: Path, model: str) -> dict[str, dict[str, float]]:
+    """Held-out errors of the map in ``work``: against the clean renders of the held-out
+    views (a physically based capture), or, for the analytic generator (``scene.npz``),
+    against its truth in :data:`DIRECTIONS` at every texel (``{"directions": {model:
+    error}}``: hundreds of directions instead of a few held-out views)."""
+    if (truth / "scene.npz").is_file():
+        return {"directions": ev.directions_against_truth(truth, work, [model], DIRECTIONS)}
+    return ev.holdout_against_truth(cap, truth, work, [model])
 
 
 def _fit(cap: Path, truth: Path, work: Path, poses: dict, kept: set[str],
@@ -60,7 +80,7 @@ def _fit(cap: Path, truth: Path, work: Path, poses: dict, kept: set[str],
     lobes = model.split("-")[1]
     for stage in (["observe"], ["fit-mh", "--lobes", lobes], ["export", "--model", model]):
         assert main(["-q", stage[0], str(cap), "--out", str(work), *stage[1:]]) == 0, stage
-    return ev.holdout_against_truth(cap, truth, work, [model])
+    return _errors(cap, truth, work, model)
 
 
 def _advise(work: Path, model: str, pool_dirs: np.ndarray, count: int,
@@ -78,14 +98,15 @@ def _advise(work: Path, model: str, pool_dirs: np.ndarray, count: int,
 
 
 def run(preset: str, root: Path, pool: int, count: int, draws: int, model: str,
-        seed: int) -> dict:
-    cap, truth, proc = root / preset, root / f"{preset}.truth", root / f"{preset}.proc"
+        seed: int, processed: Path | None = None) -> dict:
+    cap, truth = root / preset, root / f"{preset}.truth"
+    proc = processed or root / f"{preset}.proc"
     poses = yaml.safe_load((proc / "camera" / "poses.yaml").read_text())
     fitted = [r for r in poses["views"] if r.get("kept") and not r.get("holdout")]
     rng = np.random.default_rng(seed)
     pool_ids = [fitted[i]["id"] for i in rng.choice(len(fitted), pool, replace=False)]
     base = {r["id"] for r in fitted} - set(pool_ids)
-    work = root / f"{preset}.advise"
+    work = proc.parent / f"{preset}.advise"
     _workdir(proc, work)
     c = load_capture(cap)
     X0 = np.array([c.width_mm / 2, c.height_mm / 2, 0.0])
@@ -139,8 +160,10 @@ if __name__ == "__main__":
     ap.add_argument("--random", type=int, default=3, help="random draws to compare")
     ap.add_argument("--model", default="mh-auto")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--processed", type=Path, default=None,
+                    help="processed capture (default <root>/<preset>.proc)")
     a = ap.parse_args()
-    r = run(a.preset, Path(a.root), a.pool, a.count, a.random, a.model, a.seed)
+    r = run(a.preset, Path(a.root), a.pool, a.count, a.random, a.model, a.seed, a.processed)
     (Path(a.root) / f"{a.preset}.advise.json").write_text(json.dumps(r, indent=1))
     m = r["mean"]
     print(f"{a.preset} {a.model}: held-out mean 8-bit difference with {r['fitted_before']} "

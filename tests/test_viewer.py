@@ -349,7 +349,7 @@ def test_address_keeps_the_view_state(viewer_dir, chromium):
         assert page.evaluate("document.getElementById('view').value") == vid
         assert abs(float(page.inner_text("#gammaval")) - 0.7) < 1e-3
         page.evaluate("viewer.setView(''); viewer.setGamma(1.25)")
-        page.wait_for_function("location.hash.includes('gamma=1.250')", timeout=5000)
+        page.wait_for_function("location.hash.includes('gamma=1.250')", timeout=20000)
         h = page.evaluate("location.hash")
         assert "model=sh-wls-16" in h and "az=" in h and "view=" not in h
         browser.close()

@@ -7,8 +7,9 @@ view's leave-one-view-out prediction of its fit, linearised, with the noise weig
 :func:`parammap.observation.tile_observations` (:mod:`parammap.models.selection`):
 
 - MH: every parameter refitted (the MH fitter's own lobe choice criterion);
-- the basis materials (``mh-materials``): Kd and the lobe amplitudes refitted, m, the
-  colour and the directions being the material's, shared by thousands of texels;
+- the basis materials (``mh-materials``): Kd, the lobe amplitudes and directions (the
+  texel's own, from the source fit) refitted, m and the colour being the material's,
+  shared by thousands of texels;
 - SH: the projection's own leave-one-out prediction, exact for a linear smoother with
   its prior and regularisation held (the projection rerun as its fit store records
   it, :func:`parammap.models.sh.fit_sh_tile` with ``loo``); the published projections
@@ -46,16 +47,18 @@ z standard errors of the difference (``best.significance``; :func:`choose`), z t
 one-sided tail of one standard error shared among the other candidates
 (:func:`significance_z`, Bonferroni): the least of many noisy errors is often least by
 chance, and a render shows the texel's true error, not its luckiest estimate.
-An MH map whose fit found no lobe at a texel is written there as the diffuse map (the
-same model, smaller). ``best.pool_radius`` > 0 adds a neighbourhood vote (worse on
+An MH map whose fit found no lobe at a texel stores only Kd there (counted as three
+values; it is not swapped for the diffuse baseline, whose plain mean differs from the
+fit's noise-weighted one). ``best.pool_radius`` > 0 adds a neighbourhood vote (worse on
 every generator capture: it overrules the minority models where they are right).
 The result is the map ``params/best.exr``: channels ``choice`` and ``partner``
 indexing the candidates named in its header (their own EXRs beside it; equal where a
 texel has one model; :func:`parammap.params.read_param_map` loads them and
-:func:`parammap.render.render` draws each texel as the mean of its two), so the held-out
-comparison scores it like any other map. ``metrics/best.json`` says how often each
-choice was taken and what the map costs: the parameters stored per texel (each texel
-only its own models') against each single model.
+:func:`parammap.render.render` draws each texel as the mean of its two, and interpolates
+between texels as for any map), so the held-out comparison scores it like any other
+map. ``metrics/best.json`` says how often each choice was taken and what the map costs:
+the parameters stored per texel (each texel only its own models') against each single
+model.
 """
 
 from __future__ import annotations
@@ -89,8 +92,8 @@ from .paths import Processed
 logger = logging.getLogger(__name__)
 
 __all__ = ["BEST_MODEL", "CRITERIA", "candidates", "choose", "display_gamma", "error_table",
-           "identical", "loo", "resolve", "run_best", "sample_tiles", "significance_z",
-           "tile_errors"]
+           "loo", "resolve", "run_best", "sample_tiles", "significance_z", "tile_errors",
+           "values_stored"]
 
 BEST_MODEL = "best"
 CRITERIA = ("display", "press")
@@ -336,8 +339,8 @@ def _pool(own: np.ndarray, C: int, pool_radius: int, shape: tuple[int, int]) -> 
 def resolve(cands: list[tuple[int, int]], chosen: np.ndarray,
             same: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The two models, ``choice`` <= ``partner`` (equal for one model), of the chosen
-    candidates (T, S); ``same`` (T S, J) per texel the smallest model identical to each
-    (:func:`identical`), taken instead."""
+    candidates (T, S); ``same`` (T S, J) per texel a model to take instead of each
+    (default: each itself)."""
     ab = np.asarray(cands)[chosen.ravel()]
     if same is not None:
         rows = np.arange(len(ab))
@@ -345,23 +348,26 @@ def resolve(cands: list[tuple[int, int]], chosen: np.ndarray,
     return ab.min(1).reshape(chosen.shape), ab.max(1).reshape(chosen.shape)
 
 
-def identical(maps: dict[str, ParamMap]) -> np.ndarray:
-    """(T S, J) for choose: per texel, each candidate's own index, or the diffuse
-    candidate's where an MH candidate has no lobe there (the same model, smaller)."""
-    names = list(maps)
+def values_stored(maps: dict[str, ParamMap]) -> np.ndarray:
+    """(T S, J) values each candidate map stores per texel: its channels, or Kd's three
+    where an MH map has no lobe (a diffuse texel, whichever map it is read from: the
+    MH fit's Kd, noise-weighted, is kept rather than the diffuse baseline's plain mean,
+    which a render would show)."""
     first = next(iter(maps.values()))
     n = first.shape[0] * first.shape[1]
-    same = np.broadcast_to(np.arange(len(names)), (n, len(names))).copy()
-    diffuse = [j for j, m in enumerate(maps.values()) if m.model == "diffuse"]
-    if not diffuse:
-        return same
+    out = np.empty((n, len(maps)))
     for j, m in enumerate(maps.values()):
+        out[:, j] = m.params.shape[-1]
         if m.model == "mh":
-            P = m.params.reshape(n, -1)
-            K = mh_lobes(P.shape[1])
-            ks = sum(np.nan_to_num(P[:, mh_ks(k)]).sum(1) for k in range(K))
-            same[(ks <= 0) & np.isfinite(P).all(1), j] = diffuse[0]
-    return same
+            out[~_has_lobe(m.params.reshape(n, -1)), j] = 3
+    return out
+
+
+def _has_lobe(P: np.ndarray) -> np.ndarray:
+    """(n,) bool: MH parameter rows (n, 4 + 6K) with a lobe (NaN rows: not fitted, True)."""
+    K = mh_lobes(P.shape[1])
+    ks = sum(np.nan_to_num(P[:, mh_ks(k)]).sum(1) for k in range(K))
+    return (ks > 0) | ~np.isfinite(P).all(1)
 
 
 def _label(names: list[str], a: int, b: int) -> str:
@@ -414,13 +420,17 @@ def run_best(processed: str | Path, models: list[str], config: dict[str, Any],
         B[flat, :-1] = b[:, :len(maps)]
         B[flat, -1] = b[np.arange(len(flat)), own[flat]]
     chosen = _pool(own, len(cands), int(cfg["pool_radius"]), (T, S))
-    choice, partner = resolve(cands, chosen, identical(maps))
+    choice, partner = resolve(cands, chosen)
     any_map = next(iter(maps.values()))
     pm = ParamMap("best", np.stack([choice, partner], -1).astype(np.float32),
                   any_map.width_mm, any_map.height_mm, attrs={"candidates": " ".join(maps)})
     write_param_map(proc.params(BEST_MODEL), pm)
     stored = np.array([_stored(m) for m in maps.values()], float)
-    kept = [_label(names, a, b) for a, b in zip(choice.ravel(), partner.ravel(), strict=True)]
+    per = values_stored(maps)
+    rows = np.arange(T * S)
+    c, p = choice.ravel(), partner.ravel()
+    kept = [_label(names, a, b) for a, b in zip(c, p, strict=True)]
+    flat = (per[rows, c] == 3) & (per[rows, p] == 3)
     tally = dict(zip(*np.unique(kept, return_counts=True), strict=True))
     share = {k: float(v / (T * S)) for k, v in sorted(tally.items(), key=lambda kv: -kv[1])}
     fin = np.isfinite(B).all(1)
@@ -432,8 +442,11 @@ def run_best(processed: str | Path, models: list[str], config: dict[str, Any],
                               for j, name in enumerate(names)}
          | {BEST_MODEL: float(np.median(B[fin, -1])) if fin.any() else None},
          "chosen_fraction": share,
-         "values_per_texel": float((stored[choice] + np.where(choice != partner,
-                                                               stored[partner], 0)).mean()),
+         # texels drawn without a lobe (diffuse, or an MH fit that found none; the mean
+         # of two such is one Kd)
+         "diffuse_fraction": float(flat.mean()),
+         "values_per_texel": float(np.where(flat, 3, per[rows, c] + np.where(
+             c != p, per[rows, p], 0)).mean()),
          "values_per_texel_single": {name: int(s) for name, s in zip(maps, stored,
                                                                         strict=True)}}
     write_metrics(proc.metrics(BEST_MODEL), m)

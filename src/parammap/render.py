@@ -130,26 +130,43 @@ def render(pm: ParamMap, intr: Intrinsics, R: np.ndarray, t: np.ndarray,
     out = np.full(P.shape[:2] + (3,), np.nan, np.float32)
     Pi = P[inside]
     row, col = plane_to_texel(Pi[:, 0], Pi[:, 1], S, T, pm.width_mm, pm.height_mm)
-    if pm.model == "best":  # each candidate with its share of the texels, blended like texels
-        parts = list((pm.parts or {}).values())
-        shares = best_shares(pm.params, len(parts))
-        acc = np.zeros((len(Pi), 3))
-        for j, part in enumerate(parts):
-            share = shares[..., j:j + 1]
-            w = (share[np.clip(row.astype(int), 0, T - 1), np.clip(col.astype(int), 0, S - 1)]
-                 if interpolation == "nearest" else lookup_bilinear(share, row, col))[:, 0]
-            if (w > 0).any():
-                img, _ = render(part, intr, R, t, size, interpolation)
-                acc += w[:, None] * np.nan_to_num(img[inside])
-        out[inside] = acc
-        return out, inside
     d = unit(camera_centre(R, t)[None] - Pi)
+    if pm.model == "best":
+        out[inside] = _render_best(pm, row, col, d, interpolation)
+        return out, inside
     if interpolation == "nearest":
         prm = pm.params[np.clip(row.astype(int), 0, T - 1), np.clip(col.astype(int), 0, S - 1)]
         out[inside] = evaluate(pm.model, prm, d)
     else:
         out[inside] = evaluate_bilinear(pm.model, pm.params, row, col, d)
     return out, inside
+
+
+def _render_best(pm: ParamMap, row: np.ndarray, col: np.ndarray, d: np.ndarray,
+                 interpolation: str) -> np.ndarray:
+    """Radiance (M, 3) of a best map at continuous texel coordinates, seen from
+    directions d (M, 3): each texel's radiance is the mean of its (one or two)
+    candidates' radiance at that texel, and the texels' radiance is interpolated as for
+    any map. (A candidate's whole render weighted by its interpolated share would mix a
+    texel's model with its neighbour's parameters: next to a texel that kept its lobe, a
+    diffuse texel's share would draw that neighbour's mean radiance.)"""
+    parts = list((pm.parts or {}).values())
+    T, S = pm.shape
+    shares = best_shares(pm.params, len(parts))
+    if interpolation == "nearest":
+        idx = [(np.clip(row.astype(int), 0, T - 1), np.clip(col.astype(int), 0, S - 1))]
+        wts = [np.ones(len(row))]
+    else:
+        idx, wts = bilinear_corners((T, S), row, col)
+    acc = np.zeros((len(row), 3))
+    for (r, c), w in zip(idx, wts, strict=True):
+        for j, part in enumerate(parts):
+            wj = w * shares[r, c, j]
+            on = wj > 0
+            if on.any():
+                acc[on] += wj[on, None] * np.nan_to_num(
+                    evaluate(part.model, part.params[r[on], c[on]], d[on]))
+    return acc
 
 
 def reproject_frame(frame: np.ndarray, intr: Intrinsics, R_src: np.ndarray,

@@ -19,8 +19,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..conventions import MH_KD, mh_ks, mh_lobes
+from ..conventions import MH_KD, mh_ks, mh_lobes, mhx_phi, mhx_theta
 from .mh.model import mh_eval
+from .mh.uncertainty import jacobian_x
 from .sh import sh_basis, sh_eval
 
 __all__ = ["INFLUENCE", "display_error", "influential", "loo_amplitudes", "loo_diffuse",
@@ -112,9 +113,13 @@ def loo_diffuse(kd: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
 
 def loo_amplitudes(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
                    w: np.ndarray) -> Loo:
-    """Leave-one-out residuals of MH maps whose lobe shapes (m, directions, colours)
-    are not the texel's own but shared (the basis materials): only Kd and each lobe's
-    amplitude are refitted without the view."""
+    """Leave-one-out residuals of MH maps whose shininess and lobe colours are not the
+    texel's own but shared (the basis materials): Kd, each lobe's amplitude and its
+    direction (linearised, two angles) are refitted without the view. The directions
+    are the texel's own fit's (the source MH map's): held fixed they would keep what the
+    left-out view taught them, and a lobe that one view placed would predict that view
+    as if it had been seen (on the demo this made the materials' blend with mh-auto the
+    map's default, 0.7 % worse on the held-out photos than mh-auto alone)."""
     P = np.asarray(P, float)
     K = mh_lobes(P.shape[1])
     cols = [np.broadcast_to(np.eye(3), L.shape[:2] + (3, 3))]
@@ -125,6 +130,9 @@ def loo_amplitudes(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
             if j != k:
                 one[:, mh_ks(j)] = 0.0
         cols.append(mh_eval(one, V)[..., None])  # the lobe, its colour included
+    Jx = jacobian_x(P, V)
+    for k in range(K):
+        cols.append(Jx[..., [mhx_theta(k), mhx_phi(k)]])
     J = np.concatenate(cols, -1)
     return loo_linear(J, np.where(W[..., None], mh_eval(P, V) - L, 0.0), w, W)
 

@@ -18,7 +18,8 @@ from ..capture import load_capture
 from ..hdr import load_bracket, merge_bracket, read_hdr
 from ..paths import Processed, read_poses
 
-__all__ = ["hdr_errors", "holdout_against_truth", "intrinsics_errors", "pose_errors",
+__all__ = ["directions_against_truth", "hdr_errors", "holdout_against_truth",
+           "intrinsics_errors", "pose_errors",
            "true_directions", "angle_deg"]
 
 
@@ -187,3 +188,65 @@ def holdout_against_truth(capture: str | Path, truth: str | Path, processed: str
     if not per_patch:
         return out
     return out, {k: {m: v[0] / v[1] for m, v in d.items()} for k, d in sorted(acc.items())}
+
+
+def directions_against_truth(truth: str | Path, processed: str | Path, models: list[str],
+                             directions: np.ndarray, samples: int = 256, seed: int = 0,
+                             ) -> dict[str, float]:
+    """Mean 8-bit difference between each model's map and the analytic generator's
+    truth in every one of ``directions`` (Q, 3), surface frame, at every texel centre:
+    how a map predicts directions no view of it was taken from, without the noise and
+    the few views of a held-out comparison.
+
+    The capture's radiance scale is fitted once (median ratio of the observation map to
+    the truth at the observed directions of up to ``samples`` texels); the tone map is
+    the held-out comparison's, its gamma from the truth's 99th percentile over the
+    directions (:func:`parammap.holdout.choose_gamma`). Texels are looked up in the
+    truth scene at their centres (any map size).
+    """
+    from ..geometry import plane_to_texel, texel_centres
+    from ..holdout import choose_gamma
+    from ..observation import open_observation_map
+    from ..params import best_shares, read_param_map
+    from ..render import evaluate, tone_map
+    from .scene import load_scene, true_radiance
+
+    scene = load_scene(Path(truth) / "scene.npz")
+    proc = Processed(processed)
+    maps = {m: read_param_map(proc.params(m)) for m in models}
+    T, S = next(iter(maps.values())).shape
+    ctr = texel_centres(S, T, scene.width_mm, scene.height_mm).reshape(-1, 3)
+    Ts, Ss = scene.shape
+    r, c = plane_to_texel(ctr[:, 0], ctr[:, 1], Ss, Ts, scene.width_mm, scene.height_mm)
+    rows = np.clip(r.astype(int), 0, Ts - 1)
+    cols = np.clip(c.astype(int), 0, Ss - 1)
+    obs = open_observation_map(proc.observation)
+    rng = np.random.default_rng(seed)
+    pick = rng.choice(T * S, min(samples, T * S), replace=False)
+    L = np.asarray(obs["radiance"][...], float).reshape(T * S, -1, 3)[pick]
+    V = np.asarray(obs["direction"][...], float).reshape(T * S, -1, 3)[pick]
+    W = np.asarray(obs["valid"][...], bool).reshape(T * S, -1)[pick] & np.isfinite(L).all(-1)
+    n, N = W.shape
+    true_obs = true_radiance(scene, np.repeat(rows[pick], N), np.repeat(cols[pick], N),
+                             V.reshape(-1, 3)).reshape(n, N, 3)
+    ok = W[..., None] & (true_obs > 0) & (L > 0)
+    scale = float(np.median(L[ok] / true_obs[ok]))
+    Q = len(directions)
+    d = np.broadcast_to(np.asarray(directions, float), (T * S, Q, 3)).reshape(-1, 3)
+    truth_rad = scale * true_radiance(scene, np.repeat(rows, Q), np.repeat(cols, Q), d)
+    gamma = choose_gamma(truth_rad[None], np.ones((1, len(truth_rad)), bool))
+    ref = tone_map(truth_rad, gamma).astype(float)
+    out = {}
+
+    def predict(pm):
+        if pm.model == "best":  # each texel the mean of its two candidates
+            parts = list((pm.parts or {}).values())
+            share = np.repeat(best_shares(pm.params, len(parts)).reshape(T * S, -1), Q, 0)
+            return sum(share[:, j:j + 1] * predict(part) for j, part in enumerate(parts)
+                       if share[:, j].any())
+        return np.nan_to_num(evaluate(pm.model, np.repeat(pm.params.reshape(T * S, -1), Q,
+                                                          axis=0), d))
+
+    for name, pm in maps.items():
+        out[name] = float(np.abs(tone_map(predict(pm), gamma).astype(float) - ref).mean())
+    return out
