@@ -4,8 +4,8 @@ cut the held-out error more than as many random views?
 From a processed physically based capture (``benchmarks/pbr_capture.py`` first), a
 ``--pool`` of its fitted views is set aside (seeded at random) and the rest are fitted
 (``--model``, an MH fit). The advisor ranks the pool's directions (as seen from the
-region's centre) by the greedy design of the ``advise`` stage on that fit (I-optimal,
-and the D-optimal one for comparison); its ``--count`` best are added back and the
+region's centre) by the greedy design of the ``advise`` stage on that fit (its default,
+D-optimal, and the I-optimal one for comparison); its ``--count`` best are added back and the
 map refitted, and so are the pool views that fill the largest gaps between the fitted
 ones (the advisor's fallback) and ``--random`` draws of as many pool views at random.
 Each map is compared with the clean renders of the capture's held-out views (mean 8-bit
@@ -84,9 +84,11 @@ def _fit(cap: Path, truth: Path, work: Path, poses: dict, kept: set[str],
 
 
 def _advise(work: Path, model: str, pool_dirs: np.ndarray, count: int,
-            seed: int, criterion: str = "prediction") -> list[int]:
-    """Indices into the pool of the ``count`` directions the advisor ranks first."""
+            seed: int, criterion: str | None = None) -> list[int]:
+    """Indices into the pool of the ``count`` directions the advisor ranks first (by
+    ``criterion``, default the stage's)."""
     cfg = validate_config({"captures": {"x": "."}})["advisor"]
+    criterion = criterion or cfg["criterion"]
     _, obs, P, fitted = open_mh_source(work, model, "advisor.source")
     T, S, _ = obs["valid"].shape
     rng = np.random.default_rng(seed)
@@ -116,13 +118,15 @@ def run(preset: str, root: Path, pool: int, count: int, draws: int, model: str,
     t0 = time.perf_counter()
     res["base"] = _fit(cap, truth, work, poses, base, model)
     picked = [pool_ids[i] for i in _advise(work, model, pool_dirs, count, seed)]
-    # the D-optimal design on the parameters, which the I-optimal default replaced
-    volume = [pool_ids[i] for i in _advise(work, model, pool_dirs, count, seed, "volume")]
+    # the stage's other design (I-optimal against the D-optimal default, or back)
+    default = validate_config({"captures": {"x": "."}})["advisor"]["criterion"]
+    res["other_criterion"] = other = "prediction" if default == "volume" else "volume"
+    alt = [pool_ids[i] for i in _advise(work, model, pool_dirs, count, seed, other)]
     res["advised_views"] = picked
     res["advised"] = _fit(cap, truth, work, poses, base | set(picked), model)
-    res["volume_views"] = volume
-    res["volume"] = res["advised"] if set(volume) == set(picked) else \
-        _fit(cap, truth, work, poses, base | set(volume), model)
+    res["other_views"] = alt
+    res["other"] = res["advised"] if set(alt) == set(picked) else \
+        _fit(cap, truth, work, poses, base | set(alt), model)
     # the advisor's own fallback: fill the largest gaps between the views (greedy)
     have = unit(np.array([centre[i] for i in base]) - X0)
     gap = np.degrees(np.arccos(np.clip((pool_dirs @ have.T).max(1), -1, 1)))
@@ -145,7 +149,7 @@ def run(preset: str, root: Path, pool: int, count: int, draws: int, model: str,
         return float(np.mean([row[model] for row in errs.values()]))
 
     res["mean"] = {"base": mean(res["base"]), "advised": mean(res["advised"]),
-                   "volume": mean(res["volume"]),
+                   "other": mean(res["other"]),
                    "gaps": mean(res["gaps"]),
                    "random": [mean(r["errors"]) for r in res["random"]]}
     return res
@@ -168,7 +172,8 @@ if __name__ == "__main__":
     m = r["mean"]
     print(f"{a.preset} {a.model}: held-out mean 8-bit difference with {r['fitted_before']} "
           f"views {m['base']:.2f}; + {a.count} advised {r['advised_views']} "
-          f"{m['advised']:.2f}; + {a.count} D-optimal {r['volume_views']} {m['volume']:.2f}; "
+          f"{m['advised']:.2f}; + {a.count} by {r['other_criterion']} {r['other_views']} "
+          f"{m['other']:.2f}; "
           f"+ {a.count} filling gaps {r['gap_views']} {m['gaps']:.2f}; "
           f"+ {a.count} random " + ", ".join(f"{x:.2f}" for x in
                                                               m["random"])

@@ -100,7 +100,7 @@ def test_advisor_stage_writes_ranked_directions_and_figure(processed, tmp_path):
     m = run_advisor(processed, cfg, tmp_path / "figs")
     saved = json.loads((processed / "metrics" / "advice.json").read_text())
     assert saved["advice"] == m["advice"] and len(m["advice"]) == 4
-    assert m["basis"].startswith("I-optimal") and m["texels_with_lobe"] > 0
+    assert m["basis"].startswith("D-optimal") and m["texels_with_lobe"] > 0
     assert [a["rank"] for a in m["advice"]] == [1, 2, 3, 4]
     assert all(0 <= a["zenith_deg"] <= 85 and 0 <= a["azimuth_deg"] < 360
                for a in m["advice"])

@@ -81,7 +81,7 @@ CRITERIA = ("prediction", "volume")
 
 def advise_directions(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
                       weights: np.ndarray | None, cand: np.ndarray, count: int = 10,
-                      criterion: str = "prediction",
+                      criterion: str = "volume",
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Greedy choice of ``count`` new view directions among ``cand``: I-optimal
     (``prediction``: the largest drop of the variance of the renders over the
