@@ -23,15 +23,20 @@ centre line. The view direction is the one
 of the texel centre. An observation is valid when all of its points fall inside the
 frame, the texel is in front of the camera, the direction's zenith is below
 ``max_zenith_deg``, no point is saturated in every exposure, the texel does not
-overlap a surface marker. Optionally (``max_blend``, off by default), neither is a
-read blended with its neighbours: a texel that the view resolves (3 pixels across or
-more) but foreshortens to under two pixels across one axis takes in the texels beside
-it, and where their differences in that view would bias it by more than ``max_blend``
-noise sd (:func:`blend_bias`; a grazing view at a material edge, beside a marker or a
-printed line), the read is not of its texel. On the demo, with 2 sd: 2.9 % of its
-reads, held-out mh-auto 6.59 -> 6.56 and its largest stain 11 -> 9 texels, but the
-shininess of its m = 150 patch scattered (CV 0.06 -> 0.28: a few texels that lost the
-views that bound their lobe's width), hence off.
+overlap a surface marker. Nor is a read blended with its neighbours
+(``max_blend``, 2 noise sd by default), where the photos resolve the map's texels (3 px
+or more across at the median view, :func:`texel_pixels`): a grazing view foreshortens
+a texel to a pixel or two across one axis and its read takes in the texels beside it;
+where their differences in that view bias it, beyond the blend a frontal read from
+the same distance would have, by more than ``max_blend`` noise sd
+(:func:`blend_bias`: a material edge, a printed line, a marker seen edge-on), the read
+is not of its texel. On the demo (texels 3.4 px across at the median view, textured
+albedo): 13 % of its reads, held-out mh-auto 6.59 -> 6.38 and against the generator's
+truth 2.24 -> 1.71, the shininess of the m = 150 patch steadier (CV 0.06 -> 0.02),
+largest stain 11 -> 6 texels; its SH fits, which lose views their error is far above
+the bias of, 5 % worse. A map as fine as the photos (``auto``: texels about a pixel
+across) keeps every read: each view blurs its texels, and leaving out the most
+blended ones cost the physically based captures' held-out renders 1-3 %.
 
 Building streams in two passes, so memory does not grow with the map: (1) each view is
 sampled in row bands into a scratch store chunked per view; (2) the scratch store is
@@ -82,6 +87,8 @@ __all__ = [
     "tile_observations",
     "blend_bias",
     "outside_fraction",
+    "frontal_width",
+    "texel_pixels",
     "sample_view",
     "texel_grid",
 ]
@@ -199,7 +206,7 @@ def outside_fraction(w: np.ndarray, nearest: np.ndarray | bool = False) -> np.nd
 
 
 def blend_bias(rad: np.ndarray, wx: np.ndarray, wy: np.ndarray, nearest: np.ndarray,
-               ) -> np.ndarray:
+               frontal: np.ndarray) -> np.ndarray:
     """How far a view's reads of texels are pulled toward their neighbours by its
     foreshortening: (r, S, 3) bias of the core of (r + 2, S + 2) reads.
 
@@ -209,22 +216,22 @@ def blend_bias(rad: np.ndarray, wx: np.ndarray, wy: np.ndarray, nearest: np.ndar
     neighbours' second difference (``left + right - 2 x texel``), zero inside a uniform
     patch and across a smooth gradient (a highlight sweeping over the surface, which a
     sum of absolute differences would count), large at a material edge, a printed line
-    or beside a marker. Only where the view resolves the texel: its unforeshortened
-    footprint (``max(wx, wy)``) at least two pixel reaches (3 px) across, so that its
-    other reads are its own. A map as fine as the photos (the ``auto`` resolution,
-    texels about a pixel across) is blurred alike in every view, and its reads are kept:
-    leaving out the grazing ones there cost every model of the physically based captures
-    0.5-2 % of held-out accuracy (pbr-bench: 8.7 % of its reads).
+    or beside a marker. The share counted is what the foreshortening adds to the blend
+    of a frontal read at the same distance (``frontal`` pixels across): a texel that no
+    view resolves is blurred in every view, and that blur is part of what the map
+    describes.
 
     Parameters
     ----------
     rad : (r + 2, S + 2, 3) reads of the band with a ring of one texel around it.
     wx, wy : (r + 2, S + 2) the texels' widths in pixels across columns and rows.
     nearest : (r + 2, S + 2) bool, read by whole pixels.
+    frontal : (r + 2, S + 2) the texels' widths in pixels in a frontal view from the
+        same distance (:func:`frontal_width`).
     """
-    resolved = (np.fmax(wx, wy) >= 2 * PIXEL_REACH["bilinear"])[1:-1, 1:-1, None]
-    ex = np.where(resolved, outside_fraction(wx, nearest)[1:-1, 1:-1, None], 0.0)
-    ey = np.where(resolved, outside_fraction(wy, nearest)[1:-1, 1:-1, None], 0.0)
+    ref = outside_fraction(frontal)
+    ex = np.clip(outside_fraction(wx, nearest) - ref, 0.0, None)[1:-1, 1:-1, None]
+    ey = np.clip(outside_fraction(wy, nearest) - ref, 0.0, None)[1:-1, 1:-1, None]
     c = rad[1:-1, 1:-1]
 
     def curvature(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -233,6 +240,29 @@ def blend_bias(rad: np.ndarray, wx: np.ndarray, wy: np.ndarray, nearest: np.ndar
 
     return np.abs(0.5 * ex * curvature(rad[1:-1, :-2], rad[1:-1, 2:])
                   + 0.5 * ey * curvature(rad[:-2, 1:-1], rad[2:, 1:-1]))
+
+
+def frontal_width(du: np.ndarray, dv: np.ndarray, cos_zenith: np.ndarray) -> np.ndarray:
+    """Width in pixels of texels whose edges project to ``du``, ``dv`` (..., 2) in a
+    view at ``cos_zenith`` (...), had the view looked at them frontally from the same
+    distance: the square root of the projected area undone of its foreshortening."""
+    area = np.abs(du[..., 0] * dv[..., 1] - du[..., 1] * dv[..., 0])
+    return np.sqrt(area / np.maximum(cos_zenith, 1e-3))
+
+
+def texel_pixels(intr: Intrinsics, R: np.ndarray, t: np.ndarray, S: int, T: int,
+                 width_mm: float, height_mm: float) -> float:
+    """Width in pixels of the map's centre texel as the view ``R``, ``t`` would see it
+    frontally from its distance (:func:`frontal_width`): whether the photos resolve
+    the map's texels (at least ``2 x PIXEL_REACH`` = 3 px: a frontal read takes in
+    nothing of the neighbours)."""
+    tw, th = width_mm / S, height_mm / T
+    ctr = np.array([[width_mm / 2, height_mm / 2, 0.0]])
+    uv0 = _project(ctr, intr, R, t)
+    du = _project(ctr + [tw, 0, 0], intr, R, t) - uv0
+    dv = _project(ctr + [0, th, 0], intr, R, t) - uv0
+    d = -np.asarray(R).T @ np.asarray(t).ravel() - ctr[0]
+    return float(frontal_width(du, dv, np.array([d[2] / np.linalg.norm(d)]))[0])
 
 
 def sample_view(
@@ -252,6 +282,7 @@ def sample_view(
     max_texel_shift: float | None = None,
     max_blend: float | None = None,
     stats: dict[str, int] | None = None,
+    resolved: bool | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
     """Sample one HDR frame at the texels of rows ``rows`` of the map.
 
@@ -264,10 +295,16 @@ def sample_view(
     cov, max_texel_shift : a partial view's pose covariance and limit: texels whose
         surface point the pose leaves more uncertain (1 sd, in sampling widths; see
         :func:`parammap.poses.point_uncertainty`) are not valid.
-    max_blend : with ``noise``, an observation of a texel the view resolves whose read
-        takes in the neighbouring texels, by a bias over ``max_blend`` times its noise
-        sd, is not valid (:func:`blend_bias`); None keeps every one.
+    max_blend : with ``noise``, where the photos resolve the map's texels, an
+        observation whose read takes in the neighbouring texels, by a bias over
+        ``max_blend`` times its noise sd, is not valid (:func:`blend_bias`); None keeps
+        every one.
     stats : counts added to: ``blended`` (observations dropped by ``max_blend``).
+    resolved : whether the photos resolve the map's texels (:func:`texel_pixels` at
+        the median view at least 3 px); None: this view's frontal width of the band's
+        texels decides. A map as fine as the photos keeps every read: each view blurs
+        its texels, and leaving out the most blended ones left directions unobserved
+        that cost the physically based captures' held-out renders 1-3 %.
 
     Returns
     -------
@@ -307,6 +344,7 @@ def sample_view(
     # the other edge's length (foreshortening is anisotropic). A texel too narrow for a
     # bilinear core but two pixels wide is read by whole pixels (nearest) instead.
     area = np.abs(du[..., 0] * dv[..., 1] - du[..., 1] * dv[..., 0])
+    frontal = frontal_width(du, dv, d[..., 2])
     wx = area / np.maximum(np.linalg.norm(dv, axis=-1), 1e-9)
     wy = area / np.maximum(np.linalg.norm(du, axis=-1), 1e-9)
     wmin = np.nan_to_num(np.minimum(wx, wy), nan=0.0)
@@ -339,8 +377,11 @@ def sample_view(
         nz = sample_image(np.asarray(noise, np.float32)[..., None], uv[..., 0],
                           uv[..., 1])[..., 0].mean(axis=2)
         sd = np.where(inside, nz, np.nan).astype(np.float32)
-        if max_blend is not None:
-            bias = blend_bias(rad, wx, wy, near)
+        if resolved is None:
+            seen = frontal[core][finite[core]]
+            resolved = seen.size > 0 and float(np.median(seen)) >= 2 * PIXEL_REACH["bilinear"]
+        if max_blend is not None and resolved:
+            bias = blend_bias(rad, wx, wy, near, frontal)
             level = sd[core] * np.nanmean(rad[core], -1)
             with np.errstate(invalid="ignore"):
                 blended = valid[core] & (np.nanmax(bias, -1) > max_blend * level)
@@ -368,7 +409,8 @@ def _compressor():
 def _pass1_view(job: tuple) -> tuple[str, float, int, float, int]:
     """Sample one view into the scratch store; returns (id, valid fraction, bytes read,
     seconds, observations dropped as blended with their neighbours)."""
-    (scratch, n, view, intr, S, T, w_mm, h_mm, band, max_zen, max_ss, max_blend) = job
+    (scratch, n, view, intr, S, T, w_mm, h_mm, band, max_zen, max_ss, max_blend,
+     resolved) = job
     t0 = time.perf_counter()
     rad, sat, _, noise = read_hdr_noise(view.hdr)
     if (rad.shape[1], rad.shape[0]) != tuple(intr.image_size):
@@ -381,7 +423,7 @@ def _pass1_view(job: tuple) -> tuple[str, float, int, float, int]:
         rows = slice(r0, min(r0 + band, T))
         r, _, v, sd = sample_view(rad, sat, intr, view.R, view.t, rows, S, T, w_mm, h_mm,
                                   max_zen, max_ss, noise, view.cov, view.max_texel_shift,
-                                  max_blend, stats)
+                                  max_blend, stats, resolved)
         g["radiance"][n, rows] = r
         g["valid"][n, rows] = v
         if sd is not None:
@@ -449,7 +491,9 @@ def build_observation_map(
         uses the map chosen by the pose stage.
     tile : texel tile edge of the chunks.
     max_blend : observations biased by their neighbours beyond this many noise sd by
-        the view's foreshortening are not valid (:func:`blend_bias`); None keeps them.
+        the view's foreshortening are not valid (:func:`blend_bias`), where the photos
+        resolve the map's texels (3 px or more across at the median view,
+        :func:`texel_pixels`); None keeps them.
 
     Returns
     -------
@@ -503,8 +547,16 @@ def build_observation_map(
         (marks / "key").write_text(key)
     done = {n: json.loads((marks / f"view-{n}").read_text()) for n in range(N)
             if (marks / f"view-{n}").is_file()}
+    texel_px = float(np.median([texel_pixels(intr, v.R, v.t, S, T, cap.width_mm,
+                                             cap.height_mm) for v in views]))
+    resolved = texel_px >= 2 * PIXEL_REACH["bilinear"]
+    if max_blend is not None:
+        logger.info(f"observation: texels {texel_px:.1f} px across at the median view: "
+                    + (f"reads blended with their neighbours by over {max_blend:g} noise sd "
+                       "are left out" if resolved else
+                       "the photos do not resolve them, every read is kept"))
     jobs = [(str(scratch), n, v, intr, S, T, cap.width_mm, cap.height_mm, band,
-             max_zenith_deg, max_supersample, max_blend)
+             max_zenith_deg, max_supersample, max_blend, resolved)
             for n, v in enumerate(views) if n not in done]
     with executor(workers) as ex:
         for k, (job, res) in enumerate(zip(jobs, ex.map(_pass1_view, jobs), strict=True)):
@@ -534,7 +586,9 @@ def build_observation_map(
                   "lengths": "mm"},
         "sampling": {"method": "texel footprint supersampling, bilinear",
                      "max_supersample": max_supersample,
-                     "max_zenith_deg": max_zenith_deg, "max_blend_sd": max_blend},
+                     "max_zenith_deg": max_zenith_deg, "max_blend_sd": max_blend,
+                     "texel_px": texel_px, "blend_check": bool(max_blend is not None
+                                                               and resolved)},
         "marker_texels": int(marker.sum()),
         "surface_id": cap.surface_id, "software": f"parammap {__version__}",
         "config": config or {},
@@ -567,7 +621,8 @@ def build_observation_map(
         "resolution": "auto" if texels_x == "auto" else "config",
         "views": N, "held_out_views": len(held),
         "valid_fraction": nvalid / (S * T * N), "build_seconds": seconds,
-        "blended_fraction": blended / (S * T * N),
+        "blended_fraction": blended / (S * T * N), "texel_px": texel_px,
+        "blend_check": bool(max_blend is not None and resolved),
         "sample_seconds": t_sample, "hdr_bytes_read": bytes_read,
         "read_mb_per_s": bytes_read / 1e6 / max(t_sample, 1e-9),
         "bytes_on_disk": on_disk, "bytes_uncompressed": uncompressed,
