@@ -191,6 +191,14 @@ OBS_UNITS = {"radiance": "relative linear radiance (one global scale)",
 PIXEL_REACH = {"bilinear": 1.5, "nearest": 1.0}
 
 
+# The neighbours' second difference in a view is read from reads that are blended
+# themselves: a feature a texel wide (an edge, a printed line) shows in them reduced by
+# 1 - 2f (f the read's share from beyond its edges), so the bias is that much larger
+# than the blended reads say; the amplification is capped at 1 / AMP_FLOOR where the
+# reads are so blended (f near 1/2) that they say little either way.
+AMP_FLOOR = 0.25
+
+
 def outside_fraction(w: np.ndarray, nearest: np.ndarray | bool = False) -> np.ndarray:
     """Fraction of a texel's read that comes from beyond its edges along one axis, the
     texel ``w`` pixels across there (:func:`sample_view`'s reads). A bilinear read of
@@ -216,7 +224,10 @@ def blend_bias(rad: np.ndarray, wx: np.ndarray, wy: np.ndarray, nearest: np.ndar
     neighbours' second difference (``left + right - 2 x texel``), zero inside a uniform
     patch and across a smooth gradient (a highlight sweeping over the surface, which a
     sum of absolute differences would count), large at a material edge, a printed line
-    or beside a marker. The share counted is what the foreshortening adds to the blend
+    or beside a marker, scaled up by ``1 / (1 - 2 f)`` (:data:`AMP_FLOOR`): the
+    second difference of blended reads understates the surface's (on the demo, texels
+    at the map's edge and by printed lines kept reads 30 % off). The share counted is
+    what the foreshortening adds to the blend
     of a frontal read at the same distance (``frontal`` pixels across): a texel that no
     view resolves is blurred in every view, and that blur is part of what the map
     describes.
@@ -230,8 +241,9 @@ def blend_bias(rad: np.ndarray, wx: np.ndarray, wy: np.ndarray, nearest: np.ndar
         same distance (:func:`frontal_width`).
     """
     ref = outside_fraction(frontal)
-    ex = np.clip(outside_fraction(wx, nearest) - ref, 0.0, None)[1:-1, 1:-1, None]
-    ey = np.clip(outside_fraction(wy, nearest) - ref, 0.0, None)[1:-1, 1:-1, None]
+    fx, fy = outside_fraction(wx, nearest), outside_fraction(wy, nearest)
+    ex = (np.clip(fx - ref, 0.0, None) / np.maximum(1 - 2 * fx, AMP_FLOOR))[1:-1, 1:-1, None]
+    ey = (np.clip(fy - ref, 0.0, None) / np.maximum(1 - 2 * fy, AMP_FLOOR))[1:-1, 1:-1, None]
     c = rad[1:-1, 1:-1]
 
     def curvature(a: np.ndarray, b: np.ndarray) -> np.ndarray:
