@@ -31,12 +31,12 @@ where their differences in that view bias it, beyond the blend a frontal read fr
 the same distance would have, by more than ``max_blend`` noise sd
 (:func:`blend_bias`: a material edge, a printed line, a marker seen edge-on), the read
 is not of its texel. On the demo (texels 3.4 px across at the median view, textured
-albedo): 13 % of its reads, held-out mh-auto 6.59 -> 6.38 and against the generator's
-truth 2.24 -> 1.71, the shininess of the m = 150 patch steadier (CV 0.06 -> 0.02),
-largest stain 11 -> 6 texels; its SH fits, which lose views their error is far above
-the bias of, 5 % worse. A map as fine as the photos (``auto``: texels about a pixel
-across) keeps every read: each view blurs its texels, and leaving out the most
-blended ones cost the physically based captures' held-out renders 1-3 %.
+albedo): 15 % of its reads, held-out mh-auto 6.59 -> 6.40 and against the generator's
+truth 2.24 -> 1.69, the shininess of the m = 150 patch steadier (CV 0.06 -> 0.02), no
+stain left at material edges or printed lines; its SH fits, which lose views their
+error is far above the bias of, 5 % worse. A map as fine as the photos (``auto``:
+texels about a pixel across) keeps every read: each view blurs its texels, and leaving
+out the most blended ones cost the physically based captures' held-out renders 1-3 %.
 
 Building streams in two passes, so memory does not grow with the map: (1) each view is
 sampled in row bands into a scratch store chunked per view; (2) the scratch store is
