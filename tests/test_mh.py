@@ -122,6 +122,34 @@ def test_two_lights_far_apart_found_float_radiance(K):
     assert (o["mpr"].reshape(-1, 3).mean(0) < 2.0).all()
 
 
+def test_auto_default_describes_four_highlights():
+    """``auto``'s default cap (``K_MAX_AUTO``) leaves room for four lobes: a highlight
+    that is not a Phong lobe takes two, so two lights take four. Four Phong highlights
+    are the exact case: four lights, 65 views up to 75 deg, 0.2 % noise; three lobes
+    leave a third of the radiance unexplained."""
+    from parammap.models.mh import K_MAX_AUTO
+
+    lights = ((1500, 1500, 2000), (-1500, -1500, 2000), (1500, -1500, 2000),
+              (-1500, 1500, 2000))
+    case = phong_case(lights=lights, intensities=(1.0, 0.8, 0.6, 0.5), noise=0.002,
+                      level=2, max_zenith_deg=75)
+    assert K_MAX_AUTO >= 4
+    capped = fit_mh_tile(*(a[TILE] for a in (case.radiance, case.direction, case.valid)),
+                         "auto", MhFitConfig(), K_max=3)
+    assert capped["mpr"].reshape(-1, 3).mean(0).max() > 10
+    o = _fit(case, "auto")
+    assert (o["k_used"] == 4).all()
+    assert (o["mpr"].reshape(-1, 3).mean(0) < 0.5).all()
+    p = o["params"].reshape(16, -1).astype(float)
+    q = case.truth[TILE].reshape(16, -1)
+    d = p[:, 4:4 + 24].reshape(16, 4, 6)[..., 3:]
+    t = q[:, 4:].reshape(16, 4, 6)[..., 3:]
+    # every true lobe has a fitted one within a degree
+    near = _lobe_angle(t[:, :, None], d[:, None]).min(2)
+    assert near.max() < 1.0
+    assert np.median(np.abs(p[:, 3] / q[:, 3] - 1)) < 0.02
+
+
 def test_seventeen_views_close_to_305_float_radiance():
     """004 ch. 13.2 saw Ks 15 % and m 5 % away with 17 views; here on float radiance
     with 0.2 % noise (004: 8-bit renders), against 305 views (004: 289)."""

@@ -41,6 +41,7 @@ from .errors import InputError
 from .metrics import digest
 from .models.mh import (
     ALGORITHMS,
+    K_MAX_AUTO,
     REPAIR_FACTOR,
     REPAIR_RADIUS,
     REPAIR_STARTS,
@@ -486,7 +487,7 @@ def fit_mh_map(obs_path: str | Path, out_path: str | Path, K: int | str, cfg: di
     if fcfg.algorithm not in ALGORITHMS:
         raise InputError(f"fit.mh.algorithm: unknown {fcfg.algorithm!r} "
                          f"(one of {', '.join(ALGORITHMS)})")
-    K_max = cfg.get("K_max", 3) if K == "auto" else K
+    K_max = cfg.get("K_max", K_MAX_AUTO) if K == "auto" else K
     pool = bool(cfg.get("pool_shininess", True))
     repair = partial(repair_mh_tile, K=K, cfg=fcfg, pool=pool) if cfg.get("repair", True) \
         else None

@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from .conventions import LUMINANCE, mh_size
-from .models.mh import MhFitConfig, fit_mh_tile
+from .models.mh import K_MAX_AUTO, MhFitConfig, fit_mh_tile
 from .models.sh import fit_sh_tile, sh_eval
 from .synth.cases import Case, phong_case
 from .synth.sampling import icosahedron
@@ -120,7 +120,8 @@ def published_case(lights, intensities, c: Conditions = CONDITIONS) -> Case:
 
 def _fit_mh(case: Case, K, init: str, polish: str = "batch") -> dict[str, np.ndarray]:
     return fit_mh_tile(case.radiance, case.direction, case.valid, K,
-                       MhFitConfig(init=init, polish=polish), K_max=3 if K == "auto" else K)
+                       MhFitConfig(init=init, polish=polish),
+                       K_max=K_MAX_AUTO if K == "auto" else K)
 
 
 def _row(experiment: str, case: str, published, ours_pub, ours_def, note: str = ""):

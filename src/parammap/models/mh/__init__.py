@@ -21,6 +21,7 @@ guesses), :mod:`.fit` (batched LM, nlopt, lobe selection, a tile), :mod:`.repair
 from ..residuals import mean_percentage_residual
 from .fit import (
     ALGORITHMS,
+    K_MAX_AUTO,
     FitResult,
     MhFitConfig,
     drop_negligible_lobes,
@@ -36,6 +37,7 @@ from .repair import REPAIR_FACTOR, REPAIR_RADIUS, REPAIR_STARTS, repair_mh_tile,
 
 __all__ = [
     "ALGORITHMS",
+    "K_MAX_AUTO",
     "M_MAX",
     "M_MIN",
     "REPAIR_FACTOR",
