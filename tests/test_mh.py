@@ -183,6 +183,23 @@ def test_map_fit_with_dask_processes_matches_tile_fit(tmp_path):
     assert not list((tmp_path / "fit").glob(".*tmp*"))
 
 
+def test_auto_map_fit_says_where_the_lobe_cap_bound(tmp_path, caplog):
+    """Two lights, ``auto`` capped at one lobe: every texel wanted more, and the log says
+    so and names the setting; the store records the cap."""
+    import logging
+
+    case = phong_case(noise=0.002,
+                      lights=((1500, 1500, 2000), (-1500, -1500, 2000)), intensities=(1, 0.8))
+    obs = write_observation_arrays(tmp_path / "obs.zarr",
+                                   *(a[TILE] for a in (case.radiance, case.direction,
+                                                       case.valid)), 250.0, 250.0, tile=4)
+    with caplog.at_level(logging.INFO, logger="parammap.fitting"):
+        m = fit_mh_map(obs, tmp_path / "mh-auto.zarr", "auto", {"K_max": 1}, "synchronous", 1)
+    assert m["lobes_used"] == {"1": 16}
+    assert "100.0 % of the texels use all 1 lobes auto may (fit.mh.K_max)" in caplog.text
+    assert open_fit(tmp_path / "mh-auto.zarr").attrs["K_max"] == 1
+
+
 def test_bad_settings_are_clear_errors(tmp_path):
     with pytest.raises(ValueError, match="positive integer or auto"):
         parse_lobes("two")

@@ -505,6 +505,10 @@ def fit_mh_map(obs_path: str | Path, out_path: str | Path, K: int | str, cfg: di
     g = open_fit(out_path)
     ok = g["status"][:] == FitStatus.OK
     kused = g["k_used"][:][ok]
+    if K == "auto" and len(kused):
+        # BIC may have wanted more where the cap bound: say so, and where to raise it
+        logger.info(f"fit: {100 * np.mean(kused == K_max):.1f} % of the texels use all "
+                    f"{K_max} lobes auto may (fit.mh.K_max)")
     return fit_summary(
         out_path, res, f"mh-{K}", scheduler=scheduler, workers=workers,
         lobes_used={str(k): int((kused == k).sum()) for k in np.unique(kused)},
