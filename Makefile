@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 CORES ?= all
 
-.PHONY: demo test lint report paper clean-reports setup setup-pbr browser
+.PHONY: demo test lint report paper clean-reports setup setup-pbr setup-docs docs browser
 
 setup: $(VENV)/.installed
 
@@ -16,6 +16,17 @@ setup-pbr: $(VENV)/.installed-pbr
 $(VENV)/.installed-pbr: $(VENV)/.installed requirements-pbr.lock
 	$(BIN)/python -m pip install --quiet -r requirements-pbr.lock
 	touch $@
+
+# The documentation site (MkDocs Material, API pages from the docstrings).
+setup-docs: $(VENV)/.installed-docs
+
+$(VENV)/.installed-docs: $(VENV)/.installed requirements-docs.lock
+	$(BIN)/python -m pip install --quiet -r requirements-docs.lock
+	touch $@
+
+# Warnings are errors, so that a broken link or docstring cannot land.
+docs: setup-docs
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet
 
 $(VENV)/.installed: pyproject.toml requirements.lock
 	$(PYTHON) -m venv $(VENV)
@@ -48,9 +59,10 @@ browser:
 	  echo "error: CI is set and chromium could not be installed (apt-get install chromium)"; \
 	  exit 1; else echo "note: chromium not installed; viewer tests will be skipped"; fi; }; }
 
-test: setup setup-pbr browser
+test: setup setup-pbr setup-docs browser
 	$(BIN)/ruff check src tests workflow/scripts benchmarks
 	$(BIN)/snakemake --lint --cores 1 --dry-run >/dev/null
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet
 	$(BIN)/python -m pytest -q
 
 lint: setup

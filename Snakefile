@@ -1,6 +1,6 @@
 # parammap workflow: bracketed photos -> HDR frames -> calibrated poses -> observation
 # map -> parameter maps and reports. All logic lives in the parammap package; rules
-# call its CLI. Paths follow ../shared/docs/outputs.md (see README).
+# call its CLI. Paths follow docs/reference/outputs.md (see README).
 
 from snakemake.utils import min_version
 

@@ -11,7 +11,7 @@ ones (the advisor's fallback) and ``--random`` draws of as many pool views at ra
 Each map is compared with the clean renders of the capture's held-out views (mean 8-bit
 difference, as ``pbr_capture.py``), or, on a capture of the analytic generator (its
 truth folder holds ``scene.npz``: the demo), with the truth itself in 256 directions up
-to 75 deg at every texel (:func:`parammap.synth.evaluate.directions_against_truth`),
+to 75 deg at every texel (:func:`parammap.synth.testsupport.directions_against_truth`),
 which three or four held-out views are too few and too noisy to replace. The pool's
 views are real photos of the capture, so no view is rendered anew.
 
@@ -33,14 +33,14 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from parammap.capture import load_capture
 from parammap.cli import main
 from parammap.config import validate_config
-from parammap.fitting import open_mh_source
 from parammap.geometry import unit
 from parammap.models.advisor import advise_directions
-from parammap.observation import sample_texel_observations
-from parammap.synth import evaluate as ev
+from parammap.render import evaluate as ev
+from parammap.stores.capture import load_capture
+from parammap.stores.fit import open_mh_source
+from parammap.stores.observation import sample_texel_observations
 from parammap.synth.sampling import stratified
 
 #: directions the analytic generator's truth is compared in: 256, stratified over the

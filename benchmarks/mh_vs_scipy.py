@@ -109,7 +109,7 @@ def run_demo(processed: str, workers: int, repeat: int) -> None:
     from pathlib import Path
 
     from parammap.config import load_config
-    from parammap.fitting import fit_mh_map
+    from parammap.stages.fit import fit_mh_map
 
     cfg = load_config(Path(__file__).resolve().parents[1] / "config" / "config.yaml")
     obs = Path(processed) / "observation.zarr"

@@ -18,8 +18,8 @@ import sys
 import time
 from pathlib import Path
 
-from parammap.capture import load_capture
-from parammap.observation import build_observation_map
+from parammap.stages.observation import build_observation_map
+from parammap.stores.capture import load_capture
 
 
 def main() -> int:

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from parammap.cli import main
-from parammap.synth import evaluate as ev
+from parammap.render import evaluate as ev
 
 
 def run(preset: str, root: Path, models: list[str], seed: int, reuse_hdr: bool = False,
@@ -53,8 +53,8 @@ def run(preset: str, root: Path, models: list[str], seed: int, reuse_hdr: bool =
             time.perf_counter() - t0
     import yaml
 
-    from parammap.capture import load_capture
-    from parammap.observation import open_observation_map
+    from parammap.stores.capture import load_capture
+    from parammap.stores.observation import open_observation_map
 
     c = load_capture(cap)
     sample = [v.id for v in c.views][:: max(1, len(c.views) // 6)]
@@ -83,8 +83,8 @@ def run(preset: str, root: Path, models: list[str], seed: int, reuse_hdr: bool =
     res["holdout_vs_clean"] = ev.holdout_against_truth(
         cap, truth, out, models + extra + (["best"] if materials else []) + ["diffuse"])
     if materials:
-        from parammap.fitting import open_fit
         from parammap.models.materials import adjusted_rand_index
+        from parammap.stores.fit import open_fit
         from parammap.synth.pbr import patch_labels
 
         lab = open_fit(out / "fit" / "mh-materials.zarr")["label"][:]

@@ -15,8 +15,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from parammap.fitting import fit_sh_map
 from parammap.models.sh import parse_sh_model
+from parammap.stages.fit import fit_sh_map
 
 
 def main() -> int:

@@ -27,8 +27,8 @@ from scipy.ndimage import binary_erosion
 
 from parammap.cli import main
 from parammap.conventions import MH_M, mh_ks, mh_lobes
-from parammap.fitting import open_fit
-from parammap.observation import open_observation_map, write_observation_arrays
+from parammap.stores.fit import open_fit
+from parammap.stores.observation import open_observation_map, write_observation_arrays
 from parammap.synth.generate import true_observations
 
 

@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from parammap.calibration import load_intrinsics
-from parammap.params import ParamMap, read_param_map
+from parammap.stores.camera import load_intrinsics
+from parammap.stores.params import ParamMap, read_param_map
 from parammap.viewer import write_viewer
 
 ARGS = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"]

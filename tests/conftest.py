@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 import yaml
 
-from parammap.calibration import Intrinsics, save_intrinsics
 from parammap.cli import main
+from parammap.stages.calibration import Intrinsics
+from parammap.stores.camera import save_intrinsics
 from parammap.synth.generate import generate
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"

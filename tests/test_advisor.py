@@ -9,11 +9,11 @@ import json
 import numpy as np
 import pytest
 
-from parammap.advisor import run_advisor
 from parammap.config import validate_config
 from parammap.geometry import texel_centres, unit
 from parammap.models.advisor import advise_directions, hemisphere_candidates
 from parammap.models.mh import MhFitConfig, fit_mh_tile, mh_eval
+from parammap.stages.advisor import run_advisor
 from parammap.synth.cases import CENTRE, phong_case
 from parammap.synth.sampling import icosahedron
 from parammap.synth.scene import true_radiance
@@ -81,9 +81,9 @@ def processed(tmp_path):
     """A fitted map of the case above as stores (observation map and mh-1 fit)."""
     from functools import partial
 
-    from parammap.fitting import fit_map
     from parammap.models.mh import mh_outputs
-    from parammap.observation import write_observation_arrays
+    from parammap.stages.fit import fit_map
+    from parammap.stores.observation import write_observation_arrays
 
     case = phong_case(m=100.0, texels=8, directions=icosahedron(2, 80.0), noise=0.01)
     write_observation_arrays(tmp_path / "observation.zarr", case.radiance, case.direction,

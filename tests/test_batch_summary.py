@@ -8,8 +8,8 @@ import csv
 import numpy as np
 
 from parammap.cli import main
-from parammap.figures import _robust_outliers
-from parammap.metrics import write_metrics
+from parammap.stages.figures import _robust_outliers
+from parammap.stores.metrics import write_metrics
 
 
 def test_outliers_are_robust():

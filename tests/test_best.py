@@ -9,17 +9,22 @@ from functools import partial
 import numpy as np
 import pytest
 
-from parammap.best import run_best
 from parammap.config import validate_config
 from parammap.errors import InputError
-from parammap.fitting import fit_map
 from parammap.geometry import Intrinsics, look_at
-from parammap.holdout import diffuse_map
 from parammap.models.mh import MhFitConfig, fit_mh_tile, mh_outputs
 from parammap.models.selection import press_linear
-from parammap.observation import write_observation_arrays
-from parammap.params import ParamMap, param_map_from_fit, read_param_map, write_param_map
 from parammap.render import render
+from parammap.stages.best import run_best
+from parammap.stages.fit import fit_map
+from parammap.stores.observation import write_observation_arrays
+from parammap.stores.params import (
+    ParamMap,
+    diffuse_map,
+    param_map_from_fit,
+    read_param_map,
+    write_param_map,
+)
 from parammap.synth.cases import patches_case
 
 
@@ -125,7 +130,7 @@ def test_best_stage_keeps_the_lobe_where_the_views_need_it(tmp_path):
 
 
 def test_choice_leaves_the_default_only_for_a_significant_gain():
-    from parammap.best import candidates, choose, resolve, significance_z
+    from parammap.stages.best import candidates, choose, resolve, significance_z
 
     # four texels, candidates a (the default: least mean error), b, and c
     B = np.array([[1.0, 0.9, 2.0],    # b better, but within one standard error
@@ -160,10 +165,10 @@ def test_sh_is_judged_by_its_own_projection_not_a_plain_refit(tmp_path):
     edge determine a coefficient alone and overstates the error."""
     import shutil
 
-    from parammap.best import error_table
-    from parammap.fitting import fit_sh_map
-    from parammap.observation import open_observation_map
-    from parammap.paths import Processed
+    from parammap.stages.best import error_table
+    from parammap.stages.fit import fit_sh_map
+    from parammap.stores.observation import open_observation_map
+    from parammap.stores.paths import Processed
 
     case, label = patches_case(texels=12, noise=0.01, seed=2)
     write_observation_arrays(tmp_path / "observation.zarr", case.radiance, case.direction,
@@ -197,9 +202,9 @@ def test_the_mean_of_two_models_is_judged_exactly_and_taken_where_their_errors_c
     predicts the left-out views badly, their mean is the least-squares diffuse fit.
     A pair's left-out error is exactly that of a map of the mean of the two (linear
     models), the stage takes the pair everywhere, and its render is that mean."""
-    from parammap.best import candidates, error_table
-    from parammap.observation import open_observation_map
-    from parammap.paths import Processed
+    from parammap.stages.best import candidates, error_table
+    from parammap.stores.observation import open_observation_map
+    from parammap.stores.paths import Processed
 
     case, _ = patches_case(texels=12, noise=0.01, seed=3)
     write_observation_arrays(tmp_path / "observation.zarr", case.radiance, case.direction,

@@ -8,7 +8,7 @@ import shutil
 import numpy as np
 
 from parammap.compare import compare_trees, main
-from parammap.exr import write_exr
+from parammap.stores.exr import write_exr
 
 
 def _tree(root, bump=0.0, pixel=False):

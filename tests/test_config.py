@@ -1,6 +1,7 @@
 from pathlib import Path
 
 import pytest
+import yaml
 
 from parammap.config import ConfigError, load_config, validate_config
 
@@ -54,7 +55,7 @@ def test_surface_overrides_merge_and_name_bad_keys():
 def test_auto_map_resolution_and_budget():
     from types import SimpleNamespace
 
-    from parammap.poses import OBS_BYTES_PER_SAMPLE, map_resolution
+    from parammap.stages.poses import OBS_BYTES_PER_SAMPLE, map_resolution
 
     cap = SimpleNamespace(width_mm=200.0, height_mm=100.0)
     g = map_resolution(cap, [1.5, 2.0, 2.5], 50, "auto", None, 4.0)
@@ -105,3 +106,77 @@ def test_the_command_line_runs_blas_on_one_thread_unless_told(monkeypatch, prese
         else:
             assert all(os.environ[v] == "1" for v in BLAS_THREAD_VARIABLES)
             assert threads == {1}
+
+
+def _schema_defaults() -> dict[str, list[tuple[str, object]]]:
+    """Leaf name -> (dotted key, default) of every scalar default in the schema."""
+    from parammap.config import schema
+
+    leaves: dict[str, list[tuple[str, object]]] = {}
+
+    def walk(node: dict, path: list[str]) -> None:
+        for key, sub in (node.get("properties") or {}).items():
+            if "default" in sub and not isinstance(sub["default"], dict | list):
+                leaves.setdefault(key, []).append((".".join(path + [key]), sub["default"]))
+            walk(sub, path + [key])
+
+    walk(schema(), [])
+    return leaves
+
+
+def test_every_config_default_is_written_once_in_the_schema():
+    """No Python default (a parameter, a dataclass field, a constant) repeats a schema
+    default under the setting's name: it reads :func:`parammap.config.default`. Seeds
+    are left out: a function's ``seed=0`` is its own reproducible stream, not the
+    config's."""
+    import ast
+
+    leaves = _schema_defaults()
+    assert leaves["low"] == [("hdr.low", 5)]  # the walk reads the schema
+    found = []
+    for path in sorted((ROOT / "src" / "parammap").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            pairs = []
+            if isinstance(node, ast.FunctionDef):
+                a = node.args
+                pos = a.posonlyargs + a.args
+                pairs += list(zip((x.arg for x in pos[len(pos) - len(a.defaults):]),
+                                  a.defaults, strict=True))
+                pairs += [(x.arg, d) for x, d in zip(a.kwonlyargs, a.kw_defaults, strict=True)
+                          if d is not None]
+            elif isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+                pairs.append((node.target.id, node.value))
+            for name, value in pairs:
+                if name == "seed" or not isinstance(value, ast.Constant) or value.value is None:
+                    continue
+                for key, d in leaves.get(name, []):
+                    if type(value.value) is type(d) and value.value == d:
+                        found.append(f"{path.name}:{node.lineno} {name}={d!r} ({key})")
+    assert not found, "\n".join(found)
+
+
+def test_shipped_config_holds_only_what_users_change():
+    """``config/config.yaml`` is short and restates no default: what it sets differs
+    from the schema's default, or is a section the schema has none for."""
+    from parammap.config import default
+
+    text = (ROOT / "config" / "config.yaml").read_text()
+    assert len(text.splitlines()) < 40
+    cfg = yaml.safe_load(text)
+
+    def walk(node: dict, path: list[str]) -> list[str]:
+        same = []
+        for key, value in node.items():
+            full = ".".join(path + [key])
+            if isinstance(value, dict) and path[:1] not in (["captures"], ["synth"],
+                                                          ["overrides"]):
+                same += walk(value, path + [key])
+            else:
+                try:
+                    if default(full) == value:
+                        same.append(full)
+                except KeyError:
+                    pass
+        return same
+
+    assert not walk(cfg, [])

@@ -12,7 +12,7 @@ import pytest
 
 from parammap.config import schema
 from parammap.conventions import SH_HEMISPHERES as HEMISPHERES
-from parammap.hdr import recover_response
+from parammap.stages.hdr import recover_response
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -35,8 +35,8 @@ def test_stores_open_as_labelled_xarray_datasets(tmp_path):
     """Observation map and fit stores carry zarr dimension names: xarray labels them."""
     xr = pytest.importorskip("xarray")
 
-    from parammap.fitting import fit_sh_map
-    from parammap.observation import write_observation_arrays
+    from parammap.stages.fit import fit_sh_map
+    from parammap.stores.observation import write_observation_arrays
     from parammap.synth.cases import phong_case
 
     case = phong_case(texels=4, level=1, m=10)
@@ -58,8 +58,8 @@ def test_cli_one_line_for_bad_input_traceback_for_bugs(tmp_path, monkeypatch, ca
     import pytest
 
     import parammap.cli as cli
-    from parammap.capture import CaptureError
     from parammap.errors import InputError
+    from parammap.stores.capture import CaptureError
 
     assert issubclass(CaptureError, InputError)
     # bad input: exit 2 and one line naming it
@@ -105,7 +105,8 @@ def test_layouts_and_status_codes_only_in_conventions():
 
 def test_viewer_constants_are_generated_from_conventions():
     from parammap.conventions import sh_norms
-    from parammap.viewer import SH_MAX_BANDS, glsl_constants
+    from parammap.viewer import glsl_constants
+    from parammap.viewer.layers import SH_MAX_BANDS
 
     page = (ROOT / "src" / "parammap" / "viewer" / "index.html").read_text()
     assert "//@CONVENTIONS@" in page and "D.glsl" in page
@@ -124,8 +125,8 @@ def test_viewer_constants_are_generated_from_conventions():
 def test_undistortion_grid_inverts_the_python_distortion():
     import base64
 
-    from parammap.calibration import Intrinsics
     from parammap.geometry import distort_normalized
+    from parammap.stages.calibration import Intrinsics
     from parammap.viewer import undistortion_grid
 
     K = np.array([[1800.0, 0.4, 1010.0], [0.0, 1795.0, 740.0], [0.0, 0.0, 1.0]])
@@ -141,10 +142,10 @@ def test_undistortion_grid_inverts_the_python_distortion():
 
 def test_workflow_paths_are_the_processed_layout():
     """Every processed-folder path a Snakemake rule names is one of
-    :class:`parammap.paths.Processed`'s (the layout is written once in Python)."""
+    :class:`parammap.stores.paths.Processed`'s (the layout is written once in Python)."""
     import inspect as ins
 
-    from parammap.paths import Processed
+    from parammap.stores.paths import Processed
 
     proc = Processed("P")
     patterns = []
@@ -167,10 +168,10 @@ def test_workflow_paths_are_the_processed_layout():
 def test_hdr_frames_carry_provenance(tiny_processed):
     """Every merged frame names the software and digests of its config and response."""
     from parammap.config import validate_config
-    from parammap.exr import read_exr
-    from parammap.hdr import load_response
-    from parammap.metrics import digest
-    from parammap.paths import Processed
+    from parammap.stores.exr import read_exr
+    from parammap.stores.hdr import load_response
+    from parammap.stores.metrics import digest
+    from parammap.stores.paths import Processed
 
     _, _, out = tiny_processed
     proc = Processed(out)

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import yaml
 
-from parammap.capture import load_capture
 from parammap.cli import main
-from parammap.hdr import read_hdr
-from parammap.observation import open_observation_map
+from parammap.stores.capture import load_capture
+from parammap.stores.hdr import read_hdr
+from parammap.stores.observation import open_observation_map
 from parammap.synth.generate import generate, true_observations, true_view_radiance
 
 

@@ -10,26 +10,17 @@ import pytest
 import yaml
 import zarr
 
-from parammap.calibration import (
-    CalibrationError,
-    Intrinsics,
-    calibrate,
-    estimate_pose,
-    to_gray8,
-)
-from parammap.capture import load_capture
 from parammap.config import validate_config
 from parammap.conventions import LUMINANCE
-from parammap.hdr import (
-    load_bracket,
-    load_response,
-    merge_bracket,
-    reexposure_error,
-    response_for_capture,
-    save_response,
-)
-from parammap.imageio import ImageReadError, read_image
+from parammap.stages.calibration import Intrinsics, calibrate
+from parammap.stages.hdr import load_bracket, merge_bracket, reexposure_error, response_for_capture
+from parammap.stores.camera import CalibrationError
+from parammap.stores.capture import load_capture
+from parammap.stores.hdr import load_response, save_response
+from parammap.stores.images import ImageReadError, read_image
 from parammap.synth.generate import true_view_radiance
+from parammap.vision.markers import to_gray8
+from parammap.vision.pose import estimate_pose
 
 HDR_CFG = validate_config({"captures": {"x": "."}})["hdr"]
 
@@ -134,7 +125,7 @@ def test_pattern_refinement_recovers_an_oblique_pose(tiny_capture, tiny_response
     most oblique view, and its predicted uncertainty covers the error it makes."""
     import cv2
 
-    from parammap.calibration import refine_pose_pattern
+    from parammap.vision.pattern import refine_pose_pattern
 
     cap, intr, rad, (R0, t0), Ct, (start_R, start_t) = _oblique_view(tiny_capture,
                                                                        tiny_response)
@@ -149,7 +140,7 @@ def test_pattern_refinement_recovers_an_oblique_pose(tiny_capture, tiny_response
     sd = np.sqrt(np.trace(r["cov"][3:, 3:]))
     assert np.linalg.norm(r["t"] - t0) < 5 * sd + 0.02, (np.linalg.norm(r["t"] - t0), sd)
     # the analytic Jacobian the solve uses is the residuals' own (central differences)
-    from parammap.calibration import PatternView
+    from parammap.vision.pattern import PatternView
 
     view = PatternView(rad @ LUMINANCE, cap, [int(i) for i in cap.marker_ids],
                        cv2.Rodrigues(start_R)[0].ravel(), start_t, intr)
@@ -173,7 +164,7 @@ def test_pattern_fit_finds_the_markers_the_detector_missed(tiny_capture, tiny_re
 
     import cv2
 
-    from parammap.calibration import refine_pose_pattern
+    from parammap.vision.pattern import refine_pose_pattern
 
     cap, intr, rad, (R0, t0), Ct, (start_R, start_t) = _oblique_view(tiny_capture,
                                                                        tiny_response)
@@ -217,8 +208,9 @@ def test_intrinsics_refined_on_the_pattern_keep_the_true_camera(tiny_processed):
     (measured: 0.006 %, 0.002 px, directions 0.004 deg worst)."""
     import cv2
 
-    from parammap.calibration import pattern_views, refine_intrinsics_pattern
-    from parammap.paths import Processed
+    from parammap.stages.calibration import pattern_views
+    from parammap.stores.paths import Processed
+    from parammap.vision.pattern import refine_intrinsics_pattern
 
     cap_dir, truth, out = tiny_processed
     cap = load_capture(cap_dir)
@@ -246,8 +238,8 @@ def test_intrinsics_refined_on_the_pattern_keep_the_true_camera(tiny_processed):
 def test_compiled_pattern_prediction_matches_the_numpy_chain():
     from scipy.ndimage import map_coordinates
 
-    from parammap.calibration import _plane_texture_coords
-    from parammap.pattern_kernel import pattern_predict
+    from parammap.vision.pattern import _plane_texture_coords
+    from parammap.vision.pattern_kernel import pattern_predict
 
     if pattern_predict is None:
         pytest.skip("numba missing: the numpy chain is the only one")
@@ -291,8 +283,9 @@ def test_saved_response_is_reused(tiny_copy, tiny_response, tmp_path):
 def test_linear_16bit_input_merges_without_a_response(tmp_path):
     import cv2
 
-    from parammap.capture import Exposure, View
-    from parammap.hdr import merge_view, read_hdr
+    from parammap.stages.hdr import merge_view
+    from parammap.stores.capture import Exposure, View
+    from parammap.stores.hdr import read_hdr
 
     rng = np.random.default_rng(1)
     L = rng.uniform(10, 4000, (12, 16, 3))
@@ -385,7 +378,7 @@ def test_marker_edge_refinement_is_sub_tenth_pixel(yaw_deg):
     integration through a distorting lens: refined corners within 0.05 px of the
     projected truth, at grid-aligned (the hard case for interpolation) and slanted
     angles, starting from corners 0.4 px off."""
-    from parammap.calibration import refine_marker_corners
+    from parammap.vision.markers import refine_marker_corners
 
     lum, true, intr = _rendered_marker(6, 0.05, 0.6, 260.0, yaw_deg)
     start = true + np.array([[0.3, -0.25], [-0.2, 0.3], [0.25, 0.3], [-0.3, -0.2]])
@@ -400,7 +393,7 @@ def test_marker_edges_are_unbiased_under_pixel_noise():
     refined corners stay centred on the truth (no drift toward the bright side, which
     normalising each column by its own noisy levels gave: +0.13 px) and within 0.12 px
     on average (0.25 px before the blurred-step fit)."""
-    from parammap.calibration import refine_marker_corners
+    from parammap.vision.markers import refine_marker_corners
 
     rad, true, intr = _rendered_marker(7, 0.04, 0.8, 420.0, 20.0)
     out = (true - true.mean(0)) / np.linalg.norm(true - true.mean(0), axis=1, keepdims=True)
@@ -424,8 +417,9 @@ def test_uncertain_poses_are_dropped_with_reason(tiny_processed, tmp_path):
 
     import cv2
 
-    from parammap.calibration import load_intrinsics, rotation_sd_per_px
     from parammap.cli import main
+    from parammap.stores.camera import load_intrinsics
+    from parammap.vision.pose import rotation_sd_per_px
 
     cap_dir, truth, out = tiny_processed
     cap = load_capture(cap_dir)
@@ -502,7 +496,7 @@ def test_grazing_markers_missed_at_first_are_found_upsampled():
     corners in the photo's own pixel coordinates."""
     import cv2
 
-    from parammap.calibration import detect_markers
+    from parammap.vision.markers import detect_markers
 
     d = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_5X5_250)
     src = np.full((440, 440), 255, np.uint8)
@@ -523,7 +517,7 @@ def test_grazing_markers_missed_at_first_are_found_upsampled():
 
 
 def test_corner_gate_trusts_a_typical_pattern_fit_only():
-    from parammap.poses import PATTERN_NOISE_FACTOR, corner_gate
+    from parammap.stages.poses import PATTERN_NOISE_FACTOR, corner_gate
 
     def rec(rms, solution, noise):
         return {"ok": True, "rms_px": rms, "solution": solution, "noise_px": noise}

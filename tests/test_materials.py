@@ -13,11 +13,12 @@ import pytest
 from parammap.config import validate_config
 from parammap.conventions import MH_M
 from parammap.errors import InputError
-from parammap.fitting import fit_map, open_fit
-from parammap.materials import MATERIALS_MODEL, run_materials
 from parammap.models.materials import adjusted_rand_index
 from parammap.models.mh import MhFitConfig, fit_mh_tile, mh_eval, mh_outputs
-from parammap.observation import write_observation_arrays
+from parammap.stages.fit import fit_map
+from parammap.stages.materials import run_materials
+from parammap.stores.fit import MATERIALS_MODEL, open_fit
+from parammap.stores.observation import write_observation_arrays
 from parammap.synth.cases import patches_case
 from parammap.synth.scene import true_radiance
 

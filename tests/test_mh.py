@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 from parammap.conventions import FitStatus, mh_size
-from parammap.fitting import FitError, fit_mh_map, open_fit
 from parammap.models.mh import MhFitConfig, fit_mh_tile, mh_eval, parse_lobes
-from parammap.observation import write_observation_arrays
+from parammap.stages.fit import fit_mh_map
+from parammap.stores.fit import FitError, open_fit
+from parammap.stores.observation import write_observation_arrays
 from parammap.synth.cases import phong_case
 
 TILE = (slice(6, 10), slice(6, 10))  # 16 texels around the centre of 004's 16x16 map
@@ -193,7 +194,7 @@ def test_auto_map_fit_says_where_the_lobe_cap_bound(tmp_path, caplog):
     obs = write_observation_arrays(tmp_path / "obs.zarr",
                                    *(a[TILE] for a in (case.radiance, case.direction,
                                                        case.valid)), 250.0, 250.0, tile=4)
-    with caplog.at_level(logging.INFO, logger="parammap.fitting"):
+    with caplog.at_level(logging.INFO, logger="parammap.stages.fit"):
         m = fit_mh_map(obs, tmp_path / "mh-auto.zarr", "auto", {"K_max": 1}, "synchronous", 1)
     assert m["lobes_used"] == {"1": 16}
     assert "100.0 % of the texels use all 1 lobes auto may (fit.mh.K_max)" in caplog.text
@@ -576,7 +577,7 @@ def test_parameter_sd_matches_the_spread_over_noise_realisations():
 
 
 def test_sd_channels_round_trip_through_the_exr(tmp_path):
-    from parammap.params import ParamMap, read_param_map, write_param_map
+    from parammap.stores.params import ParamMap, read_param_map, write_param_map
 
     rng = np.random.default_rng(0)
     params = rng.random((3, 4, mh_size(2))).astype(np.float32)

@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 
 from parammap.conventions import FitStatus
-from parammap.hdr import level_noise, merge_bracket, merge_noise, reexposure_error
 from parammap.models.mh import fit_mh_tile
 from parammap.models.sh import fit_sh_tile
 from parammap.models.weights import MAX_RATIO, noise_weights, reduced_chi2
+from parammap.stages.hdr import level_noise, merge_bracket, merge_noise, reexposure_error
 from parammap.synth.cases import phong_case
 
 

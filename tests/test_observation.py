@@ -8,14 +8,9 @@ import pytest
 import yaml
 import zarr
 
-from parammap.capture import load_capture
-from parammap.observation import (
-    COMPLETE_ATTR,
-    ObservationError,
-    build_observation_map,
-    marker_texel_mask,
-    open_observation_map,
-)
+from parammap.stages.observation import COMPLETE_ATTR, build_observation_map, marker_texel_mask
+from parammap.stores.capture import load_capture
+from parammap.stores.observation import ObservationError, open_observation_map
 from parammap.synth.generate import true_observations
 
 
@@ -23,7 +18,7 @@ from parammap.synth.generate import true_observations
 def test_texel_pixels_is_the_frontal_width_at_the_views_distance(zenith_deg):
     """10 mm texels 1000 mm from a camera of focal length 800 px are 8 px across,
     frontal or not: the foreshortening of an oblique view is undone."""
-    from parammap.observation import texel_pixels
+    from parammap.stages.observation import texel_pixels
 
     _, intr, R, t = _checker_photo(zenith_deg, 8, 6, 1.0, 1.0)
     assert texel_pixels(intr, R, t, 8, 6, 80.0, 60.0) == pytest.approx(8.0, rel=0.01)
@@ -35,7 +30,7 @@ def test_blend_check_follows_the_maps_resolution_not_one_views():
     the other views resolve: with ``resolved`` the grazing view's blended reads are
     left out all the same (judged from this view alone, it would keep them), and a
     uniform surface keeps every read."""
-    from parammap.observation import sample_view
+    from parammap.stages.observation import sample_view
 
     S, T = 27, 20  # 2.96 mm texels, 1000 mm away: 2.4 px
     frame, intr, R, t = _checker_photo(60.0, S, T, 1.0, 3.0)  # 1.2 px across
@@ -162,7 +157,7 @@ def test_texels_read_only_their_own_surface(zenith_deg):
     """A texel-aligned checkerboard photographed with box-filtered pixels (texels of
     5-10 pixels, frontal and foreshortened to about half): every texel's observation
     is its own value, not a blend with its neighbours across the texel edges."""
-    from parammap.observation import sample_view
+    from parammap.stages.observation import sample_view
 
     S, T, w_mm, h_mm = 8, 6, 80.0, 60.0
     a, b = 1.0, 3.0
@@ -190,7 +185,7 @@ def test_reads_blended_with_the_neighbours_by_foreshortening_are_left_out(
     the noise; a map as fine as the photos (texels a pixel across) keeps its reads,
     which every view blurs. The rows of a band are read with their neighbours in the
     next band, and the map's edge texels with what lies beyond."""
-    from parammap.observation import sample_view
+    from parammap.stages.observation import sample_view
 
     frame, intr, R, t = _checker_photo(zenith_deg, S, T, 1.0, contrast)
     noise = np.full(frame.shape[:2], 0.01, np.float32)  # 1 % relative sd
@@ -221,7 +216,7 @@ def test_blend_bias_of_a_line_a_texel_wide_matches_its_blend(w):
     estimated bias of the line's read, from the blended reads alone, is its true error
     within 25 % (the blended reads' own second difference understates the line's by
     1 - 2f), and a linear gradient has none."""
-    from parammap.observation import blend_bias, outside_fraction
+    from parammap.stages.observation import blend_bias, outside_fraction
 
     f = float(outside_fraction(np.array(w)))
     x = np.full((3, 9), 1.0)

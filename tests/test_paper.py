@@ -129,7 +129,8 @@ def test_held_out_tables_in_the_layout_of_004_ch16(tiny_processed, tmp_path):
     """004 ch. 16 on one of our captures: mean and sd of the 8-bit difference per
     held-out view (``--quick``: Phong and SHZH16 as published, our sh-rlsop-36; make
     paper adds SHZH64, SHLSOP16/64 and our mh-auto)."""
-    from parammap.paths import Processed, read_poses
+    from parammap.stores.camera import read_poses
+    from parammap.stores.paths import Processed
 
     cap, _, out = tiny_processed
     assert main(["paper", "--out", str(tmp_path), "--experiment", "sizes", "--capture",

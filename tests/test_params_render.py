@@ -6,12 +6,18 @@ import numpy as np
 import pytest
 import yaml
 
-from parammap.calibration import Intrinsics
-from parammap.exr import ExrError, read_exr, write_exr
 from parammap.geometry import plane_to_texel
-from parammap.holdout import choose_gamma, compare
-from parammap.params import ParamMap, ParamMapError, channel_names, read_param_map, write_param_map
 from parammap.render import render, surface_points, tone_map
+from parammap.stages.calibration import Intrinsics
+from parammap.stages.holdout import choose_gamma, compare
+from parammap.stores.exr import ExrError, read_exr, write_exr
+from parammap.stores.params import (
+    ParamMap,
+    ParamMapError,
+    channel_names,
+    read_param_map,
+    write_param_map,
+)
 from parammap.synth.generate import true_view_radiance
 
 

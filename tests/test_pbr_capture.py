@@ -40,7 +40,7 @@ def pbr(tmp_path_factory):
 
 
 def test_capture_format_and_truth(pbr):
-    from parammap.capture import validate_capture
+    from parammap.stores.capture import validate_capture
 
     cap, truth, _ = pbr
     c = validate_capture(cap)
@@ -57,7 +57,7 @@ def test_capture_format_and_truth(pbr):
 def test_hdr_within_oracle(pbr):
     """The recovered filmic response merges within 1.5x of an oracle merge with the
     true response, on the same pixels."""
-    from parammap.synth.evaluate import hdr_errors
+    from parammap.synth.testsupport import hdr_errors
 
     cap, truth, out = pbr
     e = hdr_errors(cap, truth, out, ["v000", "v010", "v020", "v031"])
@@ -70,7 +70,7 @@ def test_views_kept_and_poses(pbr):
     14), and the poses it keeps are accurate: the marker pattern pins down the 74 deg
     view that the marker outlines left 2.3 mm off (measured: all 33 kept, centres
     within 0.23 mm median and 0.72 mm worst)."""
-    from parammap.synth.evaluate import pose_errors
+    from parammap.synth.testsupport import pose_errors
 
     _, truth, out = pbr
     m = json.loads((out / "metrics" / "poses.json").read_text())
@@ -88,8 +88,8 @@ def test_views_kept_and_poses(pbr):
 
 def test_auto_resolution(pbr):
     """``texels_x: auto``: about one texel per photo pixel at the median view."""
-    from parammap.capture import load_capture
     from parammap.geometry import project_points
+    from parammap.stores.capture import load_capture
 
     cap_dir, truth, out = pbr
     cap = load_capture(cap_dir)
@@ -109,8 +109,8 @@ def test_auto_resolution(pbr):
 
 
 def test_observation_directions(pbr):
-    from parammap.observation import open_observation_map
-    from parammap.synth.evaluate import angle_deg, true_directions
+    from parammap.stores.observation import open_observation_map
+    from parammap.synth.testsupport import angle_deg, true_directions
 
     _, truth, out = pbr
     g = open_observation_map(out / "observation.zarr")
@@ -130,7 +130,7 @@ def test_observation_directions(pbr):
 def test_models_beat_diffuse_on_every_held_out_view(pbr):
     """MH-1 and the default SH-36 against the clean renders of the held-out views, and
     in the held-out stage against the photos; errors per material patch too."""
-    from parammap.synth.evaluate import holdout_against_truth
+    from parammap.synth.testsupport import holdout_against_truth
 
     cap, truth, out = pbr
     res, patches = holdout_against_truth(cap, truth, out, ["mh-1", "sh-rlsop-36", "diffuse"],

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import yaml
 
-from parammap.calibration import calibrate
-from parammap.capture import CaptureError, load_capture
-from parammap.hdr import merge_bracket, recover_response, reexposure_error
-from parammap.imageio import ImageReadError, exif_exposure_time, read_image
+from parammap.stages.calibration import calibrate
+from parammap.stages.hdr import merge_bracket, recover_response, reexposure_error
+from parammap.stores.capture import CaptureError, load_capture
+from parammap.stores.images import ImageReadError, exif_exposure_time, read_image
 
 from .conftest import REAL
 
@@ -110,7 +110,8 @@ def _bracket_only_capture(tmp_path):
 
 def test_bracket_only_capture_gets_response_hdr_and_reexposure_metrics(tmp_path):
     from parammap.cli import main
-    from parammap.hdr import gather_hdr_metrics, load_reference_response, load_response
+    from parammap.stages.hdr import gather_hdr_metrics
+    from parammap.stores.hdr import load_reference_response, load_response
 
     root = _bracket_only_capture(tmp_path)
     out = tmp_path / "proc"
@@ -151,7 +152,8 @@ def test_marker_corner_refinement_on_real_charuco_photos():
     (on the sRGB-linearised JPEG) are closer by a wide margin."""
     import cv2
 
-    from parammap.calibration import Intrinsics, refine_marker_corners
+    from parammap.stages.calibration import Intrinsics
+    from parammap.vision.markers import refine_marker_corners
 
     fs = cv2.FileStorage(str(CHARUCO / "tutorial_camera_charuco.yml"), cv2.FILE_STORAGE_READ)
     K, dist = fs.getNode("camera_matrix").mat(), fs.getNode("distortion_coefficients").mat()

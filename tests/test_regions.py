@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from parammap.holdout import region_errors, texel_regions
-from parammap.observation import write_observation_arrays
+from parammap.stages.holdout import region_errors, texel_regions
+from parammap.stores.observation import write_observation_arrays
 from parammap.synth.cases import phong_case
 
 

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import zarr
 
-from parammap.fitting import fit_map
 from parammap.models.mh import REPAIR_RADIUS, MhFitConfig, fit_mh_tile, mh_outputs, repair_mh_tile
-from parammap.observation import write_observation_arrays
+from parammap.stages.fit import fit_map
+from parammap.stores.observation import write_observation_arrays
 from parammap.synth.cases import phong_case
 
 
@@ -160,7 +160,7 @@ def test_no_worker_outlives_a_killed_fit(tmp_path):
     case = phong_case(texels=24, level=3, noise=0.002)
     obs = write_observation_arrays(tmp_path / "obs.zarr", case.radiance, case.direction,
                                    case.valid, 1000.0, 1000.0, tile=4)
-    code = ("from parammap.fitting import fit_mh_map\n"
+    code = ("from parammap.stages.fit import fit_mh_map\n"
             "if __name__ == '__main__':\n"
             f"    fit_mh_map({str(obs)!r}, {str(tmp_path / 'mh.zarr')!r}, 'auto', {{}}, "
             "'processes', 2)\n")
@@ -188,7 +188,7 @@ def test_fit_through_a_dask_distributed_cluster_address(tmp_path):
     maps of the in-process scheduler."""
     distributed = pytest.importorskip("distributed")
 
-    from parammap.fitting import fit_mh_map
+    from parammap.stages.fit import fit_mh_map
 
     case = phong_case(texels=8, level=2, noise=0.002)
     obs = write_observation_arrays(tmp_path / "obs.zarr", case.radiance, case.direction,
@@ -207,8 +207,8 @@ def test_fit_through_a_dask_distributed_cluster_address(tmp_path):
 def test_killed_observation_build_resumes(tiny_processed, tmp_path, monkeypatch):
     """The observation map's views: a build killed part way samples only the views
     left when run again, and writes the same store as an uninterrupted build."""
-    import parammap.observation as obsmod
-    from parammap.capture import load_capture
+    import parammap.stages.observation as obsmod
+    from parammap.stores.capture import load_capture
 
     cap, _, proc = tiny_processed
     capture = load_capture(cap)

@@ -7,7 +7,6 @@ import pytest
 from scipy.spatial import SphericalVoronoi
 from scipy.special import sph_harm_y
 
-from parammap.fitting import fit_sh_map, open_fit
 from parammap.models.sh import (
     hemisphere_gram,
     parse_sh_model,
@@ -16,7 +15,9 @@ from parammap.models.sh import (
     sh_eval,
     solid_angles,
 )
-from parammap.observation import write_observation_arrays
+from parammap.stages.fit import fit_sh_map
+from parammap.stores.fit import open_fit
+from parammap.stores.observation import write_observation_arrays
 from parammap.synth.cases import phong_case
 from parammap.synth.sampling import icosahedron
 

@@ -98,8 +98,9 @@ def test_guard_keeps_unobserved_directions_in_the_observed_range():
 
 
 def test_map_fit_records_lambda_and_guard(tmp_path):
-    from parammap.fitting import fit_sh_map, open_fit
-    from parammap.observation import write_observation_arrays
+    from parammap.stages.fit import fit_sh_map
+    from parammap.stores.fit import open_fit
+    from parammap.stores.observation import write_observation_arrays
 
     case = phong_case(texels=8, level=2, m=10, max_zenith_deg=60.0, noise=0.02)
     obs = write_observation_arrays(tmp_path / "obs.zarr", case.radiance, case.direction,
@@ -139,7 +140,7 @@ def test_coefficient_sd_matches_the_spread_over_noise_realisations(tmp_path):
     above the bands the views resolve; written to the EXR as ``sd.sh.*`` channels."""
     from parammap.models.mh import mh_eval
     from parammap.models.sh import fit_sh_tile
-    from parammap.params import ParamMap, read_param_map, write_param_map
+    from parammap.stores.params import ParamMap, read_param_map, write_param_map
     from parammap.synth.sampling import sample_directions
 
     V = sample_directions("stratified", 75.0, n_side=8, seed=3)[:60]

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import yaml
 
-from parammap.capture import validate_capture
 from parammap.geometry import pixel_to_plane, plane_to_texel, project_points, texel_centres
-from parammap.imageio import read_image
+from parammap.stores.capture import validate_capture
+from parammap.stores.images import read_image
 from parammap.synth.generate import PRESETS, Response, generate
 from parammap.synth.sampling import icosahedron, latlong, spiral, stratified
 from parammap.synth.scene import PHONG, build_scene, load_scene, mh_truth, true_radiance

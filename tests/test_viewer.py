@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 import yaml
 
-from parammap.calibration import load_intrinsics
 from parammap.cli import main
-from parammap.params import read_param_map
 from parammap.render import render, tone_map
+from parammap.stores.camera import load_intrinsics
+from parammap.stores.params import read_param_map
 from parammap.viewer import read_payload_script
 
 CHROMIUM = next((p for p in ("/usr/bin/chromium", "/usr/bin/chromium-browser")
@@ -89,7 +89,7 @@ def _payloads(vdir, m: dict) -> list[bytes]:
 @pytest.fixture(scope="module")
 def tiled_viewer_dir(viewer_dir, tmp_path_factory):
     """viewer_dir's maps written in tiles of 16 x 16 texels (the edge tiles smaller)."""
-    from parammap.paths import read_poses
+    from parammap.stores.camera import read_poses
     from parammap.viewer import write_viewer
 
     _, out, _ = viewer_dir
@@ -295,8 +295,8 @@ def test_ruler_measures_marker_edges_within_one_percent(viewer_dir, chromium):
     appear in the photo (projected with the true camera and pose, not the estimated
     ones the page measures with) gives every edge of every marker in view within 1 % of
     its true length; the scale bar is drawn."""
-    from parammap.capture import load_capture
     from parammap.geometry import project_points
+    from parammap.stores.capture import load_capture
 
     cap, out, vdir = viewer_dir
     c = load_capture(cap)
@@ -363,7 +363,7 @@ def test_texel_inspector_shows_the_clicked_texel(viewer_dir, chromium):
     drawn); the payload decodes in Python to the same values."""
     import json
 
-    from parammap.observation import open_observation_map
+    from parammap.stores.observation import open_observation_map
     from parammap.viewer.inspect import decode_inspector
 
     cap, out, vdir = viewer_dir

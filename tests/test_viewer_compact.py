@@ -7,11 +7,11 @@ from __future__ import annotations
 import numpy as np
 import yaml
 
-from parammap.calibration import load_intrinsics
 from parammap.cli import main
 from parammap.conventions import mh_dir, mh_ks
-from parammap.params import read_param_map
-from parammap.viewer import payload_script, read_payload_script, viewer_layers
+from parammap.stores.camera import load_intrinsics
+from parammap.stores.params import read_param_map
+from parammap.viewer import payload_script, read_payload_script
 from parammap.viewer.compact import (
     SH_ERROR_LEVELS,
     _filter,
@@ -20,6 +20,7 @@ from parammap.viewer.compact import (
     encode_layers,
     layers_to_params,
 )
+from parammap.viewer.layers import viewer_layers
 
 
 def test_payload_script_carries_15_bits_per_code_unit_and_round_trips():
@@ -138,7 +139,7 @@ def test_sh_map_in_tiles_decodes_as_in_one_payload():
     texels decodes as in one payload (PCA, steps and int16 basis are the map's), every
     tile recorded once; the decoding stays within the steps' error of the float map
     (the int16 basis adds nothing visible)."""
-    from parammap.params import ParamMap
+    from parammap.stores.params import ParamMap
     from parammap.viewer.compact import encode_map, tile_grid
 
     rng = np.random.default_rng(3)
@@ -165,7 +166,7 @@ def test_decoding_every_nth_texel_matches_the_full_decoding():
     """``decode_layers(..., every=s)`` (how a map above ERROR_TEXELS is judged) keeps
     exactly the full decoding's every s-th row and column, across tile edges that are
     not multiples of s."""
-    from parammap.params import ParamMap
+    from parammap.stores.params import ParamMap
     from parammap.viewer.compact import encode_map
 
     rng = np.random.default_rng(4)
@@ -182,7 +183,7 @@ def test_sh_map_stores_the_level_the_page_shows():
     reduction (:func:`page_reduction`), each block's mean weights quantised with the
     map's steps: its decoding is the block average of the full decoding to within
     those steps, and far closer than the map's own quantisation allows."""
-    from parammap.params import ParamMap
+    from parammap.stores.params import ParamMap
     from parammap.viewer.compact import encode_map, page_reduction
 
     rng = np.random.default_rng(5)

@@ -15,6 +15,7 @@ from pathlib import Path
 from . import __version__
 from .config import ConfigError
 from .errors import InputError
+from .stores.paths import Processed
 
 __all__ = ["main"]
 
@@ -80,7 +81,7 @@ def _synth(a: argparse.Namespace) -> int:
 
 @_command("validate-capture")
 def _validate(a: argparse.Namespace) -> int:
-    from .capture import validate_capture
+    from .stores.capture import validate_capture
 
     cap = validate_capture(a.capture)
     n_photos = sum(len(v.exposures) for v in cap.views)
@@ -92,8 +93,8 @@ def _validate(a: argparse.Namespace) -> int:
 
 @_command("summary")
 def _summary(a: argparse.Namespace) -> int:
-    from .capture import load_capture
-    from .report import contact_sheet
+    from .plots import contact_sheet
+    from .stores.capture import load_capture
 
     cap = load_capture(a.capture)
     out = Path(a.out)
@@ -119,8 +120,8 @@ def _stage_config(a: argparse.Namespace) -> dict:
 
 @_command("response")
 def _response(a: argparse.Namespace) -> int:
-    from .capture import load_capture
-    from .hdr import run_response
+    from .stages.hdr import run_response
+    from .stores.capture import load_capture
 
     run_response(load_capture(a.capture, check_images=False), a.out, _stage_config(a)["hdr"],
                  a.figure, a.reference, a.reference_label)
@@ -129,8 +130,8 @@ def _response(a: argparse.Namespace) -> int:
 
 @_command("hdr")
 def _hdr(a: argparse.Namespace) -> int:
-    from .capture import load_capture
-    from .hdr import run_hdr
+    from .stages.hdr import run_hdr
+    from .stores.capture import load_capture
 
     full = _stage_config(a)
     run_hdr(load_capture(a.capture, check_images=False), a.out, full["hdr"], a.view,
@@ -140,8 +141,8 @@ def _hdr(a: argparse.Namespace) -> int:
 
 @_command("calibrate")
 def _calibrate(a: argparse.Namespace) -> int:
-    from .calibration import run_calibration
-    from .capture import load_capture
+    from .stages.calibration import run_calibration
+    from .stores.capture import load_capture
 
     full = _stage_config(a)
     run_calibration(load_capture(a.capture), a.out, full["calibration"],
@@ -151,55 +152,82 @@ def _calibrate(a: argparse.Namespace) -> int:
 
 @_command("poses")
 def _poses(a: argparse.Namespace) -> int:
-    from .capture import load_capture
-    from .poses import run_poses
+    from .stages.poses import run_poses
+    from .stores.capture import load_capture
 
     full = _stage_config(a)
     run_poses(load_capture(a.capture), a.out, full["poses"], full["observation"],
               a.workers or full["workers"])
     if a.figures:
-        from .figures import make_figures
+        from .stages.figures import make_figures
 
         make_figures("poses", a.capture, a.out, a.figures)
     return 0
 
 
+def _lobe_texels(config: dict) -> list[tuple[int, int]] | None:
+    """The texels whose lobes the figures plot (config ``observation.lobe_texels``)."""
+    return [tuple(x) for x in config["observation"]["lobe_texels"]] or None
+
+
+def _model_figures(a: argparse.Namespace, model: str,
+                   texels: list[tuple[int, int]] | None) -> None:
+    """A fitted model's map figures, from its fit store, into the report folder."""
+    if not a.figures:
+        return
+    from .stages.figures import mh_figures, sh_figures
+
+    proc = Processed(a.out)
+    (mh_figures if model.startswith("mh-") else sh_figures)(
+        proc.fit(model), proc.observation, a.figures, model, texels)
+
+
 @_command("observe")
 def _observe(a: argparse.Namespace) -> int:
-    from .capture import load_capture
-    from .observation import run_observation
+    from .stages.observation import run_observation
+    from .stores.capture import load_capture
 
-    run_observation(load_capture(a.capture), a.out, _stage_config(a), a.workers, a.figures)
+    full = _stage_config(a)
+    run_observation(load_capture(a.capture), a.out, full, a.workers)
+    if a.figures:
+        from .stages.figures import observation_figures
+
+        observation_figures(Processed(a.out).observation, a.figures, _lobe_texels(full))
     return 0
 
 
 @_command("fit-mh")
 def _fit_mh(a: argparse.Namespace) -> int:
-    from .fitting import run_fit
+    from .stages.fit import run_fit
 
-    run_fit(a.out, f"mh-{a.lobes}", _stage_config(a), a.workers, a.figures)
+    full = _stage_config(a)
+    m = run_fit(a.out, f"mh-{a.lobes}", full, a.workers)
+    _model_figures(a, m["model"], _lobe_texels(full))
     return 0
 
 
 @_command("fit-sh")
 def _fit_sh(a: argparse.Namespace) -> int:
-    from .fitting import run_fit
+    from .stages.fit import run_fit
 
-    run_fit(a.out, a.model, _stage_config(a), a.workers, a.figures)
+    full = _stage_config(a)
+    m = run_fit(a.out, a.model, full, a.workers)
+    _model_figures(a, m["model"], _lobe_texels(full))
     return 0
 
 
 @_command("materials")
 def _materials(a: argparse.Namespace) -> int:
-    from .materials import run_materials
+    from .stages.materials import run_materials
 
-    run_materials(a.out, _stage_config(a), a.figures)
+    m = run_materials(a.out, _stage_config(a))
+    _model_figures(a, m["model"], None)
     return 0
 
 
 @_command("advise")
 def _advise(a: argparse.Namespace) -> int:
-    from .advisor import run_advisor
+    from .stages.advisor import run_advisor
 
     run_advisor(a.out, _stage_config(a), a.figures)
     return 0
@@ -207,7 +235,7 @@ def _advise(a: argparse.Namespace) -> int:
 
 @_command("best")
 def _best(a: argparse.Namespace) -> int:
-    from .best import run_best
+    from .stages.best import run_best
 
     run_best(a.out, a.model, _stage_config(a), a.figures)
     return 0
@@ -215,7 +243,7 @@ def _best(a: argparse.Namespace) -> int:
 
 @_command("export")
 def _export(a: argparse.Namespace) -> int:
-    from .params import export_maps
+    from .stages.export import export_maps
 
     export_maps(a.out, a.model, a.half)
     return 0
@@ -223,8 +251,8 @@ def _export(a: argparse.Namespace) -> int:
 
 @_command("holdout")
 def _holdout(a: argparse.Namespace) -> int:
-    from .capture import load_capture
-    from .holdout import run_holdout
+    from .stages.holdout import run_holdout
+    from .stores.capture import load_capture
 
     run_holdout(load_capture(a.capture), a.out, a.model)
     return 0
@@ -232,7 +260,7 @@ def _holdout(a: argparse.Namespace) -> int:
 
 @_command("viewer")
 def _viewer(a: argparse.Namespace) -> int:
-    from .capture import load_capture
+    from .stores.capture import load_capture
     from .viewer import write_surface_viewer
 
     write_surface_viewer(load_capture(a.capture), a.out, a.model, a.figures)
@@ -249,7 +277,7 @@ def _paper(a: argparse.Namespace) -> int:
 
 @_command("batch-summary")
 def _batch_summary(a: argparse.Namespace) -> int:
-    from .figures import batch_summary
+    from .stages.figures import batch_summary
 
     batch_summary(a.processed, a.surface, a.model or [], a.out)
     return 0
@@ -257,14 +285,13 @@ def _batch_summary(a: argparse.Namespace) -> int:
 
 @_command("figures")
 def _figures(a: argparse.Namespace) -> int:
-    from .figures import make_figures
+    from .stages.figures import make_figures
 
     full = _stage_config(a)
     paths = make_figures(a.kind, a.capture, a.out, a.figures, model=a.model,
                          reference=a.reference, reference_label=a.reference_label,
                          models=a.models or [], timings=[Path(p) for p in a.timings or []],
-                         lobe_texels=[tuple(x) for x in full["observation"]["lobe_texels"]]
-                         or None)
+                         lobe_texels=_lobe_texels(full))
     _log(f"figures {a.kind}: wrote {len(paths)} files to {a.figures}")
     return 0
 

@@ -34,6 +34,8 @@ from typing import Any
 
 import numpy as np
 
+from .stores.exr import read_exr
+
 __all__ = ["Difference", "compare_trees", "main"]
 
 #: Keys whose values are timings or machine facts, different on every run.
@@ -146,7 +148,6 @@ def _arrays(a: dict[str, np.ndarray], b: dict[str, np.ndarray], where: str,
 
 
 def _compare_exr(a: Path, b: Path, diff: Difference) -> None:
-    from .exr import read_exr
 
     (ca, ha), (cb, hb) = read_exr(a), read_exr(b)
     _arrays(ca, cb, "channel ", diff)

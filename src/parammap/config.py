@@ -7,6 +7,7 @@ it), so the Snakefile and the CLI check the same rules.
 from __future__ import annotations
 
 import copy
+from functools import lru_cache
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -16,7 +17,7 @@ import yaml
 
 from .errors import InputError
 
-__all__ = ["ConfigError", "load_config", "schema", "surface_config", "validate_config"]
+__all__ = ["ConfigError", "default", "load_config", "schema", "surface_config", "validate_config"]
 
 
 class ConfigError(InputError):
@@ -160,3 +161,23 @@ def surface_config(cfg: dict[str, Any], surface_id: str) -> dict[str, Any]:
         return validate_config(_merge(cfg, over))
     except ConfigError as exc:
         raise ConfigError(f"{exc} (from overrides.{surface_id})") from None
+
+
+@lru_cache(maxsize=1)
+def _defaults() -> dict[str, Any]:
+    sch = schema()
+    cfg: dict[str, Any] = {}
+    _fill_defaults(cfg, sch)
+    return cfg
+
+
+def default(key: str) -> Any:
+    """The schema's default of a dotted config key, e.g. ``default("hdr.low")``: where a
+    function's parameter defaults to a config setting, it reads it here, so that every
+    default is written once, in the schema."""
+    node: Any = _defaults()
+    for part in key.split("."):
+        if not isinstance(node, dict) or part not in node:
+            raise KeyError(f"config schema has no default for {key!r}")
+        node = node[part]
+    return copy.deepcopy(node)

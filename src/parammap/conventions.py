@@ -1,4 +1,4 @@
-"""Conventions every stage shares (``../shared/docs/conventions.md``), spelled out once.
+"""Conventions every stage shares (``docs/reference/conventions.md``), spelled out once.
 
 Fitters, renderer, EXR code, figures and viewer read these names instead of repeating
 the numbers.
@@ -157,7 +157,7 @@ def mhx_phi(k: int) -> int:
 
 #: A diffuse-only map (the baseline): Kd alone.
 DIFFUSE_CHANNELS = ("Kd.R", "Kd.G", "Kd.B")
-# the best-model-per-texel map (parammap.best): the indices of each texel's two models in
+# the best-model-per-texel map (parammap.stages.best): the indices of each texel's two models in
 # the header's space-separated "parammap_candidates" (their own EXRs beside it), rendered
 # as the mean of the two's radiance; partner == choice where the texel has one model
 BEST_CHANNELS = ("choice", "partner")

@@ -38,11 +38,33 @@ from typing import Any
 
 import numpy as np
 
+from .config import default
 from .conventions import LUMINANCE, mh_size
-from .models.mh import K_MAX_AUTO, MhFitConfig, fit_mh_tile
-from .models.sh import fit_sh_tile, sh_eval
+from .errors import InputError
+from .models.mh import (
+    K_MAX_AUTO,
+    MhFitConfig,
+    fit_mh_tile,
+    initial_guess_batch,
+    initial_guess_published,
+    mh_eval,
+)
+from .models.residuals import mean_percentage_residual
+from .models.sh import fit_sh_tile, hemisphere_grid, sh_eval
+from .plots import plot_lobes, save_figure
+from .render import render, surface_points
+from .stages.fit import fit_mh_map, fit_sh_map
+from .stages.holdout import choose_gamma, compare, marker_pixels
+from .stores.camera import load_intrinsics, read_poses
+from .stores.capture import load_capture
+from .stores.common import store_bytes
+from .stores.hdr import read_hdr
+from .stores.observation import open_observation_map
+from .stores.params import param_map_from_fit, read_param_map
+from .stores.paths import Processed
 from .synth.cases import Case, phong_case
 from .synth.sampling import icosahedron
+from .synth.scene import true_radiance
 
 __all__ = ["CONDITIONS", "EXPERIMENTS", "quantise_8bit", "run_paper"]
 
@@ -118,7 +140,8 @@ def published_case(lights, intensities, c: Conditions = CONDITIONS) -> Case:
     return case
 
 
-def _fit_mh(case: Case, K, init: str, polish: str = "batch") -> dict[str, np.ndarray]:
+def _fit_mh(case: Case, K, init: str, polish: str = default("fit.mh.polish")) -> dict[str,
+                                                                                      np.ndarray]:
     return fit_mh_tile(case.radiance, case.direction, case.valid, K,
                        MhFitConfig(init=init, polish=polish),
                        K_max=K_MAX_AUTO if K == "auto" else K)
@@ -138,7 +161,6 @@ def _lobe_figure(out_dir: str | Path | None, name: str, entries: list[dict],
     """Measured and fitted radiance over the hemisphere with percentage residuals, as
     004's figures draw them (``<out_dir>/<name>.png``)."""
     if out_dir is not None and entries:
-        from .report import plot_lobes
 
         plot_lobes(entries, Path(out_dir) / f"{name}.png", title)
 
@@ -150,7 +172,6 @@ def _entry(label: str, case: Case, texel: tuple[int, int], fitted: np.ndarray) -
 
 
 def _mh_fitted(o: dict, case: Case, texel: tuple[int, int]) -> np.ndarray:
-    from .models.mh import mh_eval
 
     r, col = texel
     return mh_eval(o["params"][r, col].astype(float), case.direction[r, col].astype(float))
@@ -306,7 +327,6 @@ def exp_shininess(c: Conditions = CONDITIONS, out_dir: str | Path | None = None,
             fits[f"sh-rlsop-{n * n} (ours)"] = fit_sh_tile(L, V, W, n, "rlsop")
         for name, o in fits.items():
             if name == "mh-1":
-                from .models.mh import mh_eval
 
                 fitted = mh_eval(o["params"][0, 0].astype(float), V[0, 0].astype(float))
             else:
@@ -351,8 +371,6 @@ def exp_view_count(c: Conditions = CONDITIONS) -> list[dict[str, Any]]:
     """004 ch. 13.2-13.3: MH parameters from 17 and 73 views (and 73 uniform + 81
     around the highlight = 154) against 305 (004: Kd and d within 1 %, Ks ~15 %, m ~5 %
     with 17), and SH-36's error against the true radiance at 2562 directions."""
-    from .models.mh import mh_eval
-    from .synth.scene import true_radiance
 
     mirror = np.array([-c.light[0], -c.light[1], c.light[2]])
     sets = {"17": icosahedron(1, 90.0), "73": icosahedron(2, 90.0),
@@ -411,8 +429,6 @@ def exp_initialisers(c: Conditions = CONDITIONS) -> list[dict[str, Any]]:
     initialiser, adapted to one shared m) against 004's published initial guess, on the
     scenes of 004 ch. 11.3.1-11.3.2: residual of the start, of the fit, and the
     objective evaluations the fit needed."""
-    from .models.mh import initial_guess_batch, initial_guess_published, mh_eval
-    from .models.residuals import mean_percentage_residual
 
     rows = []
     scenes = {"point light, K = 1": ([c.light], [1.0], 1),
@@ -456,7 +472,7 @@ PUBLISHED_HOLDOUT = {
 HOLDOUT_METHODS = ("Phong", "SHZH16", "SHZH64", "SHLSOP16", "SHLSOP64")
 
 
-def exp_holdout(capture: str | Path, processed: str | Path, workers: int = 2,
+def exp_holdout(capture: str | Path, processed: str | Path, workers: int = default("workers"),
                 quick: bool = False) -> list[dict[str, Any]]:
     """004 ch. 16 on one of our captures: every held-out view, the mean and sd of the
     8-bit difference image for Phong (MH, one lobe, 004's initial guess), SH ZH and
@@ -468,14 +484,6 @@ def exp_holdout(capture: str | Path, processed: str | Path, workers: int = 2,
     folder changes. ``quick`` (the test suite) fits Phong, SHZH16 and ours only."""
     import tempfile
 
-    from .calibration import load_intrinsics
-    from .capture import load_capture
-    from .fitting import fit_mh_map, fit_sh_map
-    from .hdr import read_hdr
-    from .holdout import choose_gamma, compare, marker_pixels
-    from .params import param_map_from_fit
-    from .paths import Processed, read_poses
-    from .render import render, surface_points
 
     proc = Processed(processed)
     cap = load_capture(capture)
@@ -550,7 +558,6 @@ def latlong_published() -> np.ndarray:
 def coverage(directions: np.ndarray, max_zenith_deg: float = 90.0) -> dict[str, float]:
     """Largest gap (deg: the angular distance from any direction of the hemisphere up to
     ``max_zenith_deg`` to its nearest sample) and median nearest-neighbour spacing."""
-    from .models.sh import hemisphere_grid
 
     grid, _ = hemisphere_grid(1.0)
     grid = grid[grid[:, 2] >= np.cos(np.radians(max_zenith_deg))]
@@ -577,7 +584,6 @@ def exp_sampling(out_dir: str | Path | None = None) -> list[dict[str, Any]]:
     if out_dir is not None:
         import matplotlib.pyplot as plt
 
-        from .report import save_figure
 
         fig, axes = plt.subplots(1, len(schemes), figsize=(3.2 * len(schemes), 3.4))
         for ax, (name, d) in zip(axes, schemes.items(), strict=True):
@@ -603,14 +609,10 @@ EXPERIMENTS = {"point_area": exp_point_area, "second_light": exp_second_light,
 def measured_sizes(processed: str | Path) -> list[dict[str, Any]]:
     """Storage of a capture's parameter maps as written (``params/*.exr``, float32, ZIP)
     and of its observation map (zarr, compressed), against 004's float formula."""
-    from .params import read_param_map
-    from .paths import Processed
-    from .stores import store_bytes
 
     proc = Processed(processed)
     rows = []
     if proc.observation.is_dir():
-        from .observation import open_observation_map
 
         T, S, N = open_observation_map(proc.observation)["valid"].shape
         b = store_bytes(proc.observation)
@@ -645,7 +647,7 @@ def _write_csv(path: Path, rows: list[dict[str, Any]]) -> Path:
 
 def run_paper(out_dir: str | Path, experiments: list[str] | None = None,
               quick: bool = False, capture: str | Path | None = None,
-              processed: str | Path | None = None, workers: int = 2) -> list[Path]:
+              processed: str | Path | None = None, workers: int = default("workers")) -> list[Path]:
     """Run the experiments (default: all) and write ``<out_dir>/<experiment>.csv`` and
     ``<out_dir>/README.md`` (conditions and the values chosen where 004 is silent).
     ``quick`` runs a reduced SH sweep (16 and 100 coefficients) for the test suite.
@@ -656,7 +658,6 @@ def run_paper(out_dir: str | Path, experiments: list[str] | None = None,
     paths = []
     for name in names:
         if name not in EXPERIMENTS:
-            from .errors import InputError
 
             raise InputError(f"unknown experiment {name!r} (one of {', '.join(EXPERIMENTS)})")
         logger.info(f"paper: {name}")

@@ -24,7 +24,9 @@ from .geometry import (
     sample_image,
     unit,
 )
-from .params import ParamMap, best_shares
+from .models.mh import mh_eval
+from .models.sh import sh_eval
+from .stores.params import ParamMap, best_shares
 
 __all__ = ["bilinear_corners", "evaluate", "evaluate_bilinear", "lookup_bilinear", "render",
            "reproject_frame", "surface_points", "tone_map"]
@@ -77,7 +79,6 @@ def evaluate(model: str, params: np.ndarray, directions: np.ndarray) -> np.ndarr
     if model == "diffuse":
         return params[:, MH_KD].astype(float)
     if model == "mh":
-        from .models.mh import mh_eval
 
         p = params.astype(float).copy()
         K = mh_lobes(p.shape[1])
@@ -87,7 +88,6 @@ def evaluate(model: str, params: np.ndarray, directions: np.ndarray) -> np.ndarr
                                                                         keepdims=True), 1e-12)
         return mh_eval(p, directions[:, None, :])[:, 0]
     if model == "sh":
-        from .models.sh import sh_eval
 
         nc = params.shape[1] // 3
         return sh_eval(params.astype(float).reshape(-1, 3, nc), directions[:, None, :])[:, 0]

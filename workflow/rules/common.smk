@@ -43,7 +43,7 @@ def capture_dir(wildcards):
 def view_ids(wildcards):
     """View ids of a capture, known once the capture exists and has validated."""
     checkpoints.validate_capture.get(sid=wildcards.sid)
-    from parammap.capture import load_capture
+    from parammap.stores.capture import load_capture
 
     return [v.id for v in load_capture(CAPTURES[wildcards.sid]).views]
 
@@ -101,7 +101,7 @@ def surface_targets(sid):
 def fitted_view_ids(wildcards):
     """Ids of the views that are not held out."""
     checkpoints.validate_capture.get(sid=wildcards.sid)
-    from parammap.capture import load_capture
+    from parammap.stores.capture import load_capture
 
     return [v.id for v in load_capture(CAPTURES[wildcards.sid]).fitted_views]
 

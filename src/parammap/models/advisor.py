@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..config import default
+from .mh.model import mh_eval
 from .mh.uncertainty import _linearised
 
 __all__ = ["CRITERIA", "advise_directions", "hemisphere_candidates", "prediction_gains",
@@ -80,8 +82,9 @@ CRITERIA = ("prediction", "volume")
 
 
 def advise_directions(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
-                      weights: np.ndarray | None, cand: np.ndarray, count: int = 10,
-                      criterion: str = "volume",
+                      weights: np.ndarray | None, cand: np.ndarray,
+                      count: int = default("advisor.count"),
+                      criterion: str = default("advisor.criterion"),
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Greedy choice of ``count`` new view directions among ``cand``: I-optimal
     (``prediction``: the largest drop of the variance of the renders over the
@@ -110,7 +113,6 @@ def advise_directions(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray
         # renders judged over the candidates themselves (spread evenly in solid angle),
         # each texel's variance relative to its mean radiance there: a display error
         # is about relative (a tone curve), and a bright texel must not rule alone
-        from .mh.model import mh_eval
 
         level = np.maximum(np.mean(mh_eval(P, np.broadcast_to(cand, (len(P),) + cand.shape)),
                                    (1, 2)), 1e-12)

@@ -43,6 +43,7 @@ import math
 
 import numpy as np
 
+from ..config import default
 from ..conventions import MH_KD, MH_M, mh_dir, mh_ks, mh_lobes, mh_size
 from .mh.fit import KS_CAP
 from .mh.model import M_MAX, M_MIN, mh_eval
@@ -148,8 +149,9 @@ def _silhouette(Z: np.ndarray, lab: np.ndarray) -> float:
                                   > 1, s, 0.0)))
 
 
-def choose_count(F: np.ndarray, max_count: int = 8, min_silhouette: float = 0.5,
-                 sample: int = 1500, seed: int = 0) -> int:
+def choose_count(F: np.ndarray, max_count: int = default("materials.max_count"),
+                 min_silhouette: float = 0.5,
+                 sample: int = default("materials.sample"), seed: int = 0) -> int:
     """Number of materials among texels with features F (n, 4): the largest k in 2 ..
     ``max_count`` whose clusters are all clearly apart (mean silhouette on a sample at
     least ``min_silhouette``, the usual bar for a real structure), or 1 when no k is.

@@ -39,6 +39,7 @@ from functools import lru_cache
 import numpy as np
 from scipy.spatial import ConvexHull
 
+from ..config import default
 from ..conventions import SH_CAP_AWARE, SH_HEMISPHERES, FitStatus, sh_degree_order, sh_norms
 from ..errors import InputError
 from .residuals import mean_percentage_residual
@@ -636,7 +637,7 @@ def sh_outputs(n: int) -> dict[str, tuple[tuple[int, ...], str, float]]:
 
 def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, n: int,
                 hemisphere: str, reg: float | str = "auto", batch: int = 256,
-                min_obs: int | None = None, sampled_cap: bool = True,
+                min_obs: int | None = None, sampled_cap: bool = default("fit.sh.sampled_cap"),
                 noise: np.ndarray | None = None, areas: str = "spherical",
                 loo: bool = False) -> dict[str, np.ndarray]:
     """Project every texel of a tile, batched (texels sharing one validity pattern

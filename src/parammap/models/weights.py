@@ -1,6 +1,6 @@
 """Observation weights from the expected noise of each observation.
 
-The HDR merge records each pixel's relative noise sd (:func:`parammap.hdr.merge_noise`:
+The HDR merge records each pixel's relative noise sd (:func:`parammap.stages.hdr.merge_noise`:
 how many exposures saw it and at which levels of the response); the observation map
 averages it over the texel's footprint. Fits weigh an
 observation by ``1 / sd^2`` of that relative sd, normalised to a mean of 1 over the

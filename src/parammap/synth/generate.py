@@ -20,7 +20,6 @@ import cv2
 import numpy as np
 import yaml
 
-from ..capture import aruco_dictionary
 from ..errors import InputError
 from ..geometry import (
     look_at,
@@ -32,10 +31,11 @@ from ..geometry import (
     texel_centres,
     unit,
 )
-from ..imageio import write_image_atomic
-from ..stores import executor
+from ..parallel import executor
+from ..stores.capture import aruco_dictionary
+from ..stores.images import write_image_atomic
 from .sampling import sample_directions
-from .scene import Scene, build_scene, mh_truth, true_radiance
+from .scene import Scene, build_scene, load_scene, mh_truth, true_radiance
 
 logger = logging.getLogger(__name__)
 
@@ -612,7 +612,6 @@ def true_view_radiance(capture_dir: str | Path, truth_dir: str | Path, view_id: 
     preset = Preset(**{k: tuple(tuple(x) if isinstance(x, list) else x for x in v)
                        if isinstance(v, list) else v for k, v in s.items()})
     cap = yaml.safe_load((Path(capture_dir) / "capture.yaml").read_text())
-    from .scene import load_scene
 
     world = _world(load_scene(truth_dir / "scene.npz"), preset, cap["markers"]["items"])
     cam = yaml.safe_load((truth_dir / "camera.yaml").read_text())
@@ -629,7 +628,6 @@ def true_observations(
 ) -> tuple[np.ndarray, np.ndarray]:
     """True view directions and radiances of texels ``[rows, cols]`` (each (M,)) in the
     given views, from the generator's poses: (M, N, 3) directions, (M, N, 3) radiance."""
-    from .scene import load_scene
 
     truth_dir = Path(truth_dir)
     scene = load_scene(truth_dir / "scene.npz")

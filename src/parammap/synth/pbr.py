@@ -36,11 +36,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..capture import aruco_dictionary
 from ..errors import InputError
-from ..exr import write_exr
-from ..geometry import undistort_normalized
-from ..imageio import write_image_atomic
+from ..geometry import texel_centres, undistort_normalized
+from ..stores.capture import aruco_dictionary
+from ..stores.exr import read_exr, write_exr
+from ..stores.images import write_image_atomic
 from .generate import (
     _expose,
     board_poses,
@@ -566,7 +566,6 @@ def generate_pbr(
 def read_truth_radiance(truth_dir: str | Path, view_id: str, clean: bool = False) -> np.ndarray:
     """The radiance (H, W, 3) a generated photo was exposed from (``clean``: the
     high-sample render of a held-out view)."""
-    from ..exr import read_exr
 
     ch, _ = read_exr(Path(truth_dir) / ("clean" if clean else "radiance") / f"{view_id}.exr")
     return np.stack([ch["R"], ch["G"], ch["B"]], -1)
@@ -576,7 +575,6 @@ def patch_labels(truth_dir: str | Path, S: int, T: int, width_mm: float,
                  height_mm: float) -> np.ndarray:
     """(T, S) int: the material patch under each texel centre (conventions.md texel
     mapping), from ``scene.json``."""
-    from ..geometry import texel_centres
 
     patches = json.loads((Path(truth_dir) / "scene.json").read_text())["patches"]
     ctr = texel_centres(S, T, width_mm, height_mm)

@@ -44,18 +44,21 @@ from pathlib import Path
 
 import numpy as np
 
-from ..capture import Capture
-from ..conventions import MH_HEAD, MH_KD, mh_dir, mh_ks, mh_lobes, sh_bands, sh_norms
-from ..errors import InputError
+from ..conventions import sh_norms
 from ..geometry import Intrinsics, undistort_normalized
-from ..params import ParamMap
+from ..stores.camera import load_intrinsics, read_poses
+from ..stores.capture import Capture
+from ..stores.metrics import read_metrics
+from ..stores.observation import open_observation_map
+from ..stores.params import ParamMap, read_param_map
+from ..stores.paths import Processed
+from .compact import FLOAT_LAYER_BUDGET_MB, TILE, encode_map, quantisation_error
+from .inspect import inspector_payload
+from .layers import MH_LAYERS_PER_LOBE, MH_MAX_LOBES, SH_MAX_BANDS, layer_info
 
 __all__ = ["glsl_constants", "layer_info", "payload_script", "read_payload_script",
-           "undistortion_grid", "viewer_layers", "write_surface_viewer", "write_viewer"]
+           "undistortion_grid", "write_surface_viewer", "write_viewer"]
 
-SH_MAX_BANDS = 10  # the shader's loops are unrolled up to this many bands
-MH_MAX_LOBES = 8
-MH_LAYERS_PER_LOBE = 2  # texture layers per lobe: (Ks, 0) then (d, 0)
 UNDISTORT_STEP_PX = 16  # spacing of the undistortion grid (the distortion is smooth)
 
 
@@ -130,50 +133,6 @@ logger = logging.getLogger(__name__)
 TEMPLATE = Path(__file__).with_name("index.html")
 
 
-def layer_info(pm: ParamMap) -> tuple[dict, int]:
-    """A map's model description for the viewer and its number of texture layers
-    (:func:`viewer_layers`); refuses what the shader cannot evaluate."""
-    P = pm.params.shape[-1]
-    if pm.model == "mh":
-        K = mh_lobes(P)
-        if K > MH_MAX_LOBES:
-            raise InputError(f"the viewer evaluates up to {MH_MAX_LOBES} MH lobes")
-        return {"model": "mh", "lobes": K}, 1 + MH_LAYERS_PER_LOBE * K
-    if pm.model == "sh":
-        n = sh_bands(P // 3)
-        if n > SH_MAX_BANDS:
-            raise InputError(f"the viewer evaluates SH up to {SH_MAX_BANDS} bands "
-                             f"({SH_MAX_BANDS ** 2} coefficients)")
-        return {"model": "sh", "bands": n}, P // 3
-    if pm.model == "diffuse":
-        return {"model": "diffuse"}, 1
-    if pm.model == "best":  # a choice map: its candidates are models of the page too
-        return {"model": "best", "parts": list(pm.parts or {})}, 1
-    raise InputError(f"unknown model {pm.model!r}")
-
-
-def viewer_layers(pm: ParamMap) -> tuple[np.ndarray, dict]:
-    """(L, T, S, 4) float32 texture layers of a map and its model description."""
-    info, _ = layer_info(pm)
-    T, S, P = pm.params.shape
-    p = np.nan_to_num(pm.params.astype(np.float32))
-    if pm.model == "mh":
-        layers = [p[..., :MH_HEAD]]
-        for k in range(info["lobes"]):  # MH_LAYERS_PER_LOBE layers per lobe
-            z = np.zeros((T, S, 1), np.float32)
-            layers += [np.concatenate([p[..., mh_ks(k)], z], -1),  # layer 1 + 2k
-                       np.concatenate([p[..., mh_dir(k)], z], -1)]  # layer 2 + 2k
-    elif pm.model == "sh":
-        nc = P // 3
-        c = p.reshape(T, S, 3, nc).transpose(3, 0, 1, 2)
-        layers = list(np.concatenate([c, np.zeros((nc, T, S, 1), np.float32)], -1))
-    elif pm.model == "best":
-        layers = [np.concatenate([p[..., :2], np.zeros((T, S, 2), np.float32)], -1)]
-    else:
-        layers = [np.concatenate([p[..., MH_KD], np.zeros((T, S, 1), np.float32)], -1)]
-    return np.stack(layers).astype("<f4"), info
-
-
 def write_viewer(out_dir: str | Path, surface_id: str, maps: dict[str, ParamMap],
                  intr: Intrinsics, views: list[dict], gamma: float,
                  error_poses: list | None = None,
@@ -205,7 +164,6 @@ def write_viewer(out_dir: str | Path, surface_id: str, maps: dict[str, ParamMap]
         under it also travels at that reduction (``payload-<model>-f<f>.js``), which is
         all the page then loads.
     """
-    from .compact import FLOAT_LAYER_BUDGET_MB, TILE, encode_map, quantisation_error
 
     budget_mb = budget_mb or FLOAT_LAYER_BUDGET_MB
 
@@ -274,10 +232,6 @@ def write_surface_viewer(cap: Capture, processed: str | Path, models: list[str],
     """The viewer stage: the page for the exported maps ``params/<model>.exr`` of
     ``models``, with every kept view's pose to snap to; the initial gamma is the
     median of the held-out comparison's (1 before that stage has run)."""
-    from ..calibration import load_intrinsics
-    from ..metrics import read_metrics
-    from ..params import read_param_map
-    from ..paths import Processed, read_poses
 
     proc = Processed(processed)
     maps = {name: read_param_map(proc.params(name)) for name in models}
@@ -294,8 +248,6 @@ def write_surface_viewer(cap: Capture, processed: str | Path, models: list[str],
     # held-out views (else three captured views) at the report's gamma
     shown = [v for v in views if v.get("holdout")] or views[:: max(1, len(views) // 3)][:3]
     poses = [(np.asarray(v["R"], float), np.asarray(v["t"], float)) for v in shown]
-    from ..observation import open_observation_map
-    from .inspect import inspector_payload
 
     g = open_observation_map(proc.observation)
     inspector = inspector_payload(maps, g["radiance"], g["direction"], g["valid"])

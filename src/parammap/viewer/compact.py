@@ -46,7 +46,13 @@ from typing import Any
 import numpy as np
 
 from ..conventions import MH_HEAD, mh_dir, mh_ks, mh_size
-from . import MH_LAYERS_PER_LOBE  # the viewer's texture layout (viewer_layers)
+from ..models.sh import sh_basis
+from ..render import render, tone_map
+from .layers import (
+    MH_LAYERS_PER_LOBE,  # the viewer's texture layout (viewer_layers)
+    layer_info,
+    viewer_layers,
+)
 
 __all__ = ["FLOAT_LAYER_BUDGET_MB", "SH_ERROR_LEVELS", "TILE", "decode_layers",
            "encode_layers", "encode_map", "layers_to_params", "page_reduction",
@@ -171,7 +177,6 @@ def _weight_steps(Xs: np.ndarray, V: np.ndarray, Ws: np.ndarray, span: np.ndarra
     ``budget`` by bisection on theta. Deflate's Huffman codes then spend few bits on a
     component whose weights span few steps (texel noise).
     """
-    from ..models.sh import sh_basis
 
     k = V.shape[1]
     nc = Xs.shape[1] // 3
@@ -253,7 +258,6 @@ def encode_map(pm, gamma: float = 1.0, tile: int = TILE,
     SH-64 map needs little more memory than its own parameters, and those the page shows
     reduced (:func:`page_reduction` at ``budget_mb``) also carry that level (see
     :func:`_encode_sh`)."""
-    from . import layer_info, viewer_layers
 
     if pm.model == "sh":
         info, L = layer_info(pm)
@@ -538,8 +542,6 @@ def quantisation_error(pm, entry: dict, payloads: list[bytes], intr, poses,
     :data:`ERROR_TEXELS` texels: both maps' every s-th texel, s the smallest that fits)."""
     from dataclasses import replace
 
-    from ..render import render, tone_map
-    from . import layer_info
 
     info, L = layer_info(pm)
     T, S = pm.shape

@@ -23,7 +23,8 @@ from typing import Any
 import numpy as np
 
 from ..conventions import LUMINANCE
-from ..params import ParamMap, best_shares, channel_names
+from ..render import evaluate
+from ..stores.params import ParamMap, best_shares, channel_names
 
 __all__ = ["INSPECTOR_BYTES", "decode_inspector", "inspector_payload"]
 
@@ -71,7 +72,6 @@ def inspector_payload(maps: dict[str, ParamMap], radiance: np.ndarray, direction
     models = []
     t, s = len(rows), len(cols)
     dd = np.where(ok[..., None], d, [0.0, 0.0, 1.0]).reshape(-1, 3)
-    from ..render import evaluate
 
     def predict(pm) -> np.ndarray:
         P = np.nan_to_num(np.asarray(pm.params[sel], float))  # (t, s, P)

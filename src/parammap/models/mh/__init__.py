@@ -15,7 +15,7 @@ stored parameters are in the observation map's radiance units.
 Modules: :mod:`.model` (evaluation, metrics, x space), :mod:`.initial` (initial
 guesses), :mod:`.fit` (batched LM, nlopt, lobe selection, a tile), :mod:`.repair`
 (stains), :mod:`.kernel` (the compiled cost). Pure numerics: the map driver is
-:func:`parammap.fitting.fit_mh_map`, the figures :func:`parammap.figures.mh_figures`.
+:func:`parammap.stages.fit.fit_mh_map`, the figures :func:`parammap.stages.figures.mh_figures`.
 """
 
 from ..residuals import mean_percentage_residual

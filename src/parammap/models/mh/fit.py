@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import nlopt
 import numpy as np
 
+from ...config import default
 from ...conventions import (
     MH_M,
     MHX_KD,
@@ -323,34 +324,35 @@ def polish_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, P0: np.ndarray,
 
 # Most lobes ``auto`` may use (``fit.mh.K_max``): a cap on work and storage, not a
 # model choice (BIC and the lobe window choose). A highlight whose shape is not a Phong
-# lobe (microfacet, Blinn) takes two lobes, so two lights take four. At 3 the cap bound
-# on 95 % of the demo's GGX and Blinn texels (two lights): 4 took mh-auto against the
-# truth 1.690 -> 1.442, held-out 6.398 -> 6.303, pbr-bench 6.986 -> 6.892, pbr-tiny and
-# pbr-two-lights within 0.01, for 12 % more fit time (5: 1.382 / 6.274, 38 % more).
-K_MAX_AUTO = 4
+# lobe (microfacet, Blinn) takes two lobes, so two lights take four (docs: results).
+K_MAX_AUTO = default("fit.mh.K_max")
 
 
 @dataclass(frozen=True)
 class MhFitConfig:
     """Options of the per-texel fit (config section ``fit.mh``)."""
 
-    algorithm: str = "lbfgs"
-    init: str = "better"  # better | published
-    loss: str = "linear"  # linear | soft_l1 | huber
-    f_scale: float = 0.05  # robust loss scale, relative to the texel's radiance scale
-    max_evals: int = 400
+    algorithm: str = default("fit.mh.algorithm")
+    init: str = default("fit.mh.init")  # better | published
+    loss: str = default("fit.mh.loss")  # linear | soft_l1 | huber
+    # robust loss scale, relative to the texel's radiance scale
+    f_scale: float = default("fit.mh.f_scale")
+    max_evals: int = default("fit.mh.max_evals")
     # stop when a step lowers the cost by less than 1e-7 of itself: for a texel of n
     # residuals near reduced chi-square 1, a change of ~1e-7 n in chi-square, far below
     # the 1 that moves a parameter by one standard deviation (1e-10 spent 3x the
     # evaluations crawling along flat valleys, for residuals lower by 0.4 %)
     ftol_rel: float = 1e-7
     xtol_rel: float = 1e-6
-    bic_margin: float = 10.0  # auto-K adds a lobe only if BIC drops by more
-    bic_floor: float = 1e-3  # residuals below this fraction of the radiance are noise
-    polish: str = "batch"  # batch (LM-converged texels stacked in one run) | texel (each alone)
+    # auto-K adds a lobe only if BIC drops by more
+    bic_margin: float = default("fit.mh.bic_margin")
+    # residuals below this fraction of the radiance are noise
+    bic_floor: float = default("fit.mh.bic_floor")
+    # batch (LM-converged texels stacked in one run) | texel (each alone)
+    polish: str = default("fit.mh.polish")
     # K fixed >= 2: keep the K-th lobe where it predicts left-out views better than K - 1
     # lobes, judged over this many texels across (0: always K lobes)
-    lobe_window: int = 3
+    lobe_window: int = default("fit.mh.lobe_window")
 
 
 @dataclass

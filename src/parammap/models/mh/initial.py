@@ -9,7 +9,7 @@ import numpy as np
 
 from ...conventions import MH_KD, MH_M, mh_dir, mh_ks, mh_lobes, mh_size
 from .kernel import gram, initial_batch
-from .model import LN_M_MAX
+from .model import LN_M_MAX, mh_eval
 
 
 def _nnls_batch(A: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -178,7 +178,6 @@ def extend_guess_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, P: np.ndarra
     kept, the new lobe at the direction of the largest remaining residual (at least
     ``min_sep_deg`` from theirs), Kd and every Ks solved again by non-negative least
     squares. (B, N, 3) V, L; W (B, N) weights. Returns (B, 4 + 6(K + 1))."""
-    from .model import mh_eval
 
     B, N, _ = V.shape
     K = mh_lobes(P.shape[1])

@@ -192,16 +192,6 @@ def repair_mh_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
     only if it is better (lower RSS, or for ``auto`` a BIC lower by ``cfg.bic_margin``),
     so a texel whose own data are good is never changed.
 
-    Parameters
-    ----------
-    fields : the fit store's arrays over the tile and its halo (params, rmse, mpr,
-        k_used, evals, status).
-    radiance, direction, valid : the tile's observations.
-    offset : (row, col) of the tile in the halo arrays.
-    noise : (t, u, N) relative sd per observation: the refits weight the observations
-        as the tile pass did (:func:`~parammap.models.weights.noise_weights`; RSS and
-        BIC weighted alike), and ``chi2`` of a repaired texel is recomputed.
-
     Then, with ``pool``, texels whose own views leave m undetermined take their
     neighbours' (:func:`_pool_shininess`).
 
@@ -212,9 +202,20 @@ def repair_mh_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
     not (the core of a stain, reached first from poor starts, was left stuck: on the
     demo a 10-texel blob of one lobe where its patch has two).
 
+    Parameters
+    ----------
+    fields : the fit store's arrays over the tile and its halo (params, rmse, mpr,
+        k_used, evals, status).
+    radiance, direction, valid : the tile's observations.
+    offset : (row, col) of the tile in the halo arrays.
+    noise : (t, u, N) relative sd per observation: the refits weight the observations
+        as the tile pass did (:func:`~parammap.models.weights.noise_weights`; RSS and
+        BIC weighted alike), and ``chi2`` of a repaired texel is recomputed.
+
     Returns
     -------
-    None when nothing stands out; else the tile's arrays and ``changed`` (t, u) int8.
+    dict or None
+        None when nothing stands out; else the tile's arrays and ``changed`` (t, u) int8.
     """
     cfg = cfg or MhFitConfig()
     oy, ox = offset

@@ -1,0 +1,538 @@
+"""Fit a per-texel model over the whole observation map, in parallel over texel tiles.
+
+One dask ``map_blocks`` over the observation map's ``valid`` array (chunks = texel tiles
+with all views): each task reads its tile's radiance and directions from the zarr
+store, fits, and writes its region of every output array itself, so every write covers
+whole zarr chunks of the output (created up front with the same tiles) and no two tasks
+touch one chunk (pitfalls.md). The task returns the tile's status codes, which the
+driver gathers for the metrics.
+
+The scheduler comes from config: ``processes`` (default; nlopt callbacks hold the GIL),
+``threads``, ``synchronous``, or the address of a dask.distributed scheduler
+(``tcp://host:8786``) for a cluster, with no code change. The whole store is written
+under a temporary name (``.<model>.zarr.partial``) and renamed when every tile is done;
+a marker per finished tile (``.<model>.zarr.tiles/``) lets a killed fit resume: run
+again with the same observation map and config, it fits only the tiles left, and the
+finished store is identical to an uninterrupted run's.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import os
+import shutil
+import sys
+import time
+from collections.abc import Callable
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import dask
+import dask.array as da
+import numpy as np
+import zarr
+
+from .. import __version__
+from ..config import default
+from ..conventions import SH_CAP_AWARE, FitStatus
+from ..errors import InputError
+from ..models.mh import (
+    ALGORITHMS,
+    K_MAX_AUTO,
+    REPAIR_FACTOR,
+    REPAIR_RADIUS,
+    REPAIR_STARTS,
+    MhFitConfig,
+    fit_mh_tile,
+    mh_outputs,
+    parse_lobes,
+    repair_mh_tile,
+    stains,
+)
+from ..models.sh import GUARD_STEPS, fit_sh_tile, parse_sh_model, sh_outputs
+from ..parallel import worker_initializer
+from ..stores.common import COMPLETE_ATTR, mtime_ns
+from ..stores.fit import FIT_UNITS, FitError, open_fit
+from ..stores.metrics import digest, write_metrics
+from ..stores.observation import open_observation_map
+from ..stores.paths import Processed
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["COMPLETE_ATTR", "FitError", "RepairFn", "fit_map", "fit_mh_map", "fit_sh_map",
+           "fit_summary", "open_fit", "run_fit"]
+
+
+# (radiance, direction, valid of a tile; keyword noise: its relative sd per observation)
+TileFn = Callable[..., dict[str, np.ndarray]]
+# (fit arrays of the tile and its halo, radiance, direction, valid of the tile, offset of
+# the tile in the halo arrays; keyword noise as for TileFn) -> the tile's new arrays plus
+# "changed", or None
+RepairFn = Callable[..., dict[str, np.ndarray] | None]
+
+
+def _marker(done_dir: str, name: str, block_info) -> Path:
+    bi, bj, _ = block_info[0]["chunk-location"]
+    return Path(done_dir) / f"{name}-{bi}-{bj}"
+
+
+class _Opened:
+    """A zarr group's arrays, each opened (its metadata read from disk) on first use."""
+
+    def __init__(self, path: str, mode: str):
+        self.group = zarr.open_group(path, mode=mode)
+        self.arrays: dict[str, zarr.Array] = {}
+
+    def __getitem__(self, name: str) -> zarr.Array:
+        if name not in self.arrays:
+            self.arrays[name] = self.group[name]
+        return self.arrays[name]
+
+    def __contains__(self, name: str) -> bool:
+        try:
+            self[name]
+        except KeyError:
+            return False
+        return True
+
+    def items(self):
+        return ((name, self[name]) for name in self.group.array_keys())
+
+
+_OPENED: dict[tuple[str, str], _Opened] = {}
+
+
+def _arrays(path: str, token: str) -> _Opened:
+    """The zarr group at ``path``, opened once per process and ``token`` (the fit's
+    resume key: a store of another fit at the same path is opened anew; "": read
+    only). Opening an array reads its metadata from disk, a third of a small tile's
+    I/O."""
+    key = (path, token)
+    if key not in _OPENED:
+        if len(_OPENED) > 8:
+            _OPENED.clear()
+        _OPENED[key] = _Opened(path, "r+" if token else "r")
+    return _OPENED[key]
+
+
+def _fit_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path: str,
+               tile_fn: TileFn, done_dir: str, key: str = "", snapshot: bool = False,
+               ) -> np.ndarray:
+    (r0, r1), (c0, c1), _ = block_info[0]["array-location"]
+    marker = _marker(done_dir, "fit", block_info)
+    out = _arrays(out_path, key or done_dir)
+    if marker.is_file():  # finished by an earlier, interrupted run
+        return np.asarray(out["status"][r0:r1, c0:c1], np.int8)
+    g = _arrays(obs_path, "")
+    rad = g["radiance"][r0:r1, c0:c1]
+    dirs = g["direction"][r0:r1, c0:c1]
+    # observation maps built before the merge recorded noise have no "noise" array
+    kw = {"noise": g["noise"][r0:r1, c0:c1]} if "noise" in g else {}
+    res = tile_fn(rad, dirs, np.asarray(valid), **kw)
+    for name, arr in res.items():
+        out[name][r0:r1, c0:c1] = arr
+    if snapshot:
+        # the tile pass's result as the repair pass reads it (its halo, and where the
+        # tile starts from), untouched by the repairs written into the store meanwhile
+        snap = _marker(done_dir, "snap", block_info).with_suffix(".npz")
+        tmp = snap.with_name(snap.name + ".tmp")
+        with tmp.open("wb") as f:
+            np.savez(f, **res)
+        tmp.replace(snap)
+    marker.touch()  # only once every array of the tile is written
+    return np.asarray(res["status"], np.int8)
+
+
+def _snapshot(done_dir: str, rows: tuple[int, int], cols: tuple[int, int], tile: int,
+              ) -> dict[str, np.ndarray]:
+    """The tile pass's results over rows x cols of the map, from the snapshots its
+    tiles left (:func:`_fit_block`)."""
+    (R0, R1), (C0, C1) = rows, cols
+    out: dict[str, np.ndarray] = {}
+    for bi in range(R0 // tile, (R1 - 1) // tile + 1):
+        for bj in range(C0 // tile, (C1 - 1) // tile + 1):
+            y0, x0 = bi * tile, bj * tile
+            with np.load(Path(done_dir) / f"snap-{bi}-{bj}.npz") as held:
+                for name in held.files:
+                    a = held[name]
+                    if name not in out:
+                        out[name] = np.empty((R1 - R0, C1 - C0) + a.shape[2:], a.dtype)
+                    ys = slice(max(R0, y0), min(R1, y0 + a.shape[0]))
+                    xs = slice(max(C0, x0), min(C1, x0 + a.shape[1]))
+                    out[name][ys.start - R0:ys.stop - R0, xs.start - C0:xs.stop - C0] = \
+                        a[ys.start - y0:ys.stop - y0, xs.start - x0:xs.stop - x0]
+    return out
+
+
+def _repair_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path: str,
+                  repair_fn: RepairFn, halo: int, tile: int, done_dir: str, key: str = "",
+                  ) -> np.ndarray:
+    """One tile of the repair pass. It starts from the tile pass's results and reads
+    its halo from them (the snapshots of :func:`_fit_block`), never from the repairs
+    its neighbours write meanwhile: the tiles run at once, the result does not depend
+    on their order, and a tile repaired again after an interruption gets the same."""
+    (r0, r1), (c0, c1), _ = block_info[0]["array-location"]
+    marker = _marker(done_dir, "repair", block_info)
+    if marker.is_file():  # the texels it changed, as recorded when it finished
+        return np.load(marker, allow_pickle=False)
+    T, S = block_info[None]["shape"][:2]
+    R0, R1, C0, C1 = max(r0 - halo, 0), min(r1 + halo, T), max(c0 - halo, 0), min(c1 + halo, S)
+    fields = _snapshot(done_dir, (R0, R1), (C0, C1), tile)
+    g = _arrays(obs_path, "")
+    kw = {"noise": g["noise"][r0:r1, c0:c1]} if "noise" in g else {}
+    res = repair_fn(fields, g["radiance"][r0:r1, c0:c1], g["direction"][r0:r1, c0:c1],
+                    np.asarray(valid), (r0 - R0, c0 - C0), **kw)
+    changed = np.zeros((r1 - r0, c1 - c0), np.int8)
+    if res is not None and np.any(res["changed"]):
+        out = _arrays(out_path, key or done_dir)
+        for name, arr in res.items():
+            if name != "changed":
+                out[name][r0:r1, c0:c1] = arr
+        changed = np.asarray(res["changed"], np.int8)
+    with marker.open("wb") as f:
+        np.save(f, changed)
+    return changed
+
+
+def _show_progress() -> bool:
+    """A progress bar only where a person watches: stderr a terminal, not ``-q``."""
+    return sys.stderr.isatty() and logger.isEnabledFor(logging.INFO)
+
+
+START_METHODS = ("auto", "fork", "forkserver", "spawn")
+
+
+def _mp_context(start_method: str = default("fit.start_method")):
+    """The multiprocessing context of a fit's worker pool. ``auto``: ``fork`` on Linux,
+    where a forked worker starts with the driver's imports and compiled kernels (a
+    spawned one imports them again: about a second per fit on the demo, a sixth of its
+    mh-auto time); elsewhere dask's configured context (``spawn``: fork is unsafe on
+    macOS)."""
+    import multiprocessing
+
+    if start_method not in START_METHODS:
+        raise FitError(f"fit.start_method: unknown {start_method!r} "
+                       f"(one of {', '.join(START_METHODS)})")
+    if start_method == "auto":
+        if sys.platform.startswith("linux"):
+            return multiprocessing.get_context("fork")
+        from dask.multiprocessing import get_context
+
+        return get_context()
+    return multiprocessing.get_context(start_method)
+
+
+@contextlib.contextmanager
+def _process_pool(scheduler: str, workers: int, start_method: str = default("fit.start_method")):
+    """One process pool for every pass of a fit (tiles, then the repair passes): each new
+    pool would start its workers again. None for the other schedulers."""
+    if scheduler != "processes":
+        yield None
+        return
+    from concurrent.futures import ProcessPoolExecutor
+
+    from dask.multiprocessing import initialize_worker_process
+
+    os.environ.setdefault("PYTHONHASHSEED", "6640")  # as dask's own pools (dask#6640)
+    pool = ProcessPoolExecutor(workers, mp_context=_mp_context(start_method),
+                               initializer=partial(initialize_worker_process,
+                                                   user_initializer=worker_initializer()))
+    try:
+        yield pool
+    finally:
+        pool.shutdown(cancel_futures=True)
+
+
+def _compute(x, scheduler: str, workers: int, pool=None):
+    if scheduler.startswith(("tcp://", "tls://", "inproc://", "ucx://")):
+        from dask.distributed import Client, progress
+
+        with Client(scheduler) as client:
+            fut = client.compute(x)
+            if _show_progress():
+                progress(fut)
+            return fut.result()
+    # chunksize 1: a tile is seconds of work, and dask's default (6 tasks a dispatch)
+    # hands a map of a few tiles to one worker
+    kw = {"processes": {"pool": pool, "chunksize": 1} if pool is not None else
+          {"num_workers": workers, "initializer": worker_initializer(), "chunksize": 1},
+          "threads": {"num_workers": workers}, "synchronous": {}}
+    if scheduler not in kw:
+        raise FitError(f"fit.scheduler: unknown scheduler {scheduler!r} (processes, threads, "
+                       "synchronous or a tcp:// address)")
+    bar = contextlib.nullcontext()
+    if _show_progress():
+        from dask.diagnostics import ProgressBar
+
+        bar = ProgressBar(minimum=2.0, out=sys.stderr)
+    with bar:
+        return x.compute(scheduler=scheduler, **kw[scheduler])
+
+
+def fit_map(
+    obs_path: str | Path,
+    out_path: str | Path,
+    tile_fn: TileFn,
+    outputs: dict[str, tuple[tuple[int, ...], str, Any]],
+    attrs: dict[str, Any],
+    scheduler: str = default("fit.scheduler"),
+    workers: int = default("workers"),
+    repair_fn: RepairFn | None = None,
+    halo: int = 4,
+    start_method: str = default("fit.start_method"),
+) -> dict[str, Any]:
+    """Apply ``tile_fn`` to every texel tile of an observation map into a zarr store.
+
+    With ``repair_fn`` a second pass follows once every tile is fitted: each tile sees
+    its neighbours' results (``halo`` texels around it) and may refit texels that stand
+    out from them (e.g. stuck in a poor local minimum). Every tile reads its halo from
+    the tile pass's results (snapshots beside the store), so all tiles are repaired at
+    once and the result does not depend on their order.
+
+    Parameters
+    ----------
+    obs_path : the observation map (``observation.zarr``).
+    out_path : the fit store to write (``fit/<model>.zarr``), replaced atomically.
+    tile_fn : (radiance (t, u, N, 3), direction (t, u, N, 3), valid (t, u, N)) ->
+        dict of (t, u, ...) arrays, one per entry of ``outputs`` (``status`` included).
+    outputs : name -> (trailing shape, dtype, fill value).
+    attrs : model description stored as group attributes.
+    start_method : how the ``processes`` scheduler starts its workers
+        (:func:`_mp_context`).
+
+    Returns
+    -------
+    dict with ``texels``, ``seconds``, ``texels_per_second`` and ``status`` (the (T, S)
+    int8 map of status codes).
+    """
+    obs = open_observation_map(obs_path)
+    T, S, N = obs["valid"].shape
+    tile = fit_tile_size(T, S, int(obs.attrs["tile"]), workers)
+    out_path = Path(out_path)
+    # A partial store under a fixed name, with a marker per finished tile beside it: a
+    # killed run resumes where it stopped when the same fit of the same observation map
+    # runs again; anything else starts afresh.
+    tmp = out_path.with_name(f".{out_path.name}.partial")
+    done = out_path.with_name(f".{out_path.name}.tiles")
+    key = digest({"attrs": attrs, "outputs": {k: [list(v[0]), v[1], v[2]]
+                                              for k, v in outputs.items()},
+                  "observation": dict(obs.attrs), "shape": [T, S, N],
+                  "observation_mtime_ns": mtime_ns(Path(obs_path) / "zarr.json"),
+                  # a partial store of the four-phase repair (no snapshots) starts afresh
+                  "repair": "snapshot halo" if repair_fn is not None else False,
+                  "tile": tile, "software": __version__})
+    valid = da.from_zarr(obs["valid"], chunks=(tile, tile, N))
+    ntiles = len(valid.chunks[0]) * len(valid.chunks[1])
+    g = _resume_or_create(tmp, done, key, ntiles, outputs, (T, S, tile))
+    g.attrs.update({**attrs, "S": S, "T": T, "tile": tile,
+                    "width_mm": obs.attrs["width_mm"], "height_mm": obs.attrs["height_mm"],
+                    "observation_views": len(obs.attrs["view_ids"]),
+                    "software": f"parammap {__version__}"})
+    logger.info(f"fit: {T}x{S} texels, {N} views, {ntiles} tiles, scheduler {scheduler}, "
+                f"{workers} workers")
+    status = valid.map_blocks(
+        _fit_block, obs_path=str(obs_path), out_path=str(tmp), tile_fn=tile_fn,
+        done_dir=str(done), key=key, snapshot=repair_fn is not None, drop_axis=2,
+        dtype=np.int8, meta=np.array((), np.int8), chunks=valid.chunks[:2])
+    t0 = time.perf_counter()
+    with dask.config.set({"optimization.fuse.active": False}), \
+            _process_pool(scheduler, workers, start_method) as pool:
+        status = np.asarray(_compute(status, scheduler, workers, pool))
+        repaired = 0
+        if repair_fn is not None:
+            ch = valid.map_blocks(
+                _repair_block, obs_path=str(obs_path), out_path=str(tmp),
+                repair_fn=repair_fn, halo=halo, tile=tile, done_dir=str(done), key=key,
+                drop_axis=2, dtype=np.int8, meta=np.array((), np.int8),
+                chunks=valid.chunks[:2])
+            repaired = int(np.asarray(_compute(ch, scheduler, workers, pool)).sum())
+            status = g["status"][:]
+            logger.info(f"fit: repair pass refitted {repaired} texels from their neighbours")
+    seconds = time.perf_counter() - t0
+    del g.attrs["parammap_resume_key"]
+    g.attrs[COMPLETE_ATTR] = True
+    if out_path.exists():
+        shutil.rmtree(out_path)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    tmp.rename(out_path)
+    shutil.rmtree(done, ignore_errors=True)
+    logger.info(f"fit: {T * S} texels in {seconds:.1f} s ({T * S / seconds:.1f} texels/s)")
+    return {"texels": T * S, "seconds": seconds, "texels_per_second": T * S / seconds,
+            "status": status, "repaired": repaired}
+
+
+def fit_tile_size(T: int, S: int, tile: int, workers: int, smallest: int = 8) -> int:
+    """Texels across a fit task: the observation map's tile, halved (down to
+    ``smallest``) while the map has fewer than four tasks per worker. A map of a few
+    tiles otherwise leaves workers idle behind the slowest tile (the demo's 64 x 64 map:
+    four tiles of 32, 16 of 16)."""
+    b = tile
+    while (b // 2 >= smallest and b % 2 == 0
+           and math.ceil(T / b) * math.ceil(S / b) < 4 * max(workers, 1)):
+        b //= 2
+    return b
+
+
+def _resume_or_create(tmp: Path, done: Path, key: str, ntiles: int,
+                      outputs: dict[str, tuple[tuple[int, ...], str, Any]],
+                      grid: tuple[int, int, int]) -> zarr.Group:
+    """The partial store of an interrupted run of this very fit (``key``), or a new one."""
+    T, S, tile = grid
+    if tmp.is_dir() and done.is_dir():
+        try:
+            g = zarr.open_group(tmp, mode="r+")
+            same = g.attrs.get("parammap_resume_key") == key
+        except Exception:  # noqa: BLE001 - an unreadable partial store is started afresh
+            same = False
+        if same:
+            n = len(list(done.glob("fit-*")))
+            logger.info(f"fit: resuming an interrupted run, {n} of {ntiles} tiles done")
+            return g
+        logger.info("fit: a partial store of another input or config is there; starting "
+                    "afresh")
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.rmtree(done, ignore_errors=True)
+    done.mkdir(parents=True)
+    g = zarr.open_group(tmp, mode="w")
+    comp = zarr.codecs.BloscCodec(cname="zstd", clevel=3, shuffle="shuffle")
+    for name, (shape, dtype, fill) in outputs.items():
+        # dimension names let xarray.open_zarr label the maps
+        dims = ("row", "col") + tuple(f"{name}_{k}" for k in range(len(shape)))
+        g.create_array(name, shape=(T, S) + tuple(shape), chunks=(tile, tile) + tuple(shape),
+                       dtype=dtype, compressors=comp, fill_value=fill, dimension_names=dims,
+                       attributes={"units": FIT_UNITS.get(name, "")})
+    g.attrs["parammap_resume_key"] = key
+    return g
+
+
+def fit_summary(out_path: str | Path, res: dict[str, Any], name: str,
+                **extra: Any) -> dict[str, Any]:
+    """Figures of a finished fit for its metrics file: texels fitted, too few
+    observations (status 2) and failed (3), speed, the mean / median of the per-texel
+    mean percentage residual and RMSE per channel, and the median reduced chi-square
+    (residuals against the expected noise; about 1 where the model explains all but
+    the noise)."""
+    g = open_fit(out_path)
+    status = g["status"][:]
+    ok = status == FitStatus.OK
+    mpr, rmse = g["mpr"][:][ok], g["rmse"][:][ok]
+    return {
+        "model": name, "texels": res["texels"], "fitted": int(ok.sum()),
+        "too_few_observations": int((status == FitStatus.TOO_FEW).sum()),
+        "failed": int((status == FitStatus.FAILED).sum()),
+        "seconds": res["seconds"], "texels_per_second": res["texels_per_second"],
+        "mean_percentage_residual": np.nanmean(mpr, 0).tolist() if ok.any() else None,
+        "median_percentage_residual": np.nanmedian(mpr, 0).tolist() if ok.any() else None,
+        "rmse": np.nanmean(rmse, 0).tolist() if ok.any() else None,
+        "chi2_median": _nanmedian(g["chi2"][:][ok]) if "chi2" in g else None, **extra,
+    }
+
+
+def _nanmedian(x: np.ndarray) -> float | None:
+    """Median of the finite values (None when there are none: e.g. no noise recorded)."""
+    x = x[np.isfinite(x)]
+    return float(np.median(x)) if x.size else None
+
+
+# ---------------------------------------------------------------------------------
+# Map drivers of the models (numerics in parammap.models)
+
+
+def fit_mh_map(obs_path: str | Path, out_path: str | Path, K: int | str, cfg: dict,
+               scheduler: str = default("fit.scheduler"), workers: int = default("workers"),
+               start_method: str = default("fit.start_method")) -> dict:
+    """Fit the MH model with K lobes (or ``auto``) to every texel of an observation map
+    into ``fit/mh-<K>.zarr``; returns the figures for ``metrics/fit-mh-<K>.json``."""
+    K = parse_lobes(K)
+    fcfg = MhFitConfig(**{k: cfg[k] for k in MhFitConfig.__dataclass_fields__ if k in cfg})
+    if fcfg.algorithm not in ALGORITHMS:
+        raise InputError(f"fit.mh.algorithm: unknown {fcfg.algorithm!r} "
+                         f"(one of {', '.join(ALGORITHMS)})")
+    K_max = cfg.get("K_max", K_MAX_AUTO) if K == "auto" else K
+    pool = bool(cfg.get("pool_shininess", True))
+    repair = partial(repair_mh_tile, K=K, cfg=fcfg, pool=pool) if cfg.get("repair", True) \
+        else None
+    res = fit_map(obs_path, out_path, partial(fit_mh_tile, K=K, cfg=fcfg, K_max=K_max),
+                  mh_outputs(K_max),
+                  {"model": "mh", "model_version": 1, "lobes": str(K), "K_max": K_max,
+                   "layout": "Kd.R Kd.G Kd.B m (lobeK.Ks.R lobeK.Ks.G lobeK.Ks.B lobeK.d.X "
+                             "lobeK.d.Y lobeK.d.Z)*K",
+                   "fit": {k: getattr(fcfg, k) for k in MhFitConfig.__dataclass_fields__},
+                   "repair": {"factor": REPAIR_FACTOR, "radius": REPAIR_RADIUS,
+                              "starts": REPAIR_STARTS, "pool_shininess": pool}
+                   if repair else None},
+                  scheduler, workers, repair_fn=repair, halo=REPAIR_RADIUS,
+                  start_method=start_method)
+    g = open_fit(out_path)
+    ok = g["status"][:] == FitStatus.OK
+    kused = g["k_used"][:][ok]
+    if K == "auto" and len(kused):
+        # BIC may have wanted more where the cap bound: say so, and where to raise it
+        logger.info(f"fit: {100 * np.mean(kused == K_max):.1f} % of the texels use all "
+                    f"{K_max} lobes auto may (fit.mh.K_max)")
+    return fit_summary(
+        out_path, res, f"mh-{K}", scheduler=scheduler, workers=workers,
+        lobes_used={str(k): int((kused == k).sum()) for k in np.unique(kused)},
+        repaired_texels=int(res.get("repaired", 0)),
+        largest_stain_texels=int(next(iter(stains(g["rmse"][:], g["status"][:])), 0)),
+        mean_evals=float(g["evals"][:][ok].mean()) if ok.any() else None)
+
+
+def fit_sh_map(obs_path: str | Path, out_path: str | Path, hemisphere: str, n: int,
+               cfg: dict, scheduler: str = default("fit.scheduler"),
+               workers: int = default("workers"),
+               start_method: str = default("fit.start_method")) -> dict:
+    """Project every texel of an observation map onto n SH bands into
+    ``fit/sh-<hemisphere>-<n^2>.zarr``; returns the figures for its metrics file."""
+    reg = cfg.get("regularisation", "auto")
+    reg = reg if reg == "auto" else float(reg)
+    cap = bool(cfg.get("sampled_cap", True)) and hemisphere in SH_CAP_AWARE
+    res = fit_map(obs_path, out_path,
+                  partial(fit_sh_tile, n=n, hemisphere=hemisphere, reg=reg,
+                          sampled_cap=cap, areas=cfg.get("solid_angles", "spherical")),
+                  sh_outputs(n),
+                  {"model": "sh", "model_version": 2, "hemisphere": hemisphere, "bands": n,
+                   "coefficients": n * n, "sampled_cap": cap,
+                   "solid_angles": cfg.get("solid_angles", "spherical"),
+                   "regularisation": reg if hemisphere in ("rlsop", "wls") else None,
+                   "layout": "sh.R.00 .. sh.R.(n^2-1), then G, then B; index l(l+1)+m"},
+                  scheduler, workers, start_method=start_method)
+    extra = {}
+    if cap:
+        g = open_fit(out_path)
+        ok = g["status"][:] == FitStatus.OK
+        lam, esc = g["reg"][:][ok], g["guard"][:][ok]
+        extra = {"sampled_cap": True,
+                 "regularisation_median": float(np.median(lam)) if ok.any() else None,
+                 "guarded_texels": int((esc > 0).sum()),
+                 "guard_unresolved_texels": int((esc > GUARD_STEPS).sum()),
+                 "bands_median": float(np.median(g["bands"][:][ok])) if ok.any() else None}
+    return fit_summary(out_path, res, f"sh-{hemisphere}-{n * n}", scheduler=scheduler,
+                       workers=workers, **extra)
+
+
+def run_fit(processed: str | Path, model: str, config: dict[str, Any],
+            workers: int | None = None) -> dict[str, Any]:
+    """The fit stage of one model (``mh-<K>``, ``mh-auto`` or ``sh-<hemisphere>-<n^2>``):
+    ``fit/<model>.zarr`` from the observation map with the whole (validated) ``config``
+    (section ``fit``) and ``metrics/fit-<model>.json``. Returns the metrics; its
+    figures come from :mod:`parammap.stages.figures`."""
+
+    proc = Processed(processed)
+    cfg = config["fit"]
+    workers = workers or cfg["workers"] or config["workers"]
+    if model.startswith("mh-"):
+        K = parse_lobes(model[3:])
+        name, fit, args, family = f"mh-{K}", fit_mh_map, (K,), "mh"
+    else:
+        hemi, n = parse_sh_model(model)
+        name, fit, args, family = f"sh-{hemi}-{n * n}", fit_sh_map, (hemi, n), "sh"
+    m = fit(proc.observation, proc.fit(name), *args, cfg[family], cfg["scheduler"], workers,
+            cfg["start_method"])
+    write_metrics(proc.metrics(f"fit-{name}"), m)
+    logger.info(f"fit: {name} mean % residual {m['mean_percentage_residual']}, "
+                f"{m['failed']} failed, {m['texels_per_second']:.1f} texels/s")
+    return m

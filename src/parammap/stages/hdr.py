@@ -1,0 +1,522 @@
+"""Camera response recovery and HDR merging (Debevec-Malik 1997, 004 ch. 7.2).
+
+The response is stored as the log-exposure curve ``g[z, c] = ln X`` for every 8-bit
+level z and channel c, anchored at ``g[128] = 0``; radiance is then
+``exp(g(z)) / t``, relative, with one global scale shared by every view of a capture
+(conventions.md, *Radiance*).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .. import __version__
+from ..config import default
+from ..conventions import NOISE_CHANNEL
+from ..parallel import executor
+from ..plots import plot_reexposure, plot_response
+from ..stores.capture import Capture, View
+from ..stores.exr import write_exr
+from ..stores.hdr import HdrError, load_reference_response, load_response, save_response
+from ..stores.images import ImageReadError, read_image
+from ..stores.metrics import digest, write_metrics
+from ..stores.paths import Processed
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["HdrError", "hat_weights", "load_response", "merge_bracket", "merge_view",
+           "recover_response", "reexposure_error", "run_hdr", "run_response", "sample_pixels",
+           "save_response", "solve_debevec"]
+
+
+def hat_weights(low: int = default("hdr.low"), high: int = default("hdr.high")) -> np.ndarray:
+    """Debevec's hat weight over levels 0..255, zero at and beyond ``low``/``high`` so
+    black and saturated pixels never count (OpenCV's weights do not vanish there)."""
+    z = np.arange(256, dtype=float)
+    mid = 0.5 * (low + high)
+    w = np.where(z <= mid, z - low, high - z)
+    return np.clip(w, 0, None) / (mid - low)
+
+
+def sample_pixels(
+    brackets: list[np.ndarray], n: int, seed: int = 0, low: int = default("hdr.low"),
+    high: int = default("hdr.high")
+) -> np.ndarray:
+    """Choose response samples: a fixed, seeded set of smooth pixels spread over the
+    levels of every channel.
+
+    Parameters
+    ----------
+    brackets : list of (P, H, W, 3) uint8 stacks, one per view (exposures long to short
+        or in any order).
+    n : number of samples wanted in total.
+
+    Returns
+    -------
+    (n, 3) int array of (bracket index, row, col).
+    """
+    rng = np.random.default_rng(seed)
+    cands = []
+    for b, stack in enumerate(brackets):
+        mid = stack[len(stack) // 2].astype(np.float32).mean(axis=2)
+        # Smooth pixels only: a misaligned bracket or an edge would tie two radiances.
+        grad = cv2.morphologyEx(mid, cv2.MORPH_GRADIENT, np.ones((5, 5), np.uint8))
+        H, W = mid.shape
+        rr = rng.integers(4, H - 4, 6 * n // len(brackets) + 50)
+        cc = rng.integers(4, W - 4, rr.size)
+        keep = grad[rr, cc] < 12
+        # Need a level in the working range somewhere in the bracket.
+        z = stack[:, rr, cc, :]
+        keep &= ((z > low) & (z < high)).all(axis=2).any(axis=0)
+        cands.append(np.stack([np.full(keep.sum(), b), rr[keep], cc[keep]], 1))
+    cands = np.concatenate(cands)
+    if len(cands) < 20:
+        raise HdrError("too few smooth, well-exposed pixels to recover the response")
+    # Spread over the levels: in every exposure, every band of levels gets its share,
+    # so the ends of the curve are pinned by data, not only by smoothness.
+    lv = np.stack([brackets[b][:, r, c, :].mean(axis=1) for b, r, c in cands])  # (N, P)
+    # Distinct radiances pin the curve; repeats of one radiance add little.
+    _, first = np.unique(np.round(lv / 2), axis=0, return_index=True)
+    first = np.sort(first)
+    cands, lv = cands[first], lv[first]
+    n_p = lv.shape[1]
+    edges = np.linspace(low, high, 17)
+    per = max(1, n // (16 * n_p))
+    chosen: list[int] = []
+    taken = np.zeros(len(cands), bool)
+    for p in range(n_p):
+        for lo_e, hi_e in zip(edges[:-1], edges[1:], strict=True):
+            idx = np.flatnonzero(~taken & (lv[:, p] >= lo_e) & (lv[:, p] < hi_e))[:per]
+            taken[idx] = True
+            chosen.extend(idx.tolist())
+    rest = np.flatnonzero(~taken)
+    chosen.extend(rest[: max(0, n - len(chosen))].tolist())
+    return cands[np.sort(np.array(chosen[:n] if len(chosen) > n else chosen))]
+
+
+def solve_debevec(
+    Z: np.ndarray, log_t: np.ndarray, smoothness: float, weights: np.ndarray
+) -> np.ndarray:
+    """Debevec-Malik's ``gsolve`` for one channel.
+
+    Parameters
+    ----------
+    Z : (N, P) int levels of N samples in P exposures (each sample's own exposures).
+    log_t : (N, P) log exposure times.
+    smoothness : lambda, weight of the second-difference term.
+    weights : (256,) weight per level.
+
+    Returns
+    -------
+    (256,) float64 g(z) = ln X, anchored at g[128] = 0.
+    """
+    N, P = Z.shape
+    n_eq = N * P + 255
+    A = np.zeros((n_eq, 256 + N))
+    b = np.zeros(n_eq)
+    w = weights[Z]
+    rows = np.arange(N * P)
+    A[rows, Z.ravel()] = w.ravel()
+    A[rows, 256 + np.repeat(np.arange(N), P)] = -w.ravel()
+    b[rows] = (w * log_t).ravel()
+    k = N * P
+    A[k, 128] = 1.0
+    zz = np.arange(1, 255)
+    wz = np.maximum(weights[zz], 0.05) * smoothness
+    A[k + zz, zz - 1] = wz
+    A[k + zz, zz] = -2 * wz
+    A[k + zz, zz + 1] = wz
+    x = np.linalg.lstsq(A, b, rcond=None)[0]
+    return x[:256]
+
+
+def _monotonic(g: np.ndarray) -> np.ndarray:
+    """Force a strictly increasing curve; unconstrained tails can wiggle."""
+    out = np.maximum.accumulate(g, axis=0)
+    eps = 1e-6 * np.arange(256)[:, None]
+    return out + eps
+
+
+def recover_response(
+    brackets: list[np.ndarray], times: list[np.ndarray], method: str = default("hdr.method"),
+    samples: int = default("hdr.samples"), smoothness: float = default("hdr.smoothness"),
+    seed: int = 0, low: int = default("hdr.low"),
+    high: int = default("hdr.high"),
+) -> np.ndarray:
+    """Recover the response from the brackets of one or more views.
+
+    Parameters
+    ----------
+    brackets : list of (P_v, H, W, 3) uint8 stacks.
+    times : list of (P_v,) exposure times in seconds.
+    method : ``debevec`` (this module's solver, zero weight at black and saturated
+        levels) or ``robertson`` (OpenCV's, on the same samples).
+
+    Returns
+    -------
+    (256, 3) g(z) = ln X per channel, anchored at g[128] = 0, strictly increasing.
+    """
+    if not brackets:
+        raise HdrError("no brackets to recover the response from")
+    if all(len(b) < 2 for b in brackets):
+        raise HdrError("every bracket has a single exposure; the response needs two or more")
+    brackets = [b for b in brackets if len(b) >= 2]
+    times = [np.asarray(t, float) for t in times if len(t) >= 2]
+    idx = sample_pixels(brackets, samples, seed, low, high)
+    w = hat_weights(low, high)
+    g = np.zeros((256, 3))
+    if method == "debevec":
+        # Samples from brackets of different lengths: solve per length group jointly by
+        # padding with zero-weight entries.
+        P = max(len(b) for b in brackets)
+        for c in range(3):
+            Z = np.zeros((len(idx), P), int)
+            LT = np.zeros((len(idx), P))
+            for k, (b, r, cc) in enumerate(idx):
+                p = len(brackets[b])
+                Z[k, :p] = brackets[b][:, r, cc, c]
+                LT[k, :p] = np.log(times[b])
+                Z[k, p:] = 0  # weight 0 at level 0
+            g[:, c] = solve_debevec(Z, LT, smoothness, w)
+    elif method == "robertson":
+        groups: dict[int, list] = {}
+        for b, r, cc in idx:
+            groups.setdefault(len(brackets[b]), []).append((b, r, cc))
+        # OpenCV treats each pixel of the strip as one scene point, so samples from
+        # different views share one solve when their brackets have equal times.
+        b0 = max(groups, key=lambda k: len(groups[k]))
+        sel = groups[b0]
+        t0 = times[sel[0][0]]
+        strips = [np.ascontiguousarray(np.array(
+            [brackets[b][p, r, cc, ::-1] for b, r, cc in sel], np.uint8)[None])
+            for p in range(b0)]
+        crf = cv2.createCalibrateRobertson().process(strips, t0.astype(np.float32))
+        g = np.log(np.maximum(crf[:, 0, ::-1].astype(float), 1e-12))
+        # Levels no sample showed come back NaN from OpenCV: interpolate them.
+        z = np.arange(256)
+        for c in range(3):
+            ok = np.isfinite(g[:, c])
+            if ok.sum() < 2:
+                raise HdrError("robertson: too few distinct levels in the pixel sample")
+            g[:, c] = np.interp(z, z[ok], g[ok, c])
+        g -= g[128]
+    else:
+        raise HdrError(f"unknown response method {method!r}")
+    return _monotonic(g)
+
+
+def _weighted_exposures(stack: np.ndarray, low: int, high: int):
+    """(index, levels as indices, hat weights) of each exposure of a (P, H, W, 3) stack."""
+    w = hat_weights(low, high)
+    for p in range(len(stack)):
+        z = stack[p].astype(np.intp)
+        yield p, z, w[z]
+
+
+def merge_bracket(
+    stack: np.ndarray, times: np.ndarray, g: np.ndarray, low: int = default("hdr.low"),
+    high: int = default("hdr.high")
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Merge one bracket into linear relative radiance (Debevec-Malik eq. 6).
+
+    Parameters
+    ----------
+    stack : (P, H, W, 3) uint8.
+    times : (P,) exposure times, seconds.
+    g : (256, 3) log-exposure response.
+
+    Returns
+    -------
+    radiance : (H, W, 3) float32, ``exp(g(z)) / t`` averaged with hat weights.
+    saturated : (H, W) bool, some channel at or above ``high`` in every exposure; its
+        value comes from the shortest exposure and is a lower bound.
+    dark : (H, W) bool, some channel at or below ``low`` in every exposure.
+    """
+    stack = np.asarray(stack)
+    t = np.asarray(times, float)
+    num = np.zeros(stack.shape[1:], float)
+    den = np.zeros(stack.shape[1:], float)
+    ch = np.arange(3)
+    for p, z, wp in _weighted_exposures(stack, low, high):
+        num += wp * (g[z, ch] - np.log(t[p]))
+        den += wp
+    short = int(np.argmin(t))
+    long_ = int(np.argmax(t))
+    fallback_hi = g[stack[short].astype(np.intp), ch] - np.log(t[short])
+    fallback_lo = g[stack[long_].astype(np.intp), ch] - np.log(t[long_])
+    zmax = stack.max(axis=0)
+    lnE = np.where(den > 0, num / np.maximum(den, 1e-12),
+                   np.where(zmax >= high, fallback_hi, fallback_lo))
+    saturated = (stack.min(axis=0) >= high).any(axis=2)
+    dark = (zmax <= low).any(axis=2)
+    return np.exp(lnE).astype(np.float32), saturated, dark
+
+
+QUANTISATION_SD = 1 / math.sqrt(12)  # sd of rounding to integer levels
+
+
+def merge_noise(
+    stack: np.ndarray, times: np.ndarray, g: np.ndarray, level_sd: float,
+    low: int = default("hdr.low"), high: int = default("hdr.high"),
+) -> np.ndarray:
+    """Relative standard deviation of :func:`merge_bracket`'s radiance per pixel.
+
+    Each exposure's log radiance ``g(z) - ln t`` moves by ``g'(z)`` per level, so a
+    level noise of ``level_sd`` gives it an sd of ``g'(z) level_sd``; the hat-weighted
+    mean of the exposures has sd ``sqrt(sum w^2 g'^2) level_sd / sum w``, which is the
+    relative sd of the radiance. Pixels seen by several well-exposed photos come out
+    low, pixels only the toe or shoulder of the response saw come out high.
+
+    Returns
+    -------
+    (H, W) float32, mean over the three channels.
+    """
+    stack = np.asarray(stack)
+    t = np.asarray(times, float)
+    dg = np.abs(np.gradient(np.asarray(g, float), axis=0))  # (256, 3) d ln E / d level
+    var = np.zeros(stack.shape[1:], float)
+    den = np.zeros(stack.shape[1:], float)
+    ch = np.arange(3)
+    for _, z, wp in _weighted_exposures(stack, low, high):
+        var += (wp * dg[z, ch]) ** 2
+        den += wp
+    single = dg[stack[int(np.argmin(t))].astype(np.intp), ch]  # fallback exposure
+    rel = np.where(den > 0, np.sqrt(var) / np.maximum(den, 1e-12), single) * level_sd
+    return rel.mean(-1).astype(np.float32)
+
+
+def level_noise(err: np.ndarray, exposures: int) -> float:
+    """Level noise (sd, 8-bit levels) of one exposure from the re-exposure errors: the
+    mean absolute error of a Gaussian is 0.80 sd, and the merged prediction contains
+    the photo it predicts (about 1/P of it), which hides a share 1/P of the variance;
+    never below the quantisation sd."""
+    if not err.size:
+        return QUANTISATION_SD
+    P = max(exposures, 2)
+    sd = math.sqrt(math.pi / 2) * float(np.mean(err)) / math.sqrt(1 - 1 / P)
+    return max(sd, QUANTISATION_SD)
+
+
+def load_bracket(view: View) -> tuple[np.ndarray, np.ndarray]:
+    """Read a view's photos as (P, H, W, 3) uint8 and its times (P,)."""
+    imgs = []
+    for ex in view.exposures:
+        img = read_image(ex.path)
+        if img.dtype != np.uint8:
+            raise HdrError(f"{ex.path}: 16-bit photo needs camera.response: linear")
+        imgs.append(img)
+    shapes = {im.shape for im in imgs}
+    if len(shapes) > 1:
+        raise HdrError(f"view {view.id}: photos of different sizes {sorted(shapes)}")
+    return np.stack(imgs), np.array([e.exposure_s for e in view.exposures])
+
+
+def merge_view(
+    view: View, g: np.ndarray | None, out: str | Path, low: int = default("hdr.low"),
+    high: int = default("hdr.high"),
+    provenance: dict[str, str] | None = None,
+) -> dict:
+    """Merge one view into ``out`` (EXR: R, G, B, saturated, dark, noise). ``g`` None
+    means linear input (16-bit or RAW): radiance = value / t, averaged over unsaturated
+    exposures. ``provenance``: extra header attributes (software, config digest)."""
+    if g is None:
+        imgs = [read_image(e.path).astype(np.float32) for e in view.exposures]
+        full = 65535.0 if imgs[0].max() > 255 else 255.0
+        t = np.array([e.exposure_s for e in view.exposures])
+        stack = np.stack(imgs)
+        ok = stack < full * high / 255.0
+        # sum(z) / sum(t) over unsaturated exposures: the longest exposures, with the
+        # least quantisation and relative noise, weigh most.
+        tt = t[:, None, None, None]
+        rad = np.where(ok, stack, 0).sum(0) / np.maximum(np.where(ok, tt, 0).sum(0), 1e-30)
+        saturated = (~ok).all(axis=0).any(axis=2)
+        rad = np.where(saturated[..., None], stack[np.argmin(t)] / t.min(), rad)
+        dark = (stack <= full * low / 255.0).all(axis=0).any(axis=2)
+        # quantisation only (the sensor's shot and read noise are unknown here)
+        zsum = np.where(ok, stack, 0).sum(0)
+        noise = (QUANTISATION_SD * np.sqrt(np.maximum(ok.sum(0), 1))
+                 / np.maximum(zsum, 1e-30)).mean(-1).astype(np.float32)
+        rad = rad.astype(np.float32)
+    else:
+        stack, t = load_bracket(view)
+        rad, saturated, dark = merge_bracket(stack, t, g, low, high)
+        err = reexposure_error(stack, t, rad, g, low, high)
+        noise = merge_noise(stack, t, g, level_noise(err, len(t)), low, high)
+    write_exr(out, {"R": rad[..., 0], "G": rad[..., 1], "B": rad[..., 2],
+                    "saturated": saturated.astype(np.float32),
+                    "dark": dark.astype(np.float32), NOISE_CHANNEL: noise},
+              {"view_id": view.id, "units": "relative radiance (response exp(g)/t)",
+               "noise": "relative sd of the radiance per pixel (merge_noise)",
+               **(provenance or {})})
+    stats = {"view": view.id, "saturated_fraction": float(saturated.mean()),
+             "dark_fraction": float(dark.mean())}
+    if g is not None:
+        stats["reexposure"] = reexposure_summary(err)
+    return stats
+
+
+# Re-exposure errors are pooled over views through a histogram of REEXPOSURE_BIN levels.
+REEXPOSURE_BIN = 0.05
+REEXPOSURE_BINS = int(256 / REEXPOSURE_BIN)
+
+
+def reexposure_summary(err: np.ndarray) -> dict:
+    """Mean, 95th percentile and histogram (``REEXPOSURE_BIN`` levels wide) of
+    absolute re-exposure errors in 8-bit levels."""
+    hist = np.bincount(np.minimum((err / REEXPOSURE_BIN).astype(int), REEXPOSURE_BINS - 1),
+                       minlength=REEXPOSURE_BINS)
+    last = int(np.flatnonzero(hist)[-1]) + 1 if hist.any() else 0
+    return {"mean_levels": float(err.mean()) if err.size else None,
+            "p95_levels": float(np.percentile(err, 95)) if err.size else None,
+            "pixels": int(err.size), "sum_levels": float(err.sum()),
+            "histogram": hist[:last].tolist(), "bin_levels": REEXPOSURE_BIN}
+
+
+def pool_reexposure(summaries: list[dict]) -> dict:
+    """Pooled mean and 95th percentile from per-view :func:`reexposure_summary` dicts
+    (the percentile is exact to one histogram bin)."""
+    summaries = [s for s in summaries if s and s["pixels"]]
+    if not summaries:
+        return {"mean_levels": None, "p95_levels": None, "pixels": 0}
+    n = sum(s["pixels"] for s in summaries)
+    hist = np.zeros(max(len(s["histogram"]) for s in summaries))
+    for s in summaries:
+        hist[: len(s["histogram"])] += s["histogram"]
+    k = int(np.searchsorted(np.cumsum(hist), 0.95 * n))
+    return {"mean_levels": sum(s["sum_levels"] for s in summaries) / n,
+            "p95_levels": (k + 1) * REEXPOSURE_BIN, "pixels": n}
+
+
+def reexposure_error(
+    stack: np.ndarray, times: np.ndarray, radiance: np.ndarray, g: np.ndarray,
+    low: int = default("hdr.low"), high: int = default("hdr.high"),
+) -> np.ndarray:
+    """Absolute 8-bit differences between each photo and the merged radiance
+    re-exposed with the response, over pixels in the working range."""
+    levels = np.arange(256)
+    errs = []
+    for p, t in enumerate(times):
+        lnX = np.log(np.maximum(radiance.astype(float), 1e-30)) + np.log(t)
+        pred = np.stack([np.interp(lnX[..., c], g[:, c], levels) for c in range(3)], -1)
+        z = stack[p].astype(float)
+        ok = (z > low) & (z < high)
+        errs.append(np.abs(pred - z)[ok])
+    return np.concatenate(errs)
+
+
+def response_for_capture(
+    cap: Capture, cfg: dict, max_views: int = 24
+) -> tuple[np.ndarray | None, dict]:
+    """The capture's response: recovered from (up to ``max_views``, spread) brackets,
+    read from a saved curve, or None for linear input. Unreadable or single-exposure
+    views are skipped with a logged reason."""
+    t0 = time.perf_counter()
+    if cap.response == "linear":
+        return None, {"response": "linear"}
+    if cap.response != "auto":
+        return load_response(cap.response), {"response": "file", "path": cap.response}
+    views = cap.views
+    pick = np.unique(np.linspace(0, len(views) - 1, min(max_views, len(views))).round().astype(int))
+    brackets, times, used = [], [], []
+    for k in pick:
+        v = views[k]
+        try:
+            stack, t = load_bracket(v)
+        except (ImageReadError, HdrError) as exc:
+            logger.info(f"response: skipping view {v.id}: {exc}")
+            continue
+        if len(t) < 2:
+            continue
+        brackets.append(stack)
+        times.append(t)
+        used.append(v.id)
+    g = recover_response(brackets, times, cfg["method"], cfg["samples"], cfg["smoothness"],
+                         cfg["seed"], cfg["low"], cfg["high"])
+    return g, {"response": cfg["method"], "views_used": used,
+               "samples": cfg["samples"], "seconds": time.perf_counter() - t0}
+
+
+def run_response(cap: Capture, processed: str | Path, cfg: dict,
+                 figure: str | Path | None = None, reference: str | Path | None = None,
+                 reference_label: str = "reference") -> dict:
+    """The response stage: recover (or read) the capture's response into
+    ``camera/response.csv`` (``camera/response.txt`` for linear input), with an
+    optional figure of the curve beside a reference. ``cfg``: config section ``hdr``."""
+    out = Processed(processed)
+    g, meta = response_for_capture(cap, cfg)
+    if g is None:
+        out.camera.mkdir(parents=True, exist_ok=True)
+        out.response_note.write_text("linear input: no response curve\n")
+    else:
+        save_response(out.response_csv, g, meta)
+        if figure:
+
+            ref = load_reference_response(reference) if reference else None
+            plot_response(g, figure, reference=ref, reference_label=reference_label,
+                          title=f"{cap.surface_id}: recovered response")
+    logger.info(f"response: {meta['response']} -> {out.camera}")
+    return meta
+
+
+def _merge_job(job: tuple) -> dict:
+    view, g, path, low, high, prov, stats_path = job
+
+    t0 = time.perf_counter()
+    st = merge_view(view, g, path, low, high, prov)
+    st["seconds"] = time.perf_counter() - t0
+    write_metrics(stats_path, st)
+    return st
+
+
+def run_hdr(cap: Capture, processed: str | Path, cfg: dict, view_ids: list[str] | None = None,
+            response: str | Path | None = None, workers: int = 1) -> list[dict]:
+    """The hdr stage: merge the brackets of the given views (default: all) into
+    ``hdr/<view>.exr`` with per-view statistics in ``hdr/<view>.json``, on ``workers``
+    processes."""
+
+    out = Processed(processed)
+    g = None if cap.response == "linear" else load_response(response or out.response_csv)
+    views = [cap.view(v) for v in view_ids] if view_ids else cap.views
+    prov = {"software": f"parammap {__version__}", "config_digest": digest(cfg),
+            "response_digest": "linear" if g is None else digest(g)}
+    jobs = [(v, g, out.hdr(v.id), cfg["low"], cfg["high"], prov, out.hdr_stats(v.id))
+            for v in views]
+    stats = []
+    with executor(min(workers, len(jobs)) if jobs else 1) as ex:
+        for v, st in zip(views, ex.map(_merge_job, jobs), strict=True):
+            logger.info(f"hdr: {v.id} saturated {st['saturated_fraction']:.4f}")
+            stats.append(st)
+    return stats
+
+
+def gather_hdr_metrics(stats_paths: list[str | Path], out: str | Path,
+                       figure: str | Path | None = None) -> dict:
+    """Pool per-view HDR stats (``hdr/<view>.json``) into ``metrics/hdr.json``: views,
+    worst saturated fraction and the re-exposure self-check (mean and 95th percentile,
+    8-bit levels, pixels in the working range)."""
+
+    views = {Path(p).stem: json.loads(Path(p).read_text()) for p in stats_paths}
+    pooled = pool_reexposure([v.get("reexposure") for v in views.values()])
+    per_view = {k: {kk: vv for kk, vv in v.items() if kk != "reexposure"}
+                | ({"reexposure_mean_levels": v["reexposure"]["mean_levels"],
+                    "reexposure_p95_levels": v["reexposure"]["p95_levels"]}
+                   if v.get("reexposure") else {})
+                for k, v in views.items()}
+    data = {"views": len(views),
+            "saturated_fraction_max": max(v["saturated_fraction"] for v in views.values()),
+            "reexposure_mean_levels": pooled["mean_levels"],
+            "reexposure_p95_levels": pooled["p95_levels"],
+            "reexposure_pixels": pooled["pixels"],
+            "per_view": per_view}
+    write_metrics(out, data)
+    if figure:
+
+        plot_reexposure(data, figure)
+    return data

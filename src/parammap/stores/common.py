@@ -1,0 +1,43 @@
+"""What every zarr store of a processed folder shares: the completion mark, opening a
+finished store, its size on disk and its inputs' modification times."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import zarr
+
+__all__ = ["COMPLETE_ATTR", "mtime_ns", "open_complete", "store_bytes"]
+
+# Set on a store's group only after every chunk is written and just before the rename
+# from its temporary name: a store without it is never accepted.
+COMPLETE_ATTR = "parammap_complete"
+
+
+def mtime_ns(path: str | Path) -> int:
+    """A file's modification time (ns), 0 when it is missing: part of the keys that say
+    whether a partial store may be resumed."""
+    try:
+        return Path(path).stat().st_mtime_ns
+    except OSError:
+        return 0
+
+
+def store_bytes(path: str | Path) -> int:
+    """Bytes on disk of a file or a directory store."""
+    path = Path(path)
+    if path.is_file():
+        return path.stat().st_size
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+
+
+def open_complete(path: str | Path, error: type[Exception], what: str) -> zarr.Group:
+    """Open a finished zarr group; ``error`` names a missing or incomplete one."""
+    path = Path(path)
+    try:
+        g = zarr.open_group(path, mode="r")
+    except (FileNotFoundError, zarr.errors.GroupNotFoundError) as exc:
+        raise error(f"{path}: no {what} ({exc})") from None
+    if not g.attrs.get(COMPLETE_ATTR):
+        raise error(f"{path}: incomplete {what} (interrupted run?)")
+    return g

@@ -1,0 +1,201 @@
+"""Parameter-map EXR files: one multi-channel OpenEXR per surface and model.
+
+Channel names and header attributes follow conventions.md:
+
+- MH (K lobes): ``Kd.R Kd.G Kd.B m`` then for each lobe k = 1..K
+  ``lobek.Ks.R lobek.Ks.G lobek.Ks.B lobek.d.X lobek.d.Y lobek.d.Z``;
+- SH (n bands): ``sh.R.00 ... sh.R.(n^2-1)``, then G, then B (two digits at least);
+- a diffuse-only map (the baseline): ``Kd.R Kd.G Kd.B``.
+
+Rows as in the texel convention (row 0 at the top edge), float32 by default (half on
+request), ZIP compression. Header: ``parammap_model`` (mh, sh or diffuse),
+``parammap_model_version``, ``parammap_layout`` (the channel names, space separated),
+``parammap_hemisphere`` (SH), ``parammap_radiance_scale`` (a normalisation already
+undone: 1), ``width_mm``, ``height_mm``, ``S``, ``T`` and ``software``. An MH or SH map
+may carry the per-texel standard deviations of its fit as extra channels (MH ``sd.Kd.R
+... sd.m sd.lobek.Ks.R ... sd.lobek.d_deg``, SH ``sd.sh.R.00 ...``;
+``parammap_sd_layout`` names them, :func:`parammap.conventions.sd_channels`).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .. import __version__
+from ..conventions import (
+    BEST_CHANNELS,
+    DIFFUSE_CHANNELS,
+    mh_channels,
+    mh_lobes,
+    sd_channels,
+    sh_bands,
+    sh_channels,
+)
+from .exr import ExrError, read_exr, write_exr
+from .fit import open_fit
+from .observation import open_observation_map
+
+__all__ = ["MODELS", "ParamMap", "best_shares", "channel_names", "param_map_from_fit",
+           "read_param_map", "write_param_map"]
+
+logger = logging.getLogger(__name__)
+
+MODELS = {"mh": 1, "sh": 1, "diffuse": 1, "best": 2}
+
+
+class ParamMapError(ExrError):
+    """A parameter-map EXR of an unknown model or layout."""
+
+
+def channel_names(model: str, n_params: int) -> list[str]:
+    """Channel names of a model's parameter vector of length ``n_params``."""
+    if model == "diffuse":
+        if n_params != len(DIFFUSE_CHANNELS):
+            raise ParamMapError(f"diffuse maps have 3 parameters (got {n_params})")
+        return list(DIFFUSE_CHANNELS)
+    if model == "best":
+        if n_params != len(BEST_CHANNELS):
+            raise ParamMapError(f"best maps have {len(BEST_CHANNELS)} channels, "
+                                 f"{', '.join(BEST_CHANNELS)} (got {n_params})")
+        return list(BEST_CHANNELS)
+    if model == "mh":
+        try:
+            K = mh_lobes(n_params)
+        except ValueError as exc:
+            raise ParamMapError(str(exc)) from None
+        if K < 1:
+            raise ParamMapError(f"MH maps have at least one lobe (got {n_params} values)")
+        return mh_channels(K)
+    if model == "sh":
+        try:
+            n = sh_bands(n_params // 3 if n_params % 3 == 0 else 0)
+        except ValueError:
+            raise ParamMapError(f"SH maps have 3 n^2 parameters (got {n_params})") from None
+        return sh_channels(n)
+    raise ParamMapError(f"unknown model {model!r} (known: {', '.join(MODELS)})")
+
+
+@dataclass
+class ParamMap:
+    """A parameter map: ``params`` (T, S, P) in the model's conventions.md order."""
+
+    model: str
+    params: np.ndarray
+    width_mm: float
+    height_mm: float
+    hemisphere: str | None = None
+    attrs: dict[str, Any] = field(default_factory=dict)
+    sd: np.ndarray | None = None  # (T, S, ...) standard deviations (sd_channels), or None
+    # model "best": the candidate maps, by name, that its channels index
+    parts: dict[str, ParamMap] | None = None
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.params.shape[:2]
+
+
+def write_param_map(path: str | Path, pm: ParamMap, half: bool = False) -> Path:
+    """Write a parameter map EXR (atomically)."""
+    names = channel_names(pm.model, pm.params.shape[-1])
+    T, S = pm.shape
+    attrs = {"parammap_model": pm.model, "parammap_model_version": MODELS[pm.model],
+             "parammap_layout": " ".join(names), "parammap_radiance_scale": 1.0,
+             "width_mm": float(pm.width_mm), "height_mm": float(pm.height_mm),
+             "S": int(S), "T": int(T), "software": f"parammap {__version__}"}
+    if pm.hemisphere:
+        attrs["parammap_hemisphere"] = pm.hemisphere
+    for k, v in pm.attrs.items():
+        attrs[f"parammap_{k}"] = v
+    chans = {n: pm.params[..., i] for i, n in enumerate(names)}
+    if pm.sd is not None:
+        sd_names = sd_channels(pm.model, pm.params.shape[-1])
+        attrs["parammap_sd_layout"] = " ".join(sd_names)
+        chans |= {n: pm.sd[..., i] for i, n in enumerate(sd_names)}
+    return write_exr(path, chans, attrs, half)
+
+
+def read_param_map(path: str | Path) -> ParamMap:
+    """Read a parameter map EXR written by :func:`write_param_map`.
+
+    Raises
+    ------
+    ParamMapError
+        For a file of an unknown model or version, or whose channels do not follow the
+        model's layout.
+    """
+    chans, h = read_exr(path)
+    model = h.get("parammap_model")
+    if model not in MODELS:
+        raise ParamMapError(f"{path}: unknown parameter-map model {model!r} "
+                            f"(known: {', '.join(MODELS)})")
+    if h.get("parammap_model_version") != MODELS[model]:
+        raise ParamMapError(f"{path}: {model} map version {h.get('parammap_model_version')!r}"
+                            f" is not supported (expected {MODELS[model]})")
+    layout = str(h.get("parammap_layout", "")).split()
+    try:
+        expected = channel_names(model, len(layout))
+    except ParamMapError as exc:
+        raise ParamMapError(f"{path}: {exc}") from None
+    sd_layout = str(h.get("parammap_sd_layout", "")).split()
+    if sd_layout and (model not in ("mh", "sh") or sd_layout != sd_channels(model, len(layout))):
+        raise ParamMapError(f"{path}: standard deviations do not follow the {model} layout")
+    if layout != expected or set(chans) != set(layout) | set(sd_layout):
+        raise ParamMapError(f"{path}: channels do not follow the {model} layout "
+                            f"(expected {expected[:6]}...)")
+    params = np.stack([chans[n] for n in layout], -1).astype(np.float32)
+    if params.shape[:2] != (int(h.get("T", -1)), int(h.get("S", -1))):
+        raise ParamMapError(f"{path}: image size does not match S, T in the header")
+    extra = {k[len("parammap_"):]: v for k, v in h.items() if k.startswith("parammap_")
+             and k not in ("parammap_model", "parammap_model_version", "parammap_layout",
+                           "parammap_hemisphere", "parammap_sd_layout")}
+    sd = np.stack([chans[n] for n in sd_layout], -1).astype(np.float32) if sd_layout else None
+    parts = None
+    if model == "best":  # the candidates' own maps, beside this one
+        names = str(extra.get("candidates", "")).split()
+        if not names:
+            raise ParamMapError(f"{path}: a best map names no candidates")
+        parts = {n: read_param_map(Path(path).parent / f"{n}.exr") for n in names}
+    return ParamMap(model, params, float(h["width_mm"]), float(h["height_mm"]),
+                    h.get("parammap_hemisphere"), extra, sd, parts)
+
+
+def best_shares(params: np.ndarray, n_candidates: int) -> np.ndarray:
+    """(..., J) weight of each candidate in a best map's texels (params (..., 2):
+    ``choice``, ``partner``; conventions.py ``BEST_CHANNELS``): half each where the two
+    differ, all of one where they are the same."""
+    idx = np.rint(np.nan_to_num(np.asarray(params, float)[..., :2])).astype(int)
+    j = np.arange(n_candidates)
+    return 0.5 * ((idx[..., :1] == j).astype(np.float32) + (idx[..., 1:2] == j))
+
+
+def param_map_from_fit(fit_path: str | Path) -> ParamMap:
+    """The parameter map of a finished fit store (``fit/<model>.zarr``)."""
+
+    g = open_fit(fit_path)
+    model = g.attrs["model"]
+    key = "params" if model == "mh" else "coeffs"
+    attrs = {k: g.attrs[k] for k in ("lobes", "K_max", "bands", "coefficients",
+                                     "regularisation") if g.attrs.get(k) is not None}
+    return ParamMap(model, g[key][:], g.attrs["width_mm"], g.attrs["height_mm"],
+                    g.attrs.get("hemisphere"), attrs, g["sd"][:] if "sd" in g else None)
+
+
+def diffuse_map(obs_path: str | Path) -> ParamMap:
+    """The diffuse-only baseline: each texel's mean radiance over its valid
+    observations (tile by tile)."""
+    g = open_observation_map(obs_path)
+    T, S, _ = g["valid"].shape
+    tile = g.attrs["tile"]
+    kd = np.full((T, S, 3), np.nan, np.float32)
+    for r0 in range(0, T, tile):
+        for c0 in range(0, S, tile):
+            sl = (slice(r0, r0 + tile), slice(c0, c0 + tile))
+            v = g["valid"][sl][..., None]
+            L = np.nan_to_num(g["radiance"][sl])
+            kd[sl] = (L * v).sum(2) / np.maximum(v.sum(2), 1)
+    return ParamMap("diffuse", kd, g.attrs["width_mm"], g.attrs["height_mm"])

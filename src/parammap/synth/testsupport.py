@@ -1,0 +1,249 @@
+"""Stage outputs measured against a generator's ground truth (tests and benchmarks).
+
+The pipeline never imports this module: it reads the ``<capture>.truth`` folder that
+:func:`parammap.synth.generate.generate` and :func:`parammap.synth.pbr.generate_pbr`
+write beside a capture. Radiance is relative (one unknown global scale, conventions.md),
+so every radiance comparison first fits that one scale (median ratio).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from ..config import default
+from ..geometry import plane_to_texel, texel_centres, unit
+from ..render import evaluate, render, surface_points, tone_map
+from ..stages.hdr import load_bracket, merge_bracket
+from ..stages.holdout import choose_gamma, compare, marker_pixels, pixel_regions, region_errors
+from ..stores.camera import load_intrinsics, read_poses
+from ..stores.capture import load_capture
+from ..stores.hdr import read_hdr
+from ..stores.observation import open_observation_map
+from ..stores.params import best_shares, read_param_map
+from ..stores.paths import Processed
+from .generate import true_view_radiance
+from .pbr import patch_labels, read_truth_radiance
+from .scene import load_scene, true_radiance
+
+__all__ = ["directions_against_truth", "hdr_errors", "holdout_against_truth",
+           "intrinsics_errors", "pose_errors",
+           "true_directions", "angle_deg"]
+
+
+def _scale(ref: np.ndarray, est: np.ndarray) -> float:
+    return float(np.median(ref / est))
+
+
+def hdr_errors(capture: str | Path, truth: str | Path, processed: str | Path,
+               view_ids: list[str], low: int = default("hdr.low"),
+               high: int = default("hdr.high")) -> dict:
+    """Relative radiance error of the merged HDR frames against the radiance the photos
+    were exposed from (either generator), next to an oracle merge of the same photos with the true
+    response, on the same pixels (unsaturated, not black, in both merges).
+
+    Returns
+    -------
+    dict with ``median``, ``p95`` (ours) and ``oracle_median``, ``oracle_p95``, as
+    fractions, and ``pixels``.
+    """
+
+    cap = load_capture(capture)
+    exposure = np.load(Path(truth) / "response.npz")["exposure"]
+    g_true = np.log(np.maximum(exposure, 1e-12))
+    g_true = np.maximum.accumulate(g_true + 1e-9 * np.arange(256)[:, None], axis=0)
+    ours, oracle = [], []
+    pbr = (Path(truth) / "radiance").is_dir()
+    for vid in view_ids:
+        if pbr:
+            true = read_truth_radiance(truth, vid)
+        else:
+
+            true = true_view_radiance(capture, truth, vid)
+        rad, sat, dark = read_hdr(Processed(processed).hdr(vid))
+        stack, t = load_bracket(cap.view(vid))
+        orc, osat, odark = merge_bracket(stack, t, g_true, low, high)
+        ok = ~(sat | dark | osat | odark) & (true.min(-1) > 0)
+        ours.append((rad[ok], true[ok]))
+        oracle.append((orc[ok], true[ok]))
+    out = {}
+    for name, pairs in (("", ours), ("oracle_", oracle)):
+        est = np.concatenate([p[0] for p in pairs])
+        ref = np.concatenate([p[1] for p in pairs])
+        rel = np.abs(est * _scale(ref, est) - ref) / ref
+        out[f"{name}median"] = float(np.median(rel))
+        out[f"{name}p95"] = float(np.percentile(rel, 95))
+    out["pixels"] = int(sum(len(p[0]) for p in ours))
+    return out
+
+
+def intrinsics_errors(truth: str | Path, processed: str | Path) -> dict:
+    """Focal lengths (relative) and principal point (px) against the truth."""
+    K = np.array(yaml.safe_load((Path(truth) / "camera.yaml").read_text())["K"])
+    est = yaml.safe_load(Processed(processed).intrinsics.read_text())
+    Ke = np.array(est["K"])
+    return {"fx_rel": float(Ke[0, 0] / K[0, 0] - 1), "fy_rel": float(Ke[1, 1] / K[1, 1] - 1),
+            "principal_px": float(np.hypot(Ke[0, 2] - K[0, 2], Ke[1, 2] - K[1, 2])),
+            "rms_px": float(est["rms_px"])}
+
+
+def pose_errors(truth: str | Path, processed: str | Path) -> dict:
+    """Camera centre (mm) and rotation (deg) errors of every view with a pose, kept
+    or not: ``{view id: {"centre_mm", "rotation_deg", "kept", "holdout"}}``."""
+    P = np.load(Path(truth) / "poses.npz")
+    ids = list(P["view_ids"])
+    recs = read_poses(Processed(processed).poses)["views"]
+    out = {}
+    for r in recs:
+        if "R" not in r:
+            continue
+        k = ids.index(r["id"])
+        C = -P["R"][k].T @ P["t"][k]
+        dR = np.array(r["R"]) @ P["R"][k].T
+        out[r["id"]] = {
+            "centre_mm": float(np.linalg.norm(np.array(r["centre_mm"]) - C)),
+            "rotation_deg": float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1)))),
+            "kept": bool(r["kept"]), "holdout": bool(r.get("holdout", False))}
+    return out
+
+
+def true_directions(truth: str | Path, view_ids: list[str], S: int, T: int, width_mm: float,
+                    height_mm: float) -> np.ndarray:
+    """True view directions (T, S, N, 3) of every texel centre in the given views."""
+
+    P = np.load(Path(truth) / "poses.npz")
+    ids = list(P["view_ids"])
+    k = [ids.index(v) for v in view_ids]
+    C = np.einsum("nji,nj->ni", P["R"][k], -P["t"][k])
+    ctr = texel_centres(S, T, width_mm, height_mm)
+    return unit(C[None, None] - ctr[:, :, None, :])
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle (deg) between direction vectors ``a`` and ``b`` (..., 3), each normalised
+    in float64 first and measured by atan2 of the cross and dot products: arccos of a
+    float32 dot product reads a rounding of 1e-7 in a vector's length as 0.03 deg."""
+    a = np.asarray(a, float)
+    b = np.asarray(b, float)
+    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
+    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), (a * b).sum(-1)))
+
+
+def holdout_against_truth(capture: str | Path, truth: str | Path, processed: str | Path,
+                          models: list[str], per_patch: bool = False,
+                          ) -> dict[str, dict[str, float]] | tuple[dict, dict]:
+    """Mean 8-bit difference of each model's render against the clean (high-sample)
+    render of every held-out view of a physically based capture.
+
+    The pipeline's held-out stage compares with the held-out photo (noise included);
+    this compares with what the photo should have shown. The clean render is brought to
+    the capture's relative radiance scale (median ratio to the merged photo inside the
+    region), then both are tone-mapped with the held-out stage's gamma for that view.
+
+    Returns
+    -------
+    ``{view id: {model: mean 8-bit difference}}``; with ``per_patch`` also ``{patch:
+    {model: mean 8-bit difference}}`` over all held-out views (pixel-weighted), each
+    patch named ``<index> <kind> <parameters>`` from ``scene.json``.
+    """
+
+    cap = load_capture(capture)
+    proc = Processed(processed)
+    intr = load_intrinsics(proc.intrinsics)
+    recs = read_poses(proc.poses)["views"]
+    maps = {m: read_param_map(proc.params(m)) for m in models}
+    out, acc = {}, {}
+    if per_patch:
+
+        T, S = next(iter(maps.values())).shape
+        labels = patch_labels(truth, S, T, cap.width_mm, cap.height_mm)
+        scene = json.loads((Path(truth) / "scene.json").read_text())["patches"]
+        names = [f"{k} {p['kind']} " + " ".join(
+            f"{a}={b:.3g}" for a, b in p.items() if isinstance(b, float) and a != "rect_mm")
+            for k, p in enumerate(scene)]
+    for r in recs:
+        if not (r.get("holdout") and r.get("kept")):
+            continue
+        R, t = np.asarray(r["R"], float), np.asarray(r["t"], float)
+        photo, sat, _ = read_hdr(proc.hdr(r["id"]))
+        clean = read_truth_radiance(truth, r["id"], clean=True)
+        P, inside = surface_points(intr, R, t, cap.width_mm, cap.height_mm,
+                                   (photo.shape[1], photo.shape[0]))
+        mask = inside & ~sat & ~marker_pixels(cap, P)
+        ok = mask[..., None] & (clean > 0) & (photo > 0)
+        clean = clean * float(np.median(photo[ok] / clean[ok]))
+        gamma = choose_gamma(photo, mask)
+        size = (photo.shape[1], photo.shape[0])
+        images = {name: render(pm, intr, R, t, size)[0] for name, pm in maps.items()}
+        out[r["id"]] = {name: compare(clean, img, mask, gamma)["mean_diff_8bit"]
+                        for name, img in images.items()}
+        if per_patch:
+            px = pixel_regions(labels, P, inside, cap.width_mm, cap.height_mm)
+            for name, img in images.items():
+                for j, e in region_errors(clean, img, mask, gamma, px).items():
+                    a = acc.setdefault(names[int(j)], {}).setdefault(name, [0.0, 0])
+                    a[0] += e["mean_diff_8bit"] * e["pixels"]
+                    a[1] += e["pixels"]
+    if not per_patch:
+        return out
+    return out, {k: {m: v[0] / v[1] for m, v in d.items()} for k, d in sorted(acc.items())}
+
+
+def directions_against_truth(truth: str | Path, processed: str | Path, models: list[str],
+                             directions: np.ndarray, samples: int = 256, seed: int = 0,
+                             ) -> dict[str, float]:
+    """Mean 8-bit difference between each model's map and the analytic generator's
+    truth in every one of ``directions`` (Q, 3), surface frame, at every texel centre:
+    how a map predicts directions no view of it was taken from, without the noise and
+    the few views of a held-out comparison.
+
+    The capture's radiance scale is fitted once (median ratio of the observation map to
+    the truth at the observed directions of up to ``samples`` texels); the tone map is
+    the held-out comparison's, its gamma from the truth's 99th percentile over the
+    directions (:func:`parammap.stages.holdout.choose_gamma`). Texels are looked up in the
+    truth scene at their centres (any map size).
+    """
+
+    scene = load_scene(Path(truth) / "scene.npz")
+    proc = Processed(processed)
+    maps = {m: read_param_map(proc.params(m)) for m in models}
+    T, S = next(iter(maps.values())).shape
+    ctr = texel_centres(S, T, scene.width_mm, scene.height_mm).reshape(-1, 3)
+    Ts, Ss = scene.shape
+    r, c = plane_to_texel(ctr[:, 0], ctr[:, 1], Ss, Ts, scene.width_mm, scene.height_mm)
+    rows = np.clip(r.astype(int), 0, Ts - 1)
+    cols = np.clip(c.astype(int), 0, Ss - 1)
+    obs = open_observation_map(proc.observation)
+    rng = np.random.default_rng(seed)
+    pick = rng.choice(T * S, min(samples, T * S), replace=False)
+    L = np.asarray(obs["radiance"][...], float).reshape(T * S, -1, 3)[pick]
+    V = np.asarray(obs["direction"][...], float).reshape(T * S, -1, 3)[pick]
+    W = np.asarray(obs["valid"][...], bool).reshape(T * S, -1)[pick] & np.isfinite(L).all(-1)
+    n, N = W.shape
+    true_obs = true_radiance(scene, np.repeat(rows[pick], N), np.repeat(cols[pick], N),
+                             V.reshape(-1, 3)).reshape(n, N, 3)
+    ok = W[..., None] & (true_obs > 0) & (L > 0)
+    scale = float(np.median(L[ok] / true_obs[ok]))
+    Q = len(directions)
+    d = np.broadcast_to(np.asarray(directions, float), (T * S, Q, 3)).reshape(-1, 3)
+    truth_rad = scale * true_radiance(scene, np.repeat(rows, Q), np.repeat(cols, Q), d)
+    gamma = choose_gamma(truth_rad[None], np.ones((1, len(truth_rad)), bool))
+    ref = tone_map(truth_rad, gamma).astype(float)
+    out = {}
+
+    def predict(pm):
+        if pm.model == "best":  # each texel the mean of its two candidates
+            parts = list((pm.parts or {}).values())
+            share = np.repeat(best_shares(pm.params, len(parts)).reshape(T * S, -1), Q, 0)
+            return sum(share[:, j:j + 1] * predict(part) for j, part in enumerate(parts)
+                       if share[:, j].any())
+        return np.nan_to_num(evaluate(pm.model, np.repeat(pm.params.reshape(T * S, -1), Q,
+                                                          axis=0), d))
+
+    for name, pm in maps.items():
+        out[name] = float(np.abs(tone_map(predict(pm), gamma).astype(float) - ref).mean())
+    return out

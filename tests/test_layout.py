@@ -1,0 +1,132 @@
+"""The package's layout holds: stages side by side over the stores and the models, no
+import circle, every package import at the top of its module (read with ``ast``)."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PKG = Path(__file__).resolve().parents[1] / "src" / "parammap"
+
+# Floors from the bottom: a module may import only from its own floor's shared modules
+# and from floors below. Stages are one floor: none imports another.
+STAGES = "parammap.stages"
+BELOW_STAGES = ("parammap.stores", "parammap.models", "parammap.vision",
+                "parammap.conventions", "parammap.errors", "parammap.geometry",
+                "parammap.config", "parammap.parallel", "parammap.plots",
+                "parammap.render")
+# the store layer and the pure numerics never reach up into a stage or an application
+LOWER = ("parammap.stores", "parammap.models", "parammap.conventions",
+         "parammap.errors", "parammap.geometry", "parammap.parallel", "parammap.vision")
+UPPER = ("parammap.stages", "parammap.cli", "parammap.paper", "parammap.viewer",
+         "parammap.synth", "parammap.compare")
+
+
+def _module(path: Path) -> str:
+    parts = list(path.relative_to(PKG.parent).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _imports(path: Path) -> list[tuple[str, bool]]:
+    """(imported parammap module, at the module's top level) for each import."""
+    mod = _module(path)
+    base = mod.split(".") if path.name == "__init__.py" else mod.split(".")[:-1]
+    tree = ast.parse(path.read_text())
+    top = {id(n) for n in tree.body}
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                here = base[: len(base) - node.level + 1]
+                target = ".".join(here + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            if not target.startswith("parammap"):
+                continue
+            for alias in node.names:  # "from . import x" may name a module
+                sub = f"{target}.{alias.name}"
+                full = sub if (PKG.parent / (sub.replace(".", "/") + ".py")).exists() \
+                    or (PKG.parent / sub.replace(".", "/")).is_dir() else target
+                out.append((full, id(node) in top))
+        elif isinstance(node, ast.Import):
+            out += [(a.name, id(node) in top) for a in node.names
+                    if a.name.startswith("parammap")]
+    return out
+
+
+MODULES = {_module(p): p for p in sorted(PKG.rglob("*.py"))}
+
+
+def _within(mod: str, prefixes: tuple[str, ...] | str) -> bool:
+    prefixes = (prefixes,) if isinstance(prefixes, str) else prefixes
+    return any(mod == p or mod.startswith(p + ".") for p in prefixes)
+
+
+def test_no_stage_imports_another_stage():
+    bad = [f"{mod} imports {target}" for mod, path in MODULES.items()
+           if _within(mod, STAGES) for target, _ in _imports(path)
+           if _within(target, STAGES) and target != STAGES]
+    assert not bad, "\n".join(bad)
+
+
+def test_stages_import_only_what_lies_below_them():
+    bad = [f"{mod} imports {target}" for mod, path in MODULES.items()
+           if _within(mod, STAGES) for target, _ in _imports(path)
+           if target != "parammap" and not _within(target, BELOW_STAGES)]
+    assert not bad, "\n".join(bad)
+
+
+def test_stores_and_models_do_not_reach_up():
+    bad = [f"{mod} imports {target}" for mod, path in MODULES.items()
+           if _within(mod, LOWER) for target, _ in _imports(path) if _within(target, UPPER)]
+    assert not bad, "\n".join(bad)
+
+
+# The command line imports the one stage a command runs, inside that command: every
+# workflow rule starts a process, which should not pay for every stage's imports.
+LAZY = ("parammap.cli",)
+
+
+def test_package_imports_are_at_the_top_of_modules():
+    bad = [f"{mod} imports {target} inside a function" for mod, path in MODULES.items()
+           if mod not in LAZY for target, top in _imports(path) if not top]
+    assert not bad, "\n".join(bad)
+
+
+def _graph() -> dict[str, set[str]]:
+    graph: dict[str, set[str]] = {m: set() for m in MODULES}
+    for mod, path in MODULES.items():
+        for target, _ in _imports(path):
+            # importing a package runs its __init__: an edge to the package itself
+            node = target if target in MODULES else target.rsplit(".", 1)[0]
+            if node in MODULES and node != mod:
+                graph[mod].add(node)
+    return graph
+
+
+def test_no_import_circle():
+    graph, state, stack, circles = _graph(), {}, [], []
+
+    def visit(m: str) -> None:
+        state[m] = 1
+        stack.append(m)
+        for n in sorted(graph[m]):
+            if state.get(n) == 1:
+                circles.append(" -> ".join(stack[stack.index(n):] + [n]))
+            elif n not in state:
+                visit(n)
+        stack.pop()
+        state[m] = 2
+
+    for m in sorted(graph):
+        if m not in state:
+            visit(m)
+    assert not circles, "\n".join(circles)
+
+
+@pytest.mark.parametrize("mod", ["parammap.stages.hdr", "parammap.stores.fit"])
+def test_the_layout_test_reads_real_modules(mod):
+    """The checks above read something: each names a module with package imports."""
+    assert _imports(MODULES[mod])
