@@ -100,9 +100,9 @@ def main() -> int:
         for m in models:
             if m.startswith("mh-"):
                 if S <= a.mh_max:
-                    stages.append((m, [*py, "fit-mh", a.capture, *common, "--lobes", m[3:]]))
+                    stages.append((m, [*py, "fit-mh", *common, "--lobes", m[3:]]))
             else:
-                stages.append((m, [*py, "fit-sh", a.capture, *common, "--model", m]))
+                stages.append((m, [*py, "fit-sh", *common, "--model", m]))
         for name, cmd in stages:
             print(f"S={S} {name} ...", flush=True)
             r = _watch(cmd, proc / f"{name}.log")

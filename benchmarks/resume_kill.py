@@ -51,7 +51,7 @@ def main() -> int:
     ntiles = -(-S // tile) * -(-T // tile)
 
     def cmd(out: Path) -> list[str]:
-        return [sys.executable, "-m", "parammap", "fit-mh", a.capture, "--out", str(out),
+        return [sys.executable, "-m", "parammap", "fit-mh", "--out", str(out),
                 "--lobes", a.lobes, "--set", f"workers={a.workers}"]
 
     res: dict = {"map": [S, T], "tiles": ntiles, "model": name}

@@ -72,7 +72,7 @@ def run(capture: Path, processed: Path, lobes: str) -> dict:
                                  d.reshape(T, S, N, 3).astype(np.float32), valid,
                                  g.attrs["width_mm"], g.attrs["height_mm"],
                                  int(g.attrs["tile"]), ids, attrs=attrs, noise=noise)
-        assert main(["fit-mh", str(capture), "--out", str(work), "--lobes", lobes]) == 0
+        assert main(["fit-mh", "--out", str(work), "--lobes", lobes]) == 0
         ideal = open_fit(work / "fit" / f"mh-{lobes}.zarr")["params"][:]
     names = [str(n) for n in scene["kind_names"]]
     own = open_fit(processed / "fit" / f"mh-{lobes}.zarr")["params"][:]

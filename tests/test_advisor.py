@@ -97,7 +97,7 @@ def processed(tmp_path):
 def test_advisor_stage_writes_ranked_directions_and_figure(processed, tmp_path):
     cfg = validate_config({"captures": {"x": "."},
                            "advisor": {"source": "mh-1", "count": 4}})
-    m = run_advisor(processed, cfg, tmp_path / "figs")
+    m = run_advisor(processed, processed, cfg, figures=tmp_path / "figs")
     saved = json.loads((processed / "metrics" / "advice.json").read_text())
     assert saved["advice"] == m["advice"] and len(m["advice"]) == 4
     assert m["basis"].startswith("D-optimal") and m["texels_with_lobe"] > 0

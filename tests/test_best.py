@@ -109,7 +109,7 @@ def test_best_stage_keeps_the_lobe_where_the_views_need_it(tmp_path):
     write_param_map(tmp_path / "params" / "diffuse.exr",
                     diffuse_map(tmp_path / "observation.zarr"))
     cfg = validate_config({"captures": {"x": "."}})
-    m = run_best(tmp_path, ["mh-1", "diffuse"], cfg, tmp_path / "figs")
+    m = run_best(tmp_path, tmp_path, cfg, models=["mh-1", "diffuse"], figures=tmp_path / "figs")
     best = read_param_map(tmp_path / "params" / "best.exr")
     choice = best.params[..., 0]
     lobe = read_param_map(tmp_path / "params" / "mh-1.exr").params[..., 4:7].sum(-1) > 0
@@ -126,7 +126,7 @@ def test_best_stage_keeps_the_lobe_where_the_views_need_it(tmp_path):
     assert m["values_per_texel"] == pytest.approx(want)
     assert (tmp_path / "figs" / "best_choice.png").is_file()
     with pytest.raises(InputError, match="at least two"):
-        run_best(tmp_path, ["mh-1"], cfg)
+        run_best(tmp_path, tmp_path, cfg, models=["mh-1"])
 
 
 def test_choice_leaves_the_default_only_for_a_significant_gain():
@@ -223,7 +223,7 @@ def test_the_mean_of_two_models_is_judged_exactly_and_taken_where_their_errors_c
     np.testing.assert_allclose(B[:, 2], ref[:, 0], rtol=1e-5)
     assert (B[:, 2] < B[:, :2].min(1)).mean() > 0.9
     cfg = validate_config({"captures": {"x": "."}})
-    m = run_best(tmp_path, ["high", "low"], cfg)
+    m = run_best(tmp_path, tmp_path, cfg, models=["high", "low"])
     assert m["default"] == "high+low" and m["chosen_fraction"]["high+low"] > 0.9
     assert m["values_per_texel"] == 3  # the mean of two diffuse maps is one Kd
     best = read_param_map(tmp_path / "params" / "best.exr")

@@ -130,3 +130,107 @@ def test_no_import_circle():
 def test_the_layout_test_reads_real_modules(mod):
     """The checks above read something: each names a module with package imports."""
     assert _imports(MODULES[mod])
+
+
+# ---------------------------------------------------------------------------------
+# Names on disk: the stores alone spell them
+
+
+def _string_constants(path: Path) -> set[str]:
+    return {n.value for n in ast.walk(ast.parse(path.read_text()))
+            if isinstance(n, ast.Constant) and isinstance(n.value, str)}
+
+
+def test_only_the_stores_open_zarr_and_exr():
+    """zarr and OpenEXR are imported, and EXR files read or written, by the stores alone
+    (and the generic comparison of two runs, which names nothing); nothing else touches
+    a store's ``attrs``."""
+    bad = []
+    for mod, path in MODULES.items():
+        if _within(mod, "parammap.stores") or mod == "parammap.compare":
+            continue
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import | ast.ImportFrom):
+                names = [a.name for a in node.names] if isinstance(node, ast.Import) \
+                    else [node.module or ""]
+                bad += [f"{mod} imports {n}" for n in names
+                        if n.split(".")[0] in ("zarr", "OpenEXR", "Imath")]
+            if isinstance(node, ast.Attribute) and node.attr == "attrs" \
+                    and not isinstance(node.ctx, ast.Store):
+                bad.append(f"{mod}:{node.lineno} reads a store's attrs")
+            if isinstance(node, ast.Name) and node.id in ("read_exr", "write_exr"):
+                bad.append(f"{mod}:{node.lineno} uses {node.id}")
+    assert not bad, "\n".join(bad)
+
+
+def _owned_names() -> dict[str, set[str]]:
+    """Every zarr array and attribute name and every EXR channel name the artifacts use."""
+    from parammap import conventions as cv
+    from parammap.stores import hdr, observation
+
+    arrays = {observation.RADIANCE, observation.DIRECTION, observation.VALID,
+              observation.NOISE} | {str(a) for a in cv.FitArray}
+    attributes = {
+        # grid and provenance (observation map, fit stores, EXR headers)
+        "S", "T", "tile", "width_mm", "height_mm", "software", "parammap_complete",
+        # the observation map's build
+        "view_ids", "held_out_view_ids", "camera_centres_mm", "calibration", "sampling",
+        "marker_texels", "surface_id", "units",
+        # fit stores
+        "parammap_resume_key", "model", "model_version", "lobes", "K_max", "layout",
+        "hemisphere", "coefficients", "sampled_cap", "solid_angles", "regularisation",
+        "observation_views",
+    }
+    channels = set(hdr.HDR_CHANNELS) | set(cv.mh_channels(3)) | set(cv.mh_sd_channels(3)) \
+        | set(cv.sh_channels(4)) | set(cv.DIFFUSE_CHANNELS) | set(cv.BEST_CHANNELS) \
+        | {"parammap_model", "parammap_model_version", "parammap_layout",
+           "parammap_hemisphere", "parammap_sd_layout"}
+    return {"array": arrays, "attribute": attributes, "channel": channels}
+
+
+# the modules that own zarr and EXR names (YAML files, paths and metrics have names of
+# their own)
+NAME_OWNERS = ("parammap.conventions", "parammap.stores.common", "parammap.stores.exr",
+               "parammap.stores.hdr", "parammap.stores.observation", "parammap.stores.fit",
+               "parammap.stores.params")
+
+
+def test_every_zarr_and_exr_name_is_spelled_in_one_module():
+    owned = _owned_names()
+    spelled = {mod: _string_constants(MODULES[mod]) for mod in NAME_OWNERS}
+    bad, seen = [], 0
+    for kind, names in owned.items():
+        for name in sorted(names):
+            where = [mod for mod, consts in spelled.items() if name in consts]
+            seen += bool(where)
+            if len(where) > 1:
+                bad.append(f"{kind} {name!r} spelled in {', '.join(where)}")
+    assert seen > 60, "the names were not found where they are written"
+    assert not bad, "\n".join(bad)
+
+
+# Subscripts with these words that address something else than a store: the lobe
+# plots' entries, the viewer's model description, a pose refinement's result.
+NOT_A_STORE = {("parammap.plots", "direction"), ("parammap.plots", "label"),
+               ("parammap.viewer.inspect", "params"), ("parammap.vision.pose", "noise")}
+
+
+def test_no_stage_addresses_a_store_array_by_its_literal_name():
+    """Outside the stores and conventions, no ``x["valid"]`` or ``"noise" in x`` with a
+    store's array name: stages read arrays through the stores' typed readers."""
+    arrays = _owned_names()["array"]
+    bad = []
+    for mod, path in MODULES.items():
+        if _within(mod, "parammap.stores") or mod == "parammap.conventions":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            key = None
+            if isinstance(node, ast.Subscript) and isinstance(node.slice, ast.Constant):
+                key = node.slice.value
+            elif isinstance(node, ast.Compare) and isinstance(node.left, ast.Constant) \
+                    and any(isinstance(op, ast.In | ast.NotIn) for op in node.ops):
+                key = node.left.value
+            if key in arrays and (mod, key) not in NOT_A_STORE:
+                bad.append(f"{mod}:{node.lineno} {ast.unparse(node)}")
+    assert not bad, "\n".join(bad)

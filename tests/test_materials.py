@@ -47,7 +47,7 @@ def materials_run(tmp_path_factory):
             {"model": "mh", "lobes": "1"}, "synchronous", 1)
     cfg = validate_config({"captures": {"x": "."},
                            "materials": {"source": "mh-1", "count": "auto"}})
-    m = run_materials(proc, cfg)
+    m = run_materials(proc, proc, cfg)
     return case, label, proc, m
 
 
@@ -92,4 +92,4 @@ def test_source_must_be_an_mh_fit(materials_run, tmp_path):
     _, _, proc, _ = materials_run
     cfg = validate_config({"captures": {"x": "."}, "materials": {"source": "mh-7"}})
     with pytest.raises(InputError, match="mh-7"):
-        run_materials(proc, cfg)
+        run_materials(proc, proc, cfg)

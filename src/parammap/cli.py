@@ -103,6 +103,22 @@ def _summary(a: argparse.Namespace) -> int:
     return 0
 
 
+# stages that read the processed folder, not the capture (their positional argument)
+ON_PROCESSED = ("fit-mh", "fit-sh", "materials", "advise", "best", "export")
+
+
+def _source(a: argparse.Namespace) -> str:
+    """The processed folder a stage on processed outputs reads: its positional argument,
+    else ``--out``. A capture folder there (the older spelling) is not read: noted."""
+    if a.source is None:
+        return a.out
+    if (Path(a.source) / "capture.yaml").is_file():
+        logger.warning(f"{a.command}: {a.source} is a capture; this stage reads the processed "
+                       f"folder ({a.out}), so the capture argument can go")
+        return a.out
+    return a.source
+
+
 def _stage_config(a: argparse.Namespace) -> dict:
     from .config import apply_settings, load_config, validate_config
 
@@ -123,8 +139,8 @@ def _response(a: argparse.Namespace) -> int:
     from .stages.hdr import run_response
     from .stores.capture import load_capture
 
-    run_response(load_capture(a.capture, check_images=False), a.out, _stage_config(a)["hdr"],
-                 a.figure, a.reference, a.reference_label)
+    run_response(load_capture(a.capture, check_images=False), a.out, _stage_config(a),
+                 figure=a.figure, reference=a.reference, reference_label=a.reference_label)
     return 0
 
 
@@ -133,9 +149,8 @@ def _hdr(a: argparse.Namespace) -> int:
     from .stages.hdr import run_hdr
     from .stores.capture import load_capture
 
-    full = _stage_config(a)
-    run_hdr(load_capture(a.capture, check_images=False), a.out, full["hdr"], a.view,
-            a.response, full["workers"])
+    run_hdr(load_capture(a.capture, check_images=False), a.out, _stage_config(a),
+            view_ids=a.view, response=a.response)
     return 0
 
 
@@ -144,9 +159,7 @@ def _calibrate(a: argparse.Namespace) -> int:
     from .stages.calibration import run_calibration
     from .stores.capture import load_capture
 
-    full = _stage_config(a)
-    run_calibration(load_capture(a.capture), a.out, full["calibration"],
-                    a.workers or full["workers"])
+    run_calibration(load_capture(a.capture), a.out, _stage_config(a), workers=a.workers)
     return 0
 
 
@@ -155,9 +168,7 @@ def _poses(a: argparse.Namespace) -> int:
     from .stages.poses import run_poses
     from .stores.capture import load_capture
 
-    full = _stage_config(a)
-    run_poses(load_capture(a.capture), a.out, full["poses"], full["observation"],
-              a.workers or full["workers"])
+    run_poses(load_capture(a.capture), a.out, _stage_config(a), workers=a.workers)
     if a.figures:
         from .stages.figures import make_figures
 
@@ -188,7 +199,7 @@ def _observe(a: argparse.Namespace) -> int:
     from .stores.capture import load_capture
 
     full = _stage_config(a)
-    run_observation(load_capture(a.capture), a.out, full, a.workers)
+    run_observation(load_capture(a.capture), a.out, full, workers=a.workers)
     if a.figures:
         from .stages.figures import observation_figures
 
@@ -201,7 +212,7 @@ def _fit_mh(a: argparse.Namespace) -> int:
     from .stages.fit import run_fit
 
     full = _stage_config(a)
-    m = run_fit(a.out, f"mh-{a.lobes}", full, a.workers)
+    m = run_fit(_source(a), a.out, full, model=f"mh-{a.lobes}", workers=a.workers)
     _model_figures(a, m["model"], _lobe_texels(full))
     return 0
 
@@ -211,7 +222,7 @@ def _fit_sh(a: argparse.Namespace) -> int:
     from .stages.fit import run_fit
 
     full = _stage_config(a)
-    m = run_fit(a.out, a.model, full, a.workers)
+    m = run_fit(_source(a), a.out, full, model=a.model, workers=a.workers)
     _model_figures(a, m["model"], _lobe_texels(full))
     return 0
 
@@ -220,7 +231,7 @@ def _fit_sh(a: argparse.Namespace) -> int:
 def _materials(a: argparse.Namespace) -> int:
     from .stages.materials import run_materials
 
-    m = run_materials(a.out, _stage_config(a))
+    m = run_materials(_source(a), a.out, _stage_config(a))
     _model_figures(a, m["model"], None)
     return 0
 
@@ -229,7 +240,7 @@ def _materials(a: argparse.Namespace) -> int:
 def _advise(a: argparse.Namespace) -> int:
     from .stages.advisor import run_advisor
 
-    run_advisor(a.out, _stage_config(a), a.figures)
+    run_advisor(_source(a), a.out, _stage_config(a), figures=a.figures)
     return 0
 
 
@@ -237,15 +248,15 @@ def _advise(a: argparse.Namespace) -> int:
 def _best(a: argparse.Namespace) -> int:
     from .stages.best import run_best
 
-    run_best(a.out, a.model, _stage_config(a), a.figures)
+    run_best(_source(a), a.out, _stage_config(a), models=a.model, figures=a.figures)
     return 0
 
 
 @_command("export")
 def _export(a: argparse.Namespace) -> int:
-    from .stages.export import export_maps
+    from .stages.export import run_export
 
-    export_maps(a.out, a.model, a.half)
+    run_export(_source(a), a.out, _stage_config(a), models=a.model, half=a.half)
     return 0
 
 
@@ -254,7 +265,7 @@ def _holdout(a: argparse.Namespace) -> int:
     from .stages.holdout import run_holdout
     from .stores.capture import load_capture
 
-    run_holdout(load_capture(a.capture), a.out, a.model)
+    run_holdout(load_capture(a.capture), a.out, _stage_config(a), models=a.model)
     return 0
 
 
@@ -341,7 +352,11 @@ def _parser() -> argparse.ArgumentParser:
                            ("export", "write parameter-map EXRs from fit stores"),
                            ("holdout", "compare renders with the held-out photos")):
         s = add(name, help=helptext)
-        s.add_argument("capture")
+        if name in ON_PROCESSED:
+            s.add_argument("source", nargs="?", help="processed folder the stage reads "
+                                                     "(default: --out)")
+        else:
+            s.add_argument("capture", help="capture folder")
         s.add_argument("--out", required=True, help="data/processed/<id>")
         s.add_argument("--config", help="workflow config (default: built-in defaults)")
         s.add_argument("--config-json", help="config sections as JSON (the workflow's way)")

@@ -7,16 +7,16 @@ the numbers.
 from __future__ import annotations
 
 import math
-from enum import IntEnum
+from enum import IntEnum, StrEnum
 from functools import lru_cache
 
 import numpy as np
 
 __all__ = [
-    "BEST_CHANNELS", "DIFFUSE_CHANNELS", "HDR_CHANNELS", "LUMINANCE", "MHX_KD", "MHX_LNM",
+    "BEST_CHANNELS", "DIFFUSE_CHANNELS", "LUMINANCE", "MHX_KD", "MHX_LNM",
     "MHX_LOBE", "MH_HEAD",
-    "MH_KD", "MH_LOBE", "MH_M", "MH_SD_LOBE", "NOISE_CHANNEL", "SH_CAP_AWARE", "SH_HEMISPHERES",
-    "FitStatus", "mh_channels", "mh_dir", "mh_dir_z", "mh_ks", "mh_lobe", "mh_lobes",
+    "MH_KD", "MH_LOBE", "MH_M", "MH_SD_LOBE", "SH_CAP_AWARE", "SH_HEMISPHERES",
+    "FitArray", "FitStatus", "mh_channels", "mh_dir", "mh_dir_z", "mh_ks", "mh_lobe", "mh_lobes",
     "mh_sd_channels", "mh_sd_dir", "mh_sd_size", "mh_size", "mhx_ks", "mhx_lobes", "mhx_phi",
     "mhx_size", "mhx_theta", "sd_channels", "sh_bands", "sh_channels", "sh_degree_order",
     "sh_norms",
@@ -26,10 +26,28 @@ __all__ = [
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 LUMINANCE.setflags(write=False)
 
-#: Channels of a merged HDR frame (``hdr/<view>.exr``): radiance, the masks, and the
-#: relative noise sd per pixel that the fits weigh observations by.
-NOISE_CHANNEL = "noise"
-HDR_CHANNELS = ("R", "G", "B", "saturated", "dark", NOISE_CHANNEL)
+
+
+class FitArray(StrEnum):
+    """Names of the per-texel arrays a model's tile fit returns and its fit store holds
+    (``fit/<model>.zarr``, :mod:`parammap.stores.fit`)."""
+
+    PARAMS = "params"  # MH parameter vector (MH_* layout)
+    COEFFS = "coeffs"  # SH coefficients, RGB-major
+    SD = "sd"  # standard deviations of the parameters (sd_channels)
+    RMSE = "rmse"  # per channel
+    MPR = "mpr"  # mean percentage residual per channel
+    CHI2 = "chi2"  # reduced chi-square against the recorded noise
+    K_USED = "k_used"  # MH lobes used
+    EVALS = "evals"  # objective evaluations
+    STATUS = "status"  # FitStatus
+    REG = "reg"  # SH prior weight chosen
+    GUARD = "guard"  # SH range-guard escalations
+    BANDS = "bands"  # SH bands the texel's views resolve
+    LABEL = "label"  # basis material (0: diffuse only)
+    WEIGHTS = "weights"  # BIC weight of each candidate material
+    CHANGED = "changed"  # repair pass: texels it refitted (not stored)
+    LOO = "loo"  # leave-one-view-out residuals for the best stage (not stored)
 
 
 class FitStatus(IntEnum):

@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from .config import default
-from .conventions import LUMINANCE, mh_size
+from .conventions import LUMINANCE, FitArray, mh_size
 from .errors import InputError
 from .models.mh import (
     K_MAX_AUTO,
@@ -174,7 +174,7 @@ def _entry(label: str, case: Case, texel: tuple[int, int], fitted: np.ndarray) -
 def _mh_fitted(o: dict, case: Case, texel: tuple[int, int]) -> np.ndarray:
 
     r, col = texel
-    return mh_eval(o["params"][r, col].astype(float), case.direction[r, col].astype(float))
+    return mh_eval(o[FitArray.PARAMS][r, col].astype(float), case.direction[r, col].astype(float))
 
 
 def exp_point_area(c: Conditions = CONDITIONS, out_dir: str | Path | None = None,
@@ -191,8 +191,8 @@ def exp_point_area(c: Conditions = CONDITIONS, out_dir: str | Path | None = None
                               ("area light [8, 8]", area, (8, 8))):
         r, col = _st(*texel, c)
         o_pub = _fit_mh(case, 1, "published")
-        ours = _fit_mh(case, 1, "better")["mpr"][r, col]
-        rows.append(_row("point_area", name, PUBLISHED[name], o_pub["mpr"][r, col], ours,
+        ours = _fit_mh(case, 1, "better")[FitArray.MPR][r, col]
+        rows.append(_row("point_area", name, PUBLISHED[name], o_pub[FitArray.MPR][r, col], ours,
                          "mean % residual R G B at one texel, one lobe"))
         entries.append(_entry(name, case, (r, col), _mh_fitted(o_pub, case, (r, col))))
     _lobe_figure(out_dir, "point_area", entries, "004 ch. 11.3.1: one lobe, point and "
@@ -211,9 +211,9 @@ def exp_second_light(c: Conditions = CONDITIONS, out_dir: str | Path | None = No
                               [1.0, c.second_light_intensity], c)
         name = f"second light at [{xy[0]}, {xy[1]}]"
         o1 = _fit_mh(case, 1, "published")
-        one = _fit_mh(case, 1, "better")["mpr"][r, col]
+        one = _fit_mh(case, 1, "better")[FitArray.MPR][r, col]
         rows.append(_row("second_light", name + ", K = 1", PUBLISHED[name],
-                         o1["mpr"][r, col], one))
+                         o1[FitArray.MPR][r, col], one))
         entries.append(_entry(f"[{xy[0]}, {xy[1]}], K = 1", case, (r, col),
                               _mh_fitted(o1, case, (r, col))))
         for K in (2, "auto"):
@@ -222,9 +222,11 @@ def exp_second_light(c: Conditions = CONDITIONS, out_dir: str | Path | None = No
             if K == 2:
                 entries.append(_entry(f"[{xy[0]}, {xy[1]}], K = 2", case, (r, col),
                                       _mh_fitted(o, case, (r, col))))
-            rows.append(_row("second_light", f"{name}, K = {K}", None, o_pub["mpr"][r, col],
-                             o["mpr"][r, col], f"lobes used {int(o['k_used'][r, col])}"
-                             if K == "auto" else "not published (004: further work)"))
+            used = int(o[FitArray.K_USED][r, col])
+            rows.append(_row("second_light", f"{name}, K = {K}", None,
+                             o_pub[FitArray.MPR][r, col], o[FitArray.MPR][r, col],
+                             f"lobes used {used}" if K == "auto"
+                             else "not published (004: further work)"))
     _lobe_figure(out_dir, "second_light", entries, "004 ch. 11.3.2: a second light, one "
                  "lobe as published and two lobes")
     return rows
@@ -250,9 +252,9 @@ def exp_sh_sweep(c: Conditions = CONDITIONS, bands=(4, 5, 6, 7, 8, 9, 10),
                                  ("zh", False, "planar"), ("lsop", False, "planar")):
             o = fit_sh_tile(L, V, W, n, hemi, sampled_cap=cap, areas=areas)
             hemi = hemi if areas == "spherical" else f"{hemi} planar"
-            coeffs = o["coeffs"][0, 0].astype(float).reshape(3, n * n)
+            coeffs = o[FitArray.COEFFS][0, 0].astype(float).reshape(3, n * n)
             eq = float((sh_eval(coeffs, V[0, 0, low].astype(float)) @ lum).mean())
-            fits[hemi] = (o["mpr"][0, 0], eq)
+            fits[hemi] = (o[FitArray.MPR][0, 0], eq)
             if hemi in ("zh", "lsop", "rlsop") and n in (bands[0], bands[-1]):
                 entries.append({"label": f"{hemi}-{n * n}" + (" (ours)" if cap else ""),
                                 "direction": V[0, 0].astype(float),
@@ -328,10 +330,10 @@ def exp_shininess(c: Conditions = CONDITIONS, out_dir: str | Path | None = None,
         for name, o in fits.items():
             if name == "mh-1":
 
-                fitted = mh_eval(o["params"][0, 0].astype(float), V[0, 0].astype(float))
+                fitted = mh_eval(o[FitArray.PARAMS][0, 0].astype(float), V[0, 0].astype(float))
             else:
-                n = int(round(np.sqrt(o["coeffs"].shape[-1] / 3)))
-                fitted = sh_eval(o["coeffs"][0, 0].astype(float).reshape(3, n * n),
+                n = int(round(np.sqrt(o[FitArray.COEFFS].shape[-1] / 3)))
+                fitted = sh_eval(o[FitArray.COEFFS][0, 0].astype(float).reshape(3, n * n),
                                  V[0, 0].astype(float))
             peak = abs(_luminance(fitted[k]) / _luminance(L[0, 0, k]) - 1)
             if m == 15.0 and "ours" not in name:  # 004 fig. 13.1: the fourth band
@@ -340,7 +342,7 @@ def exp_shininess(c: Conditions = CONDITIONS, out_dir: str | Path | None = None,
             if peak <= PEAK_TOLERANCE:
                 follows[name] = m
             rows.append(_row("shininess", f"m = {m:g}, {name}", None, [peak * 100],
-                             o["mpr"][0, 0], "peak error % (published method); mean % "
+                             o[FitArray.MPR][0, 0], "peak error % (published method); mean % "
                              "residual R G B"))
     for name in ("mh-1", "sh-lsop-16", "sh-lsop-36", "sh-rlsop-16 (ours)",
                  "sh-rlsop-36 (ours)"):
@@ -385,7 +387,7 @@ def exp_view_count(c: Conditions = CONDITIONS) -> list[dict[str, Any]]:
                           directions=dirs)
         case.radiance = quantise_8bit(case.radiance).astype(np.float32)
         fits[name] = fit_mh_tile(case.radiance, case.direction, case.valid, 1,
-                                 MhFitConfig(init="published"))["params"].astype(float)
+                                 MhFitConfig(init="published"))[FitArray.PARAMS].astype(float)
         r, col = _st(8, 8, c)
         sl = (slice(r, r + 1), slice(col, col + 1))
         truth = true_radiance(case.scene, np.full(len(dense), r), np.full(len(dense), col),
@@ -395,7 +397,7 @@ def exp_view_count(c: Conditions = CONDITIONS) -> list[dict[str, Any]]:
         for hemi, cap in (("lsop", False), ("rlsop", True)):
             o = fit_sh_tile(case.radiance[sl], case.direction[sl], case.valid[sl], 6, hemi,
                             sampled_cap=cap)
-            f = sh_eval(o["coeffs"][0, 0].astype(float).reshape(3, 36), dense)
+            f = sh_eval(o[FitArray.COEFFS][0, 0].astype(float).reshape(3, 36), dense)
             e = np.abs(_luminance(f) - _luminance(truth)) / _luminance(truth)
             errs[hemi] = (100 * e[hl].mean(), 100 * e[~hl].mean())
         sh[name] = errs
@@ -448,8 +450,8 @@ def exp_initialisers(c: Conditions = CONDITIONS) -> list[dict[str, Any]]:
             # each texel polished alone: a stacked polish counts its evaluations for
             # every texel, whichever start they came from
             o = _fit_mh(case, K, init, polish="texel")
-            out[init] = (start, np.median(o["mpr"].reshape(n, 3), 0),
-                         float(o["evals"].mean()))
+            out[init] = (start, np.median(o[FitArray.MPR].reshape(n, 3), 0),
+                         float(o[FitArray.EVALS].mean()))
         for what, k in (("start: median mean % residual", 0),
                         ("fit: median mean % residual", 1), ("fit: mean evaluations", 2)):
             rows.append(_row("initialisers", f"{name}, {what}", None, out["published"][k],
@@ -614,7 +616,7 @@ def measured_sizes(processed: str | Path) -> list[dict[str, Any]]:
     rows = []
     if proc.observation.is_dir():
 
-        T, S, N = open_observation_map(proc.observation)["valid"].shape
+        T, S, N = open_observation_map(proc.observation).shape
         b = store_bytes(proc.observation)
         rows.append({"item": "observation map (zarr)", "texels": S * T,
                      "bytes": b, "bytes_per_texel": round(b / (S * T), 1),

@@ -10,7 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from .conventions import LUMINANCE
+from .conventions import LUMINANCE, FitArray
 from .stores.capture import Capture  # noqa: E402
 from .stores.images import read_image  # noqa: E402
 
@@ -225,18 +225,17 @@ def fit_figures(g, obs, out_dir: str | Path, name: str, predict,
     directions)`` evaluates the fitted model of one texel; ``extra`` maps join the
     residual maps."""
     out_dir = Path(out_dir)
-    mpr = g["mpr"][:].astype(float)
+    mpr = g[FitArray.MPR][:].astype(float)
     maps = {f"mean % residual {c}": mpr[..., i] for i, c in enumerate("RGB")}
-    maps["RMSE (mean of RGB)"] = g["rmse"][:].astype(float).mean(-1)
-    maps["status (1 ok, 2 too few obs., 3 failed)"] = g["status"][:].astype(float)
+    maps["RMSE (mean of RGB)"] = g[FitArray.RMSE][:].astype(float).mean(-1)
+    maps["status (1 ok, 2 too few obs., 3 failed)"] = g[FitArray.STATUS][:].astype(float)
     maps |= extra or {}
     paths = [plot_maps(maps, out_dir / f"{name}_residuals.png", f"{name}: residuals", cols=3)]
     entries = []
-    for r, c in texels or default_lobe_texels(g.attrs["S"], g.attrs["T"]):
-        v = obs["valid"][r, c]
-        d = obs["direction"][r, c][v]
+    for r, c in texels or default_lobe_texels(g.S, g.T):
+        d, measured, _ = obs.texel(r, c)
         entries.append({"label": f"texel [{r}, {c}]", "direction": d,
-                        "measured": obs["radiance"][r, c][v], "fitted": predict(r, c, d)})
+                        "measured": measured, "fitted": predict(r, c, d)})
     paths.append(plot_lobes(entries, out_dir / f"{name}_lobes.png",
                             f"{name}: measured (dots) and model (crosses)"))
     return paths

@@ -6,7 +6,6 @@
 
 rule fit_mh:
     input:
-        capture=capture_dir,
         obs=f"{PROC}/{{sid}}/observation.zarr",
     output:
         store=directory(f"{PROC}/{{sid}}/fit/mh-{{K}}.zarr"),
@@ -25,13 +24,12 @@ rule fit_mh:
     conda:
         "../envs/parammap.yaml"
     shell:
-        "{params.cli} fit-mh {input.capture} --out {params.out} --lobes {wildcards.K}"
+        "{params.cli} fit-mh --out {params.out} --lobes {wildcards.K}"
         " {params.cfg} --workers {threads} 2> {log}"
 
 
 rule fit_sh:
     input:
-        capture=capture_dir,
         obs=f"{PROC}/{{sid}}/observation.zarr",
     output:
         store=directory(f"{PROC}/{{sid}}/fit/sh-{{hemi}}-{{nc}}.zarr"),
@@ -51,13 +49,12 @@ rule fit_sh:
     conda:
         "../envs/parammap.yaml"
     shell:
-        "{params.cli} fit-sh {input.capture} --out {params.out}"
+        "{params.cli} fit-sh --out {params.out}"
         " --model sh-{wildcards.hemi}-{wildcards.nc} {params.cfg} --workers {threads} 2> {log}"
 
 
 rule materials:
     input:
-        capture=capture_dir,
         obs=f"{PROC}/{{sid}}/observation.zarr",
         source=lambda wc: f"{PROC}/{wc.sid}/fit/{mh_source('materials')}.zarr",
     output:
@@ -75,13 +72,12 @@ rule materials:
     conda:
         "../envs/parammap.yaml"
     shell:
-        "{params.cli} materials {input.capture} --out {params.out} {params.cfg}"
+        "{params.cli} materials --out {params.out} {params.cfg}"
         " --set materials.source={params.source} 2> {log}"
 
 
 rule export_params:
     input:
-        capture=capture_dir,
         fit=f"{PROC}/{{sid}}/fit/{{model}}.zarr",
     output:
         f"{PROC}/{{sid}}/params/{{model}}.exr",
@@ -95,13 +91,12 @@ rule export_params:
     conda:
         "../envs/parammap.yaml"
     shell:
-        "{params.cli} export {input.capture} --out {params.out} --model {wildcards.model}"
+        "{params.cli} export --out {params.out} --model {wildcards.model}"
         " 2> {log}"
 
 
 rule export_diffuse:
     input:
-        capture=capture_dir,
         obs=f"{PROC}/{{sid}}/observation.zarr",
     output:
         f"{PROC}/{{sid}}/params/diffuse.exr",
@@ -113,12 +108,11 @@ rule export_diffuse:
     conda:
         "../envs/parammap.yaml"
     shell:
-        "{params.cli} export {input.capture} --out {params.out} --model diffuse 2> {log}"
+        "{params.cli} export --out {params.out} --model diffuse 2> {log}"
 
 
 rule best:
     input:
-        capture=capture_dir,
         obs=f"{PROC}/{{sid}}/observation.zarr",
         params=lambda wc: expand(f"{PROC}/{wc.sid}/params/{{m}}.exr", m=models() + ["diffuse"]),
     output:
@@ -141,7 +135,7 @@ rule best:
     conda:
         "../envs/parammap.yaml"
     shell:
-        "{params.cli} best {input.capture} --out {params.out} {params.models}"
+        "{params.cli} best --out {params.out} {params.models}"
         " --figures {params.figures} {params.cfg} 2> {log}"
 
 

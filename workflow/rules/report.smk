@@ -189,7 +189,6 @@ rule fig_model:
 
 rule advise:
     input:
-        capture=capture_dir,
         obs=f"{PROC}/{{sid}}/observation.zarr",
         poses=f"{PROC}/{{sid}}/camera/poses.yaml",
         source=lambda wc: f"{PROC}/{wc.sid}/fit/{mh_source('advisor')}.zarr",
@@ -212,7 +211,7 @@ rule advise:
     conda:
         "../envs/parammap.yaml"
     shell:
-        "{params.cli} advise {input.capture} --out {params.out} --figures {params.figures}"
+        "{params.cli} advise --out {params.out} --figures {params.figures}"
         " {params.cfg} --set advisor.source={params.source} 2> {log}"
 
 

@@ -44,7 +44,7 @@ import math
 import numpy as np
 
 from ..config import default
-from ..conventions import MH_KD, MH_M, mh_dir, mh_ks, mh_lobes, mh_size
+from ..conventions import MH_KD, MH_M, FitArray, mh_dir, mh_ks, mh_lobes, mh_size
 from .mh.fit import KS_CAP
 from .mh.model import M_MAX, M_MIN, mh_eval
 
@@ -325,7 +325,7 @@ def assign_materials(dirs: np.ndarray, present: np.ndarray, V: np.ndarray, L: np
     wts = np.exp(-0.5 * (B - B.min(1, keepdims=True)))
     wts /= wts.sum(1, keepdims=True)
     idx = np.arange(n)
-    return {"label": label, "bic": B, "weights": wts,
+    return {FitArray.LABEL: label, "bic": B, FitArray.WEIGHTS: wts,
             "kd": np.stack([f[0] for f in fits], 1)[idx, label],
             "s": np.stack([f[1] for f in fits], 1)[idx, label],
             "rss": np.stack([f[2] for f in fits], 1)[idx, label]}

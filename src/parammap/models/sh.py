@@ -40,7 +40,14 @@ import numpy as np
 from scipy.spatial import ConvexHull
 
 from ..config import default
-from ..conventions import SH_CAP_AWARE, SH_HEMISPHERES, FitStatus, sh_degree_order, sh_norms
+from ..conventions import (
+    SH_CAP_AWARE,
+    SH_HEMISPHERES,
+    FitArray,
+    FitStatus,
+    sh_degree_order,
+    sh_norms,
+)
 from ..errors import InputError
 from .residuals import mean_percentage_residual
 from .weights import noise_weights, reduced_chi2
@@ -623,15 +630,15 @@ def _pad_bands(c: np.ndarray, n: int, fill: float = 0.0) -> np.ndarray:
 def sh_outputs(n: int) -> dict[str, tuple[tuple[int, ...], str, float]]:
     """Arrays of an SH fit store: name -> (trailing shape, dtype, fill value)."""
     return {
-        "coeffs": ((3 * n * n,), "float32", float("nan")),
-        "sd": ((3 * n * n,), "float32", float("nan")),
-        "rmse": ((3,), "float32", float("nan")),
-        "mpr": ((3,), "float32", float("nan")),
-        "chi2": ((), "float32", float("nan")),
-        "reg": ((), "float32", float("nan")),
-        "guard": ((), "int8", 0),
-        "bands": ((), "int8", n),
-        "status": ((), "int8", int(FitStatus.NOT_FITTED)),
+        FitArray.COEFFS: ((3 * n * n,), "float32", float("nan")),
+        FitArray.SD: ((3 * n * n,), "float32", float("nan")),
+        FitArray.RMSE: ((3,), "float32", float("nan")),
+        FitArray.MPR: ((3,), "float32", float("nan")),
+        FitArray.CHI2: ((), "float32", float("nan")),
+        FitArray.REG: ((), "float32", float("nan")),
+        FitArray.GUARD: ((), "int8", 0),
+        FitArray.BANDS: ((), "int8", n),
+        FitArray.STATUS: ((), "int8", int(FitStatus.NOT_FITTED)),
     }
 
 
@@ -653,7 +660,7 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
     (prediction minus observation, :func:`smoother_loo`; inf where the view alone
     determines the fit), for the projections on the sampled cap (NaN otherwise)."""
     t, u, N, _ = radiance.shape
-    outputs = sh_outputs(n) | ({"loo": ((N, 3), "float64", float("nan"))} if loo else {})
+    outputs = sh_outputs(n) | ({FitArray.LOO: ((N, 3), "float64", float("nan"))} if loo else {})
     out = {k: np.full((t, u) + shp, fill, dtype) for k, (shp, dtype, fill) in
            outputs.items()}
     flat = {k: v.reshape((t * u,) + v.shape[2:]) for k, v in out.items()}
@@ -665,7 +672,7 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
     NZ = None if noise is None else noise.reshape(t * u, N)
     min_obs = min_obs or 4
     nobs = W.sum(1)
-    flat["status"][nobs < min_obs] = FitStatus.TOO_FEW
+    flat[FitArray.STATUS][nobs < min_obs] = FitStatus.TOO_FEW
     todo = np.flatnonzero(nobs >= min_obs)
     # group texels by validity pattern: one triangulation per pattern and batch
     keys = {}
@@ -684,30 +691,31 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
                 if sampled_cap and hemisphere in SH_CAP_AWARE:
                     c, lam, esc, bands, M, om = guarded_project(y, v, omega, n, hemisphere,
                                                                 reg, Y, system=True)
-                    flat["reg"][sel], flat["guard"][sel] = lam, esc
-                    flat["bands"][sel] = bands
+                    flat[FitArray.REG][sel], flat[FitArray.GUARD][sel] = lam, esc
+                    flat[FitArray.BANDS][sel] = bands
                     sigma = None if NZ is None else NZ[sel][:, w][..., None] * np.abs(y)
                     Yk = Y[..., : bands * bands]
                     Sm = smoother(M, Yk, om)
                     r = y - np.matmul(Y, c.transpose(0, 2, 1))
-                    flat["sd"][sel] = coefficient_sd(Sm, Yk, r, n, sigma).reshape(len(sel), -1)
+                    flat[FitArray.SD][sel] = coefficient_sd(Sm, Yk, r, n, sigma).reshape(len(sel),
+                                                                                         -1)
                     if loo:
-                        flat["loo"][sel[:, None], np.flatnonzero(w)[None]] = \
+                        flat[FitArray.LOO][sel[:, None], np.flatnonzero(w)[None]] = \
                             smoother_loo(Sm, Yk, -r)  # prediction - observation
                 else:
                     c = project(y, v, omega, n, hemisphere,
                                 1e-4 if reg == "auto" else float(reg), basis=Y)
             except Exception:  # noqa: BLE001 - a failed batch is flagged, never fatal
-                flat["status"][sel] = FitStatus.FAILED
+                flat[FitArray.STATUS][sel] = FitStatus.FAILED
                 continue
             fitted = np.matmul(Y, c.transpose(0, 2, 1))
-            flat["coeffs"][sel] = c.reshape(len(sel), -1)
-            flat["rmse"][sel] = np.sqrt(np.mean((fitted - y) ** 2, axis=1))
-            flat["mpr"][sel] = mean_percentage_residual(y, fitted)
+            flat[FitArray.COEFFS][sel] = c.reshape(len(sel), -1)
+            flat[FitArray.RMSE][sel] = np.sqrt(np.mean((fitted - y) ** 2, axis=1))
+            flat[FitArray.MPR][sel] = mean_percentage_residual(y, fitted)
             if NZ is not None:
-                flat["chi2"][sel] = reduced_chi2(y, fitted, NZ[sel][:, w],
+                flat[FitArray.CHI2][sel] = reduced_chi2(y, fitted, NZ[sel][:, w],
                                                  np.ones(y.shape[:2], bool), 3 * n * n)
-            flat["status"][sel] = np.where(np.isfinite(c).all((1, 2)), FitStatus.OK,
+            flat[FitArray.STATUS][sel] = np.where(np.isfinite(c).all((1, 2)), FitStatus.OK,
                                            FitStatus.FAILED)
     return out
 

@@ -49,25 +49,25 @@ def _angles(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return zen, az
 
 
-def run_advisor(processed: str | Path, config: dict[str, Any],
+def run_advisor(source: str | Path, processed: str | Path, config: dict[str, Any], *,
                 figures: str | Path | None = None) -> dict[str, Any]:
     """The advisor stage (module docstring); ``config`` the validated workflow config
     (sections ``advisor`` and ``observation``). Returns what ``metrics/advice.json``
     holds."""
 
-    proc = Processed(processed)
+    src, proc = Processed(source), Processed(processed)
     cfg = config["advisor"]
-    _, obs, P, fitted = open_mh_source(proc.root, cfg["source"], "advisor.source")
-    T, S, _ = obs["valid"].shape
-    tile = int(obs.attrs["tile"])
+    _, obs, P, fitted = open_mh_source(src.root, cfg["source"], "advisor.source")
+    T, S, _ = obs.shape
+    tile = obs.tile
     ok = np.flatnonzero(fitted)
     rng = np.random.default_rng(int(cfg["seed"]))
     cand = hemisphere_candidates(int(cfg["candidates"]),
                                  float(config["observation"]["max_zenith_deg"]))
     # the captured views' directions from the region's centre
-    X0 = np.array([obs.attrs["width_mm"] / 2, obs.attrs["height_mm"] / 2, 0.0])
-    views = [r for r in read_poses(proc.poses)["views"] if r["kept"] and not r["holdout"]] \
-        if proc.poses.is_file() else []
+    X0 = np.array([obs.width_mm / 2, obs.height_mm / 2, 0.0])
+    views = [r for r in read_poses(src.poses)["views"] if r["kept"] and not r["holdout"]] \
+        if src.poses.is_file() else []
     captured = unit(np.array([r["centre_mm"] for r in views]) - X0) if views else \
         np.zeros((0, 3))
     idx, V, L, W, w = sample_texel_observations(obs, ok, S, tile, int(cfg["sample"]), rng)

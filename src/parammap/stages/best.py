@@ -73,7 +73,7 @@ from scipy.ndimage import uniform_filter
 from scipy.stats import norm
 
 from ..config import default
-from ..conventions import FitStatus, mh_ks, mh_lobes
+from ..conventions import FitArray, FitStatus, mh_ks, mh_lobes
 from ..errors import InputError
 from ..models.mh.uncertainty import loo_residuals
 from ..models.selection import (
@@ -85,8 +85,7 @@ from ..models.selection import (
     view_errors,
 )
 from ..models.sh import fit_sh_tile
-from ..stores.common import open_complete
-from ..stores.fit import MATERIALS_MODEL
+from ..stores.fit import MATERIALS_MODEL, open_fit
 from ..stores.metrics import write_metrics
 from ..stores.observation import open_observation_map, tile_observations
 from ..stores.params import ParamMap, read_param_map, write_param_map
@@ -125,8 +124,8 @@ def loo(name: str, model: str, p: np.ndarray, V: np.ndarray, L: np.ndarray,
 def sample_tiles(obs, samples: int = 64, seed: int = 0) -> list[tuple[slice, slice]]:
     """Up to ``samples`` tiles (rows, cols) of the observation map, at random (all of
     them on a map of fewer)."""
-    T, S, _ = obs["valid"].shape
-    tiles = _tiles(T, S, int(obs.attrs["tile"]))
+    T, S, _ = obs.shape
+    tiles = _tiles(T, S, obs.tile)
     rng = np.random.default_rng(seed)
     return [tiles[i] for i in sorted(rng.permutation(len(tiles))[:samples])]
 
@@ -166,16 +165,15 @@ def significance_z(n_candidates: int) -> float:
 def _sh_loo(g, obs, rows: slice, cols: slice) -> tuple[np.ndarray, np.ndarray] | None:
     """Exact leave-one-out residuals of an SH fit on the sampled cap (store ``g``):
     the projection rerun on the tile with ``loo`` (None for the published ones)."""
-    a = dict(g.attrs)
-    if not a.get("sampled_cap"):
+    if not g.sampled_cap:
         return None
-    kw = {"noise": obs["noise"][rows, cols]} if "noise" in obs else {}
-    out = fit_sh_tile(obs["radiance"][rows, cols], obs["direction"][rows, cols],
-                      obs["valid"][rows, cols], int(a["bands"]), str(a["hemisphere"]),
-                      a.get("regularisation") or "auto", sampled_cap=True,
-                      areas=a.get("solid_angles", "spherical"), loo=True, **kw)
-    e = out["loo"].reshape(-1, *out["loo"].shape[2:])
-    fitted = out["status"].ravel() == FitStatus.OK
+    kw = {"noise": obs.noise[rows, cols]} if obs.noise is not None else {}
+    out = fit_sh_tile(obs.radiance[rows, cols], obs.direction[rows, cols],
+                      obs.valid[rows, cols], int(g.n_bands), str(g.hemisphere),
+                      g.regularisation or "auto", sampled_cap=True, areas=g.solid_angles,
+                      loo=True, **kw)
+    e = out[FitArray.LOO].reshape(-1, *out[FitArray.LOO].shape[2:])
+    fitted = out[FitArray.STATUS].ravel() == FitStatus.OK
     W = np.isfinite(e).all(-1)
     bad = ~fitted | (np.isinf(e).any(-1)).any(1)
     return np.where(np.isfinite(e), e, 0.0), bad | ~W.any(1)
@@ -185,7 +183,7 @@ def _fit_store(path: Path):
     """The finished fit store at ``path``, or None when there is none."""
 
     try:
-        return open_complete(path, InputError, "fit store")
+        return open_fit(path)
     except InputError:
         return None
 
@@ -218,7 +216,7 @@ def error_table(proc: Processed, maps: dict[str, ParamMap], obs,
         apart; inf where either is undefined, 0 for the default itself); None without
         ``default``.
     """
-    T, S, _ = obs["valid"].shape
+    T, S, _ = obs.shape
     cands = cands or candidates(len(maps), blend=False)
     B = np.full((T * S, len(cands)), np.inf, np.float32)
     SE = None if default is None else np.full(B.shape, np.inf, np.float32)
@@ -236,17 +234,17 @@ def tile_errors(proc: Processed, maps: dict[str, ParamMap], obs, criterion: str,
     (n, C), SE (n, C) or None), so that a big map's stage holds one tile's table."""
     if criterion not in CRITERIA:
         raise InputError(f"best.criterion: {criterion!r} is not one of {', '.join(CRITERIA)}")
-    T, S, _ = obs["valid"].shape
+    T, S, _ = obs.shape
     stores = {name: _fit_store(proc.fit(name)) for name, pm in maps.items()
               if pm.model == "sh"}
     for name, g in stores.items():
-        if g is None or not g.attrs.get("sampled_cap"):
+        if g is None or not g.sampled_cap:
             logger.warning(f"best: {name} is judged by a plain least-squares refit of its "
                            f"coefficients ({proc.fit(name)}: no fit store on the sampled "
                            "cap to rerun), which overstates its error at the cap's edge")
     gamma = display_gamma(obs) if criterion == "display" else None
     flat_of = np.arange(T * S).reshape(T, S)
-    for rows, cols in tiles or _tiles(T, S, int(obs.attrs["tile"])):
+    for rows, cols in tiles or _tiles(T, S, obs.tile):
         flat = flat_of[rows, cols].ravel()
         V, L, W, w = tile_observations(obs, rows, cols)
         res = []
@@ -377,36 +375,36 @@ def _label(names: list[str], a: int, b: int) -> str:
     return names[a] if a == b else f"{names[a]}+{names[b]}"
 
 
-def run_best(processed: str | Path, models: list[str], config: dict[str, Any],
-             figures: str | Path | None = None) -> dict[str, Any]:
+def run_best(source: str | Path, processed: str | Path, config: dict[str, Any], *,
+             models: list[str], figures: str | Path | None = None) -> dict[str, Any]:
     """The best-model stage (module docstring) over the exported maps of ``models``;
     ``config`` the validated workflow config (section ``best``). Returns what
     ``metrics/best.json`` holds."""
 
     if len(models) < 2:
         raise InputError(f"best: needs at least two candidate models (got {models})")
-    proc = Processed(processed)
+    src, proc = Processed(source), Processed(processed)
     maps = {}
     for name in models:
-        if not proc.params(name).is_file():
-            raise InputError(f"best: {proc.params(name)} is missing (export {name} first)")
-        maps[name] = read_param_map(proc.params(name))
+        if not src.params(name).is_file():
+            raise InputError(f"best: {src.params(name)} is missing (export {name} first)")
+        maps[name] = read_param_map(src.params(name))
         if maps[name].model == "best":
             raise InputError(f"best: {name} is itself a best map")
-    obs = open_observation_map(proc.observation)
-    T, S, N = obs["valid"].shape
+    obs = open_observation_map(src.observation)
+    T, S, N = obs.shape
     for name, pm in maps.items():
         if pm.shape != (T, S):
             raise InputError(f"best: {name} is {pm.shape[1]}x{pm.shape[0]} texels, the "
                              f"observation map {S}x{T}")
     cfg = config["best"]
-    criterion = cfg.get("criterion", "display")
+    criterion = cfg["criterion"]
     names = list(maps)
-    cands = candidates(len(maps), cfg.get("blend", True))
+    cands = candidates(len(maps), cfg["blend"])
     labels = [_label(names, a, b) for a, b in cands]
     # the default from a sample of tiles (16 x 1024 texels pin the map's mean), so that
     # the full pass keeps each candidate's difference from it alone
-    B0, _ = error_table(proc, maps, obs, criterion, cands,
+    B0, _ = error_table(src, maps, obs, criterion, cands,
                         tiles=sample_tiles(obs, DEFAULT_SAMPLE_TILES))
     fin0 = np.isfinite(B0).all(1)
     default = int(np.argmin(B0[fin0].mean(0))) if fin0.any() else 0
@@ -417,7 +415,7 @@ def run_best(processed: str | Path, models: list[str], config: dict[str, Any],
     # a tile at a time: each texel's own choice, its error and each model's alone
     own = np.zeros(T * S, np.int64)
     B = np.full((T * S, len(maps) + 1), np.inf, np.float32)
-    for flat, b, se in tile_errors(proc, maps, obs, criterion, cands, default):
+    for flat, b, se in tile_errors(src, maps, obs, criterion, cands, default):
         own[flat] = _own_choice(b, se if significance else None, default, z or 1.0)
         B[flat, :-1] = b[:, :len(maps)]
         B[flat, -1] = b[np.arange(len(flat)), own[flat]]

@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import math
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -237,8 +238,8 @@ def _marker_view_job(job: tuple) -> tuple[str, np.ndarray, np.ndarray] | None:
     return _marker_view(cap, intr, vid, read_hdr(path)[0], min_markers)
 
 
-def run_calibration(cap: Capture, processed: str | Path, cfg: dict,
-                    workers: int = 1) -> Intrinsics:
+def run_calibration(cap: Capture, processed: str | Path, config: dict[str, Any], *,
+                    workers: int | None = None) -> Intrinsics:
     """The calibrate stage: intrinsics from the board photos, then (config
     ``calibration.use_marker_views``) a second pass that adds the surface markers seen
     in the captured views' HDR frames, started from the board's solution, and
@@ -246,8 +247,11 @@ def run_calibration(cap: Capture, processed: str | Path, cfg: dict,
     poses together on their markers' whole pattern (:func:`refine_intrinsics_pattern`,
     from ``PATTERN_JOINT_MIN_VIEWS`` views with a pattern pose). A capture's saved
     intrinsics are used as they are. Writes ``camera/intrinsics.yaml`` and
-    ``metrics/calibration.json``; ``cfg``: config section ``calibration``; the marker
-    views are measured on ``workers`` processes."""
+    ``metrics/calibration.json``; ``config``: the validated workflow config (section
+    ``calibration``); the marker views are measured on ``workers`` processes (default:
+    config ``workers``)."""
+    cfg = config["calibration"]
+    workers = workers or config["workers"]
 
     out = Processed(processed)
     joint: dict = {}

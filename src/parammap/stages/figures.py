@@ -26,6 +26,7 @@ from ..conventions import (
     LUMINANCE,
     MH_KD,
     MH_M,
+    FitArray,
     mh_dir_z,
     mh_ks,
     mh_lobes,
@@ -270,7 +271,7 @@ def mh_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path, 
     g = open_fit(fit_path)
     obs = open_observation_map(obs_path)
     out_dir = Path(out_dir)
-    p = g["params"][:].astype(float)
+    p = g[FitArray.PARAMS][:].astype(float)
     K = mh_lobes(p.shape[-1])
     maps = {"Kd (luminance)": p[..., MH_KD] @ LUMINANCE,
             "log10 m": np.log10(np.clip(p[..., MH_M], 1, None))}
@@ -278,14 +279,14 @@ def mh_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path, 
         maps[f"lobe {k + 1} Ks (luminance)"] = p[..., mh_ks(k)] @ LUMINANCE
         maps[f"lobe {k + 1} zenith (deg)"] = np.degrees(np.arccos(np.clip(p[..., mh_dir_z(k)],
                                                                           -1, 1)))
-    if g.attrs.get("lobes") == "auto":
-        maps["lobes used"] = g["k_used"][:].astype(float)
-    if "label" in g:  # the basis materials (parammap.stages.materials)
-        lab = g["label"][:].astype(float)
+    if g.lobes == "auto":
+        maps["lobes used"] = g[FitArray.K_USED][:].astype(float)
+    if FitArray.LABEL in g:  # the basis materials (parammap.stages.materials)
+        lab = g[FitArray.LABEL][:].astype(float)
         maps["basis material (0: diffuse only)"] = np.where(lab < 0, np.nan, lab)
-        maps["weight of the chosen material"] = np.nanmax(g["weights"][:], axis=-1)
-    if "sd" in g:  # how far each texel can be trusted (parammap.models.mh.uncertainty)
-        sd = g["sd"][:].astype(float)
+        maps["weight of the chosen material"] = np.nanmax(g[FitArray.WEIGHTS][:], axis=-1)
+    if FitArray.SD in g:  # how far each texel can be trusted (parammap.models.mh.uncertainty)
+        sd = g[FitArray.SD][:].astype(float)
         with np.errstate(invalid="ignore", divide="ignore"):
             maps["sd of m / m"] = sd[..., MH_M] / p[..., MH_M]
         maps["lobe 1 direction sd (deg)"] = sd[..., mh_sd_dir(0)]
@@ -301,17 +302,17 @@ def sh_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path, 
     g = open_fit(fit_path)
     obs = open_observation_map(obs_path)
     out_dir = Path(out_dir)
-    n2 = g.attrs["coefficients"]
-    c = g["coeffs"][:].astype(float).reshape(g.attrs["T"], g.attrs["S"], 3, n2)
+    n2 = g.coefficients
+    c = g[FitArray.COEFFS][:].astype(float).reshape(g.T, g.S, 3, n2)
     lum = c.transpose(0, 1, 3, 2) @ LUMINANCE
-    l_, m_ = sh_degree_order(g.attrs["bands"])
+    l_, m_ = sh_degree_order(g.n_bands)
     maps = {f"y[{l},{m}] (luminance)": lum[..., i]
             for i, (l, m) in enumerate(zip(l_, m_, strict=True)) if l < 3}
     paths = [plot_maps(maps, out_dir / f"{name}_params.png",
                        f"{name}: coefficients of bands 0-2", cols=5, symmetric=True)]
     extra = {}
-    if "sd" in g:  # how far each texel can be trusted (models.sh.coefficient_sd)
-        sd = g["sd"][:].astype(float).reshape(c.shape).transpose(0, 1, 3, 2) @ LUMINANCE
+    if FitArray.SD in g:  # how far each texel can be trusted (models.sh.coefficient_sd)
+        sd = g[FitArray.SD][:].astype(float).reshape(c.shape).transpose(0, 1, 3, 2) @ LUMINANCE
         with np.errstate(invalid="ignore", divide="ignore"):
             extra["sd of y[0,0] / y[0,0]"] = sd[..., 0] / np.abs(lum[..., 0])
         extra["sd of y[1,0] (luminance)"] = sd[..., 2]
@@ -389,19 +390,17 @@ def observation_figures(store: str | Path, out_dir: str | Path,
 
     g = open_observation_map(store)
     out_dir = Path(out_dir)
-    S, T, tile = g.attrs["S"], g.attrs["T"], g.attrs["tile"]
-    count = np.zeros((T, S), np.int32)
-    for r0 in range(0, T, tile):
-        count[r0:r0 + tile] = g["valid"][r0:r0 + tile].sum(-1)
+    S, T = g.S, g.T
+    count = g.valid_count()
     paths = [plot_map(count, out_dir / "observation_valid_count.png",
-                      f"valid observations per texel ({len(g.attrs['view_ids'])} views)",
+                      f"valid observations per texel ({len(g.view_ids)} views)",
                       "views")]
     texels = texels or default_lobe_texels(S, T)
     entries = []
     for r, c in texels:
-        v = g["valid"][r, c]
+        d, measured, v = g.texel(r, c)
         entries.append({"label": f"texel [{r}, {c}] ({int(v.sum())} obs.)",
-                        "direction": g["direction"][r, c][v], "measured": g["radiance"][r, c][v]})
+                        "direction": d, "measured": measured})
     paths.append(plot_lobes(entries, out_dir / "observation_lobes.png",
                             "measured radiance (luminance) against view direction"))
     return paths

@@ -33,11 +33,10 @@ from typing import Any
 import dask
 import dask.array as da
 import numpy as np
-import zarr
 
 from .. import __version__
 from ..config import default
-from ..conventions import SH_CAP_AWARE, FitStatus
+from ..conventions import SH_CAP_AWARE, FitArray, FitStatus
 from ..errors import InputError
 from ..models.mh import (
     ALGORITHMS,
@@ -54,16 +53,26 @@ from ..models.mh import (
 )
 from ..models.sh import GUARD_STEPS, fit_sh_tile, parse_sh_model, sh_outputs
 from ..parallel import worker_initializer
-from ..stores.common import COMPLETE_ATTR, mtime_ns
-from ..stores.fit import FIT_UNITS, FitError, open_fit
+from ..stores.common import mtime_ns
+from ..stores.fit import (
+    FitError,
+    create_partial,
+    finish,
+    grid_attrs,
+    mh_attrs,
+    open_fit,
+    partial_key,
+    sh_attrs,
+    tile_arrays,
+)
 from ..stores.metrics import digest, write_metrics
-from ..stores.observation import open_observation_map
+from ..stores.observation import open_observation_map, tile_reader
 from ..stores.paths import Processed
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["COMPLETE_ATTR", "FitError", "RepairFn", "fit_map", "fit_mh_map", "fit_sh_map",
-           "fit_summary", "open_fit", "run_fit"]
+__all__ = ["RepairFn", "fit_map", "fit_mh_map", "fit_sh_map",
+           "fit_summary", "run_fit"]
 
 
 # (radiance, direction, valid of a tile; keyword noise: its relative sd per observation)
@@ -79,58 +88,19 @@ def _marker(done_dir: str, name: str, block_info) -> Path:
     return Path(done_dir) / f"{name}-{bi}-{bj}"
 
 
-class _Opened:
-    """A zarr group's arrays, each opened (its metadata read from disk) on first use."""
-
-    def __init__(self, path: str, mode: str):
-        self.group = zarr.open_group(path, mode=mode)
-        self.arrays: dict[str, zarr.Array] = {}
-
-    def __getitem__(self, name: str) -> zarr.Array:
-        if name not in self.arrays:
-            self.arrays[name] = self.group[name]
-        return self.arrays[name]
-
-    def __contains__(self, name: str) -> bool:
-        try:
-            self[name]
-        except KeyError:
-            return False
-        return True
-
-    def items(self):
-        return ((name, self[name]) for name in self.group.array_keys())
-
-
-_OPENED: dict[tuple[str, str], _Opened] = {}
-
-
-def _arrays(path: str, token: str) -> _Opened:
-    """The zarr group at ``path``, opened once per process and ``token`` (the fit's
-    resume key: a store of another fit at the same path is opened anew; "": read
-    only). Opening an array reads its metadata from disk, a third of a small tile's
-    I/O."""
-    key = (path, token)
-    if key not in _OPENED:
-        if len(_OPENED) > 8:
-            _OPENED.clear()
-        _OPENED[key] = _Opened(path, "r+" if token else "r")
-    return _OPENED[key]
-
-
 def _fit_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path: str,
                tile_fn: TileFn, done_dir: str, key: str = "", snapshot: bool = False,
                ) -> np.ndarray:
     (r0, r1), (c0, c1), _ = block_info[0]["array-location"]
     marker = _marker(done_dir, "fit", block_info)
-    out = _arrays(out_path, key or done_dir)
+    out = tile_arrays(out_path, key or done_dir)
     if marker.is_file():  # finished by an earlier, interrupted run
-        return np.asarray(out["status"][r0:r1, c0:c1], np.int8)
-    g = _arrays(obs_path, "")
-    rad = g["radiance"][r0:r1, c0:c1]
-    dirs = g["direction"][r0:r1, c0:c1]
-    # observation maps built before the merge recorded noise have no "noise" array
-    kw = {"noise": g["noise"][r0:r1, c0:c1]} if "noise" in g else {}
+        return np.asarray(out[FitArray.STATUS][r0:r1, c0:c1], np.int8)
+    g = tile_reader(obs_path)
+    rad = g.radiance[r0:r1, c0:c1]
+    dirs = g.direction[r0:r1, c0:c1]
+    # observation maps built before the merge recorded noise have none
+    kw = {"noise": g.noise[r0:r1, c0:c1]} if g.noise is not None else {}
     res = tile_fn(rad, dirs, np.asarray(valid), **kw)
     for name, arr in res.items():
         out[name][r0:r1, c0:c1] = arr
@@ -143,7 +113,7 @@ def _fit_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path: s
             np.savez(f, **res)
         tmp.replace(snap)
     marker.touch()  # only once every array of the tile is written
-    return np.asarray(res["status"], np.int8)
+    return np.asarray(res[FitArray.STATUS], np.int8)
 
 
 def _snapshot(done_dir: str, rows: tuple[int, int], cols: tuple[int, int], tile: int,
@@ -181,17 +151,17 @@ def _repair_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path
     T, S = block_info[None]["shape"][:2]
     R0, R1, C0, C1 = max(r0 - halo, 0), min(r1 + halo, T), max(c0 - halo, 0), min(c1 + halo, S)
     fields = _snapshot(done_dir, (R0, R1), (C0, C1), tile)
-    g = _arrays(obs_path, "")
-    kw = {"noise": g["noise"][r0:r1, c0:c1]} if "noise" in g else {}
-    res = repair_fn(fields, g["radiance"][r0:r1, c0:c1], g["direction"][r0:r1, c0:c1],
+    g = tile_reader(obs_path)
+    kw = {"noise": g.noise[r0:r1, c0:c1]} if g.noise is not None else {}
+    res = repair_fn(fields, g.radiance[r0:r1, c0:c1], g.direction[r0:r1, c0:c1],
                     np.asarray(valid), (r0 - R0, c0 - C0), **kw)
     changed = np.zeros((r1 - r0, c1 - c0), np.int8)
-    if res is not None and np.any(res["changed"]):
-        out = _arrays(out_path, key or done_dir)
+    if res is not None and np.any(res[FitArray.CHANGED]):
+        out = tile_arrays(out_path, key or done_dir)
         for name, arr in res.items():
-            if name != "changed":
+            if name != FitArray.CHANGED:
                 out[name][r0:r1, c0:c1] = arr
-        changed = np.asarray(res["changed"], np.int8)
+        changed = np.asarray(res[FitArray.CHANGED], np.int8)
     with marker.open("wb") as f:
         np.save(f, changed)
     return changed
@@ -309,8 +279,8 @@ def fit_map(
     int8 map of status codes).
     """
     obs = open_observation_map(obs_path)
-    T, S, N = obs["valid"].shape
-    tile = fit_tile_size(T, S, int(obs.attrs["tile"]), workers)
+    T, S, N = obs.shape
+    tile = fit_tile_size(T, S, obs.tile, workers)
     out_path = Path(out_path)
     # A partial store under a fixed name, with a marker per finished tile beside it: a
     # killed run resumes where it stopped when the same fit of the same observation map
@@ -319,18 +289,15 @@ def fit_map(
     done = out_path.with_name(f".{out_path.name}.tiles")
     key = digest({"attrs": attrs, "outputs": {k: [list(v[0]), v[1], v[2]]
                                               for k, v in outputs.items()},
-                  "observation": dict(obs.attrs), "shape": [T, S, N],
+                  "observation": obs.metadata, "shape": [T, S, N],
                   "observation_mtime_ns": mtime_ns(Path(obs_path) / "zarr.json"),
                   # a partial store of the four-phase repair (no snapshots) starts afresh
                   "repair": "snapshot halo" if repair_fn is not None else False,
                   "tile": tile, "software": __version__})
-    valid = da.from_zarr(obs["valid"], chunks=(tile, tile, N))
+    valid = da.from_zarr(obs.valid, chunks=(tile, tile, N))
     ntiles = len(valid.chunks[0]) * len(valid.chunks[1])
-    g = _resume_or_create(tmp, done, key, ntiles, outputs, (T, S, tile))
-    g.attrs.update({**attrs, "S": S, "T": T, "tile": tile,
-                    "width_mm": obs.attrs["width_mm"], "height_mm": obs.attrs["height_mm"],
-                    "observation_views": len(obs.attrs["view_ids"]),
-                    "software": f"parammap {__version__}"})
+    _resume_or_create(tmp, done, key, ntiles, outputs, (T, S, tile),
+                      {**attrs, **grid_attrs(obs, tile)})
     logger.info(f"fit: {T}x{S} texels, {N} views, {ntiles} tiles, scheduler {scheduler}, "
                 f"{workers} workers")
     status = valid.map_blocks(
@@ -349,15 +316,10 @@ def fit_map(
                 drop_axis=2, dtype=np.int8, meta=np.array((), np.int8),
                 chunks=valid.chunks[:2])
             repaired = int(np.asarray(_compute(ch, scheduler, workers, pool)).sum())
-            status = g["status"][:]
+            status = tile_arrays(str(tmp), key)[FitArray.STATUS][:]
             logger.info(f"fit: repair pass refitted {repaired} texels from their neighbours")
     seconds = time.perf_counter() - t0
-    del g.attrs["parammap_resume_key"]
-    g.attrs[COMPLETE_ATTR] = True
-    if out_path.exists():
-        shutil.rmtree(out_path)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp.rename(out_path)
+    finish(tmp, out_path)
     shutil.rmtree(done, ignore_errors=True)
     logger.info(f"fit: {T * S} texels in {seconds:.1f} s ({T * S / seconds:.1f} texels/s)")
     return {"texels": T * S, "seconds": seconds, "texels_per_second": T * S / seconds,
@@ -378,34 +340,20 @@ def fit_tile_size(T: int, S: int, tile: int, workers: int, smallest: int = 8) ->
 
 def _resume_or_create(tmp: Path, done: Path, key: str, ntiles: int,
                       outputs: dict[str, tuple[tuple[int, ...], str, Any]],
-                      grid: tuple[int, int, int]) -> zarr.Group:
-    """The partial store of an interrupted run of this very fit (``key``), or a new one."""
-    T, S, tile = grid
+                      grid: tuple[int, int, int], attrs: dict[str, Any]) -> None:
+    """Keep the partial store of an interrupted run of this very fit (``key``), or start
+    a new one."""
     if tmp.is_dir() and done.is_dir():
-        try:
-            g = zarr.open_group(tmp, mode="r+")
-            same = g.attrs.get("parammap_resume_key") == key
-        except Exception:  # noqa: BLE001 - an unreadable partial store is started afresh
-            same = False
-        if same:
+        if partial_key(tmp) == key:
             n = len(list(done.glob("fit-*")))
             logger.info(f"fit: resuming an interrupted run, {n} of {ntiles} tiles done")
-            return g
+            return
         logger.info("fit: a partial store of another input or config is there; starting "
                     "afresh")
     shutil.rmtree(tmp, ignore_errors=True)
     shutil.rmtree(done, ignore_errors=True)
     done.mkdir(parents=True)
-    g = zarr.open_group(tmp, mode="w")
-    comp = zarr.codecs.BloscCodec(cname="zstd", clevel=3, shuffle="shuffle")
-    for name, (shape, dtype, fill) in outputs.items():
-        # dimension names let xarray.open_zarr label the maps
-        dims = ("row", "col") + tuple(f"{name}_{k}" for k in range(len(shape)))
-        g.create_array(name, shape=(T, S) + tuple(shape), chunks=(tile, tile) + tuple(shape),
-                       dtype=dtype, compressors=comp, fill_value=fill, dimension_names=dims,
-                       attributes={"units": FIT_UNITS.get(name, "")})
-    g.attrs["parammap_resume_key"] = key
-    return g
+    create_partial(tmp, key, outputs, grid, attrs)
 
 
 def fit_summary(out_path: str | Path, res: dict[str, Any], name: str,
@@ -416,9 +364,9 @@ def fit_summary(out_path: str | Path, res: dict[str, Any], name: str,
     (residuals against the expected noise; about 1 where the model explains all but
     the noise)."""
     g = open_fit(out_path)
-    status = g["status"][:]
+    status = g[FitArray.STATUS][:]
     ok = status == FitStatus.OK
-    mpr, rmse = g["mpr"][:][ok], g["rmse"][:][ok]
+    mpr, rmse = g[FitArray.MPR][:][ok], g[FitArray.RMSE][:][ok]
     return {
         "model": name, "texels": res["texels"], "fitted": int(ok.sum()),
         "too_few_observations": int((status == FitStatus.TOO_FEW).sum()),
@@ -426,8 +374,9 @@ def fit_summary(out_path: str | Path, res: dict[str, Any], name: str,
         "seconds": res["seconds"], "texels_per_second": res["texels_per_second"],
         "mean_percentage_residual": np.nanmean(mpr, 0).tolist() if ok.any() else None,
         "median_percentage_residual": np.nanmedian(mpr, 0).tolist() if ok.any() else None,
-        "rmse": np.nanmean(rmse, 0).tolist() if ok.any() else None,
-        "chi2_median": _nanmedian(g["chi2"][:][ok]) if "chi2" in g else None, **extra,
+        FitArray.RMSE: np.nanmean(rmse, 0).tolist() if ok.any() else None,
+        "chi2_median": _nanmedian(g[FitArray.CHI2][:][ok]) if FitArray.CHI2 in g else None,
+        **extra,
     }
 
 
@@ -452,23 +401,21 @@ def fit_mh_map(obs_path: str | Path, out_path: str | Path, K: int | str, cfg: di
         raise InputError(f"fit.mh.algorithm: unknown {fcfg.algorithm!r} "
                          f"(one of {', '.join(ALGORITHMS)})")
     K_max = cfg.get("K_max", K_MAX_AUTO) if K == "auto" else K
-    pool = bool(cfg.get("pool_shininess", True))
-    repair = partial(repair_mh_tile, K=K, cfg=fcfg, pool=pool) if cfg.get("repair", True) \
-        else None
+    pool = bool(cfg.get("pool_shininess", default("fit.mh.pool_shininess")))
+    repair = partial(repair_mh_tile, K=K, cfg=fcfg, pool=pool) \
+        if cfg.get("repair", default("fit.mh.repair")) else None
     res = fit_map(obs_path, out_path, partial(fit_mh_tile, K=K, cfg=fcfg, K_max=K_max),
                   mh_outputs(K_max),
-                  {"model": "mh", "model_version": 1, "lobes": str(K), "K_max": K_max,
-                   "layout": "Kd.R Kd.G Kd.B m (lobeK.Ks.R lobeK.Ks.G lobeK.Ks.B lobeK.d.X "
-                             "lobeK.d.Y lobeK.d.Z)*K",
-                   "fit": {k: getattr(fcfg, k) for k in MhFitConfig.__dataclass_fields__},
-                   "repair": {"factor": REPAIR_FACTOR, "radius": REPAIR_RADIUS,
-                              "starts": REPAIR_STARTS, "pool_shininess": pool}
-                   if repair else None},
+                  mh_attrs(K, K_max,
+                           fit={k: getattr(fcfg, k) for k in MhFitConfig.__dataclass_fields__},
+                           repair={"factor": REPAIR_FACTOR, "radius": REPAIR_RADIUS,
+                                   "starts": REPAIR_STARTS, "pool_shininess": pool}
+                           if repair else None),
                   scheduler, workers, repair_fn=repair, halo=REPAIR_RADIUS,
                   start_method=start_method)
     g = open_fit(out_path)
-    ok = g["status"][:] == FitStatus.OK
-    kused = g["k_used"][:][ok]
+    ok = g[FitArray.STATUS][:] == FitStatus.OK
+    kused = g[FitArray.K_USED][:][ok]
     if K == "auto" and len(kused):
         # BIC may have wanted more where the cap bound: say so, and where to raise it
         logger.info(f"fit: {100 * np.mean(kused == K_max):.1f} % of the texels use all "
@@ -477,8 +424,9 @@ def fit_mh_map(obs_path: str | Path, out_path: str | Path, K: int | str, cfg: di
         out_path, res, f"mh-{K}", scheduler=scheduler, workers=workers,
         lobes_used={str(k): int((kused == k).sum()) for k in np.unique(kused)},
         repaired_texels=int(res.get("repaired", 0)),
-        largest_stain_texels=int(next(iter(stains(g["rmse"][:], g["status"][:])), 0)),
-        mean_evals=float(g["evals"][:][ok].mean()) if ok.any() else None)
+        largest_stain_texels=int(next(iter(stains(g[FitArray.RMSE][:],
+                                                  g[FitArray.STATUS][:])), 0)),
+        mean_evals=float(g[FitArray.EVALS][:][ok].mean()) if ok.any() else None)
 
 
 def fit_sh_map(obs_path: str | Path, out_path: str | Path, hemisphere: str, n: int,
@@ -487,41 +435,41 @@ def fit_sh_map(obs_path: str | Path, out_path: str | Path, hemisphere: str, n: i
                start_method: str = default("fit.start_method")) -> dict:
     """Project every texel of an observation map onto n SH bands into
     ``fit/sh-<hemisphere>-<n^2>.zarr``; returns the figures for its metrics file."""
-    reg = cfg.get("regularisation", "auto")
+    reg = cfg.get("regularisation", default("fit.sh.regularisation"))
     reg = reg if reg == "auto" else float(reg)
-    cap = bool(cfg.get("sampled_cap", True)) and hemisphere in SH_CAP_AWARE
+    cap = bool(cfg.get("sampled_cap", default("fit.sh.sampled_cap"))) \
+        and hemisphere in SH_CAP_AWARE
+    areas = cfg.get("solid_angles", default("fit.sh.solid_angles"))
     res = fit_map(obs_path, out_path,
                   partial(fit_sh_tile, n=n, hemisphere=hemisphere, reg=reg,
-                          sampled_cap=cap, areas=cfg.get("solid_angles", "spherical")),
+                          sampled_cap=cap, areas=areas),
                   sh_outputs(n),
-                  {"model": "sh", "model_version": 2, "hemisphere": hemisphere, "bands": n,
-                   "coefficients": n * n, "sampled_cap": cap,
-                   "solid_angles": cfg.get("solid_angles", "spherical"),
-                   "regularisation": reg if hemisphere in ("rlsop", "wls") else None,
-                   "layout": "sh.R.00 .. sh.R.(n^2-1), then G, then B; index l(l+1)+m"},
+                  sh_attrs(hemisphere, n, cap, areas,
+                           reg if hemisphere in ("rlsop", "wls") else None),
                   scheduler, workers, start_method=start_method)
     extra = {}
     if cap:
         g = open_fit(out_path)
-        ok = g["status"][:] == FitStatus.OK
-        lam, esc = g["reg"][:][ok], g["guard"][:][ok]
+        ok = g[FitArray.STATUS][:] == FitStatus.OK
+        lam, esc = g[FitArray.REG][:][ok], g[FitArray.GUARD][:][ok]
         extra = {"sampled_cap": True,
                  "regularisation_median": float(np.median(lam)) if ok.any() else None,
                  "guarded_texels": int((esc > 0).sum()),
                  "guard_unresolved_texels": int((esc > GUARD_STEPS).sum()),
-                 "bands_median": float(np.median(g["bands"][:][ok])) if ok.any() else None}
+                 "bands_median": float(np.median(g[FitArray.BANDS][:][ok]))
+                 if ok.any() else None}
     return fit_summary(out_path, res, f"sh-{hemisphere}-{n * n}", scheduler=scheduler,
                        workers=workers, **extra)
 
 
-def run_fit(processed: str | Path, model: str, config: dict[str, Any],
-            workers: int | None = None) -> dict[str, Any]:
+def run_fit(source: str | Path, processed: str | Path, config: dict[str, Any], *,
+            model: str, workers: int | None = None) -> dict[str, Any]:
     """The fit stage of one model (``mh-<K>``, ``mh-auto`` or ``sh-<hemisphere>-<n^2>``):
     ``fit/<model>.zarr`` from the observation map with the whole (validated) ``config``
     (section ``fit``) and ``metrics/fit-<model>.json``. Returns the metrics; its
     figures come from :mod:`parammap.stages.figures`."""
 
-    proc = Processed(processed)
+    src, proc = Processed(source), Processed(processed)
     cfg = config["fit"]
     workers = workers or cfg["workers"] or config["workers"]
     if model.startswith("mh-"):
@@ -530,7 +478,7 @@ def run_fit(processed: str | Path, model: str, config: dict[str, Any],
     else:
         hemi, n = parse_sh_model(model)
         name, fit, args, family = f"sh-{hemi}-{n * n}", fit_sh_map, (hemi, n), "sh"
-    m = fit(proc.observation, proc.fit(name), *args, cfg[family], cfg["scheduler"], workers,
+    m = fit(src.observation, proc.fit(name), *args, cfg[family], cfg["scheduler"], workers,
             cfg["start_method"])
     write_metrics(proc.metrics(f"fit-{name}"), m)
     logger.info(f"fit: {name} mean % residual {m['mean_percentage_residual']}, "

@@ -13,18 +13,23 @@ import logging
 import math
 import time
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 
-from .. import __version__
 from ..config import default
-from ..conventions import NOISE_CHANNEL
 from ..parallel import executor
 from ..plots import plot_reexposure, plot_response
 from ..stores.capture import Capture, View
-from ..stores.exr import write_exr
-from ..stores.hdr import HdrError, load_reference_response, load_response, save_response
+from ..stores.hdr import (
+    HdrError,
+    hdr_provenance,
+    load_reference_response,
+    load_response,
+    save_response,
+    write_hdr,
+)
 from ..stores.images import ImageReadError, read_image
 from ..stores.metrics import digest, write_metrics
 from ..stores.paths import Processed
@@ -325,7 +330,7 @@ def merge_view(
 ) -> dict:
     """Merge one view into ``out`` (EXR: R, G, B, saturated, dark, noise). ``g`` None
     means linear input (16-bit or RAW): radiance = value / t, averaged over unsaturated
-    exposures. ``provenance``: extra header attributes (software, config digest)."""
+    exposures. ``provenance``: extra header attributes (:func:`hdr_provenance`)."""
     if g is None:
         imgs = [read_image(e.path).astype(np.float32) for e in view.exposures]
         full = 65535.0 if imgs[0].max() > 255 else 255.0
@@ -349,12 +354,7 @@ def merge_view(
         rad, saturated, dark = merge_bracket(stack, t, g, low, high)
         err = reexposure_error(stack, t, rad, g, low, high)
         noise = merge_noise(stack, t, g, level_noise(err, len(t)), low, high)
-    write_exr(out, {"R": rad[..., 0], "G": rad[..., 1], "B": rad[..., 2],
-                    "saturated": saturated.astype(np.float32),
-                    "dark": dark.astype(np.float32), NOISE_CHANNEL: noise},
-              {"view_id": view.id, "units": "relative radiance (response exp(g)/t)",
-               "noise": "relative sd of the radiance per pixel (merge_noise)",
-               **(provenance or {})})
+    write_hdr(out, rad, saturated, dark, noise, view.id, provenance)
     stats = {"view": view.id, "saturated_fraction": float(saturated.mean()),
              "dark_fraction": float(dark.mean())}
     if g is not None:
@@ -443,12 +443,14 @@ def response_for_capture(
                "samples": cfg["samples"], "seconds": time.perf_counter() - t0}
 
 
-def run_response(cap: Capture, processed: str | Path, cfg: dict,
+def run_response(cap: Capture, processed: str | Path, config: dict[str, Any], *,
                  figure: str | Path | None = None, reference: str | Path | None = None,
                  reference_label: str = "reference") -> dict:
     """The response stage: recover (or read) the capture's response into
     ``camera/response.csv`` (``camera/response.txt`` for linear input), with an
-    optional figure of the curve beside a reference. ``cfg``: config section ``hdr``."""
+    optional figure of the curve beside a reference. ``config``: the validated workflow
+    config (section ``hdr``)."""
+    cfg = config["hdr"]
     out = Processed(processed)
     g, meta = response_for_capture(cap, cfg)
     if g is None:
@@ -475,17 +477,18 @@ def _merge_job(job: tuple) -> dict:
     return st
 
 
-def run_hdr(cap: Capture, processed: str | Path, cfg: dict, view_ids: list[str] | None = None,
-            response: str | Path | None = None, workers: int = 1) -> list[dict]:
+def run_hdr(cap: Capture, processed: str | Path, config: dict[str, Any], *,
+            view_ids: list[str] | None = None, response: str | Path | None = None,
+            workers: int | None = None) -> list[dict]:
     """The hdr stage: merge the brackets of the given views (default: all) into
     ``hdr/<view>.exr`` with per-view statistics in ``hdr/<view>.json``, on ``workers``
-    processes."""
-
+    processes (default: config ``workers``); ``config`` section ``hdr``."""
+    cfg = config["hdr"]
+    workers = workers or config["workers"]
     out = Processed(processed)
     g = None if cap.response == "linear" else load_response(response or out.response_csv)
     views = [cap.view(v) for v in view_ids] if view_ids else cap.views
-    prov = {"software": f"parammap {__version__}", "config_digest": digest(cfg),
-            "response_digest": "linear" if g is None else digest(g)}
+    prov = hdr_provenance(digest(cfg), "linear" if g is None else digest(g))
     jobs = [(v, g, out.hdr(v.id), cfg["low"], cfg["high"], prov, out.hdr_stats(v.id))
             for v in views]
     stats = []

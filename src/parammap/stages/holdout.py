@@ -64,21 +64,18 @@ def texel_regions(obs_path: str | Path, k: int = REGIONS, seed: int = 0,
     from scipy.cluster.vq import kmeans2
 
     g = open_observation_map(obs_path)
-    T, S, _ = g["valid"].shape
-    tile = g.attrs["tile"]
+    T, S, _ = g.shape
     feat = np.full((T, S, 4), np.nan)
-    for r0 in range(0, T, tile):
-        for c0 in range(0, S, tile):
-            sl = (slice(r0, r0 + tile), slice(c0, c0 + tile))
-            v = g["valid"][sl]
-            L = np.where(v[..., None], g["radiance"][sl], np.nan)
-            with warnings.catch_warnings(), np.errstate(all="ignore"):
-                warnings.simplefilter("ignore", RuntimeWarning)  # texels with no views
-                mean = np.nanmean(L, 2)
-                lum = L @ LUMINANCE
-                gloss = np.nanpercentile(lum, 95, 2) / np.nanmedian(lum, 2)
-            feat[sl] = np.concatenate([np.log(np.maximum(mean, 1e-6)),
-                                       np.log(np.maximum(gloss, 1.0))[..., None]], -1)
+    for sl in g.tiles():
+        v = g.valid[sl]
+        L = np.where(v[..., None], g.radiance[sl], np.nan)
+        with warnings.catch_warnings(), np.errstate(all="ignore"):
+            warnings.simplefilter("ignore", RuntimeWarning)  # texels with no views
+            mean = np.nanmean(L, 2)
+            lum = L @ LUMINANCE
+            gloss = np.nanpercentile(lum, 95, 2) / np.nanmedian(lum, 2)
+        feat[sl] = np.concatenate([np.log(np.maximum(mean, 1e-6)),
+                                   np.log(np.maximum(gloss, 1.0))[..., None]], -1)
     ok = np.isfinite(feat).all(-1)
     labels = np.full((T, S), -1, int)
     x = feat[ok]
@@ -222,7 +219,8 @@ def holdout_comparison(
     return result
 
 
-def run_holdout(cap: Capture, processed: str | Path, models: list[str]) -> dict[str, Any]:
+def run_holdout(cap: Capture, processed: str | Path, config: dict[str, Any], *,
+                models: list[str]) -> dict[str, Any]:
     """The holdout stage: render the exported maps ``params/<model>.exr`` of ``models``
     in every held-out view and compare (images under ``holdout/``, figures in
     ``metrics/holdout.json``, also returned)."""

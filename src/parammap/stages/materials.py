@@ -18,16 +18,14 @@ from __future__ import annotations
 
 import logging
 import math
-import shutil
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import zarr
 from scipy.ndimage import uniform_filter
 
-from ..conventions import MH_M, FitStatus, mh_dir, mh_ks, mh_lobes, mh_size
+from ..conventions import MH_M, FitArray, FitStatus, mh_dir, mh_ks, mh_lobes, mh_size
 from ..models.materials import (
     adjusted_rand_index,
     assign_materials,
@@ -39,10 +37,15 @@ from ..models.materials import (
 )
 from ..models.mh.model import mh_eval
 from ..models.residuals import mean_percentage_residual
-from ..stores.common import COMPLETE_ATTR
-from ..stores.fit import FIT_UNITS, MATERIALS_MODEL, open_mh_source
+from ..stores.fit import (
+    MATERIALS_MODEL,
+    grid_attrs,
+    mh_attrs,
+    open_mh_source,
+    write_fit_store,
+)
 from ..stores.metrics import write_metrics
-from ..stores.observation import sample_texel_observations, tile_observations
+from ..stores.observation import ObservationMap, sample_texel_observations, tile_observations
 from ..stores.paths import Processed
 
 logger = logging.getLogger(__name__)
@@ -108,7 +111,7 @@ def _neighbourhood_median(F: np.ndarray, lobed: np.ndarray, idx: np.ndarray, T: 
     return np.nanmedian(np.stack(stack), axis=0)
 
 
-def _fit_bases(obs: zarr.Group, P: np.ndarray, label: np.ndarray, count: int, S: int,
+def _fit_bases(obs: ObservationMap, P: np.ndarray, label: np.ndarray, count: int, S: int,
                tile: int, m0: list[float], sample: int, rng) -> list[tuple[float, np.ndarray]]:
     """Each material's (m, colour) from a sample of its texels' observations."""
     basis = []
@@ -124,7 +127,7 @@ def _fit_bases(obs: zarr.Group, P: np.ndarray, label: np.ndarray, count: int, S:
     return basis
 
 
-def _merge_materials(obs: zarr.Group, P: np.ndarray, label: np.ndarray,
+def _merge_materials(obs: ObservationMap, P: np.ndarray, label: np.ndarray,
                      basis: list[tuple[float, np.ndarray]], S: int, tile: int, sample: int,
                      rng) -> tuple[np.ndarray, list[tuple[float, np.ndarray]]]:
     """003's material merging: the two materials whose lobes look most alike are
@@ -156,15 +159,16 @@ def _merge_materials(obs: zarr.Group, P: np.ndarray, label: np.ndarray,
     return label, basis
 
 
-def run_materials(processed: str | Path, config: dict[str, Any]) -> dict[str, Any]:
+def run_materials(source: str | Path, processed: str | Path,
+                  config: dict[str, Any]) -> dict[str, Any]:
     """The materials stage (module docstring); ``config`` the validated workflow config
     (section ``materials``). Returns the figures written to ``metrics/fit-mh-materials.json``."""
 
-    proc = Processed(processed)
+    src, proc = Processed(source), Processed(processed)
     cfg = config["materials"]
-    _, obs, P, ok = open_mh_source(proc.root, cfg["source"], "materials.source")
-    T, S, N = obs["valid"].shape
-    tile = int(obs.attrs["tile"])
+    _, obs, P, ok = open_mh_source(src.root, cfg["source"], "materials.source")
+    T, S, N = obs.shape
+    tile = obs.tile
     t0 = time.perf_counter()
     K = mh_lobes(P.shape[1])
     F, has = material_features(P)
@@ -221,15 +225,16 @@ def run_materials(processed: str | Path, config: dict[str, Any]) -> dict[str, An
             logger.info(f"materials: {count - len(used)} material(s) chosen by no texel "
                         "dropped")
             count = len(used)
-        out = {"label": label, "weights": np.zeros((T * S, count + 1)),
-               "params": np.full((T * S, mh_size(K)), np.nan)}
+        out = {FitArray.LABEL: label, FitArray.WEIGHTS: np.zeros((T * S, count + 1)),
+               FitArray.PARAMS: np.full((T * S, mh_size(K)), np.nan)}
         for rows, cols in _tiles(T, S, tile):
             flat = flat_of[rows, cols].ravel()
             V, L, W, w = tile_observations(obs, rows, cols)
             dirs, present = _lobes(Pb[flat])
             a = assign_materials(dirs, present, V, L, W, w, basis, label[flat])
-            out["weights"][flat] = a["weights"]
-            out["params"][flat] = material_params(a["kd"], a["s"], a["label"], dirs, basis)
+            out[FitArray.WEIGHTS][flat] = a[FitArray.WEIGHTS]
+            out[FitArray.PARAMS][flat] = material_params(a["kd"], a["s"], a[FitArray.LABEL], dirs,
+                                                         basis)
         logger.info(f"materials: round {rnd + 1}: " + ", ".join(
             f"material {j + 1} m {m:.1f} ({int((label == j + 1).sum())} texels)"
             for j, (m, _) in enumerate(basis)) + f"; diffuse only {int((label == 0).sum())}")
@@ -248,7 +253,7 @@ def run_materials(processed: str | Path, config: dict[str, Any]) -> dict[str, An
     return m
 
 
-def _write_store(path: Path, obs: zarr.Group, out: dict, ok: np.ndarray, basis: list,
+def _write_store(path: Path, obs: ObservationMap, out: dict, ok: np.ndarray, basis: list,
                  cfg: dict, T: int, S: int, tile: int, K: int) -> dict[str, Any]:
     """Write the MH fit store of the material map (temporary name, then renamed) and
     return its residual figures."""
@@ -257,50 +262,31 @@ def _write_store(path: Path, obs: zarr.Group, out: dict, ok: np.ndarray, basis: 
     for rows, cols in _tiles(T, S, tile):
         flat = (np.arange(T * S).reshape(T, S)[rows, cols]).ravel()
         V, L, W, _ = tile_observations(obs, rows, cols)
-        pred = mh_eval(out["params"][flat], V)
+        pred = mh_eval(out[FitArray.PARAMS][flat], V)
         n = np.maximum(W.sum(1), 1)[:, None]
         rmse[flat] = np.sqrt((np.where(W[..., None], pred - L, 0) ** 2).sum(1) / n)
         mpr[flat] = mean_percentage_residual(L, pred, W)
     status = np.where(ok, FitStatus.OK, FitStatus.NOT_FITTED).astype(np.int8)
-    out["params"][~ok] = np.nan
+    out[FitArray.PARAMS][~ok] = np.nan
     rmse[~ok] = mpr[~ok] = np.nan
-    tmp = path.with_name(f".{path.name}.partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    g = zarr.open_group(tmp, mode="w")
-    comp = zarr.codecs.BloscCodec(cname="zstd", clevel=3, shuffle="shuffle")
     M = len(basis)
+    P = out[FitArray.PARAMS]
     arrays = {
-        "params": (out["params"].reshape(T, S, -1), "float32", np.nan),
-        "rmse": (rmse.reshape(T, S, 3), "float32", np.nan),
-        "mpr": (mpr.reshape(T, S, 3), "float32", np.nan),
-        "k_used": ((np.isfinite(out["params"]) & (out["params"] > 0))[:, [mh_ks(k).start
-                   for k in range(K)]].sum(1).reshape(T, S), "int8", 0),
-        "evals": (np.zeros((T, S)), "int32", 0),
-        "status": (status.reshape(T, S), "int8", int(FitStatus.NOT_FITTED)),
-        "label": (np.where(ok, out["label"], -1).reshape(T, S), "int16", -1),
-        "weights": (out["weights"].reshape(T, S, M + 1), "float32", np.nan),
+        FitArray.PARAMS: (out[FitArray.PARAMS].reshape(T, S, -1), "float32", np.nan),
+        FitArray.RMSE: (rmse.reshape(T, S, 3), "float32", np.nan),
+        FitArray.MPR: (mpr.reshape(T, S, 3), "float32", np.nan),
+        FitArray.K_USED: ((np.isfinite(P) & (P > 0))[:, [mh_ks(k).start for k in range(K)]]
+                          .sum(1).reshape(T, S), "int8", 0),
+        FitArray.EVALS: (np.zeros((T, S)), "int32", 0),
+        FitArray.STATUS: (status.reshape(T, S), "int8", int(FitStatus.NOT_FITTED)),
+        FitArray.LABEL: (np.where(ok, out[FitArray.LABEL], -1).reshape(T, S), "int16", -1),
+        FitArray.WEIGHTS: (out[FitArray.WEIGHTS].reshape(T, S, M + 1), "float32", np.nan),
     }
-    for name, (arr, dtype, fill) in arrays.items():
-        a = g.create_array(name, shape=arr.shape, chunks=(tile, tile) + arr.shape[2:],
-                           dtype=dtype, compressors=comp, fill_value=fill,
-                           attributes={"units": FIT_UNITS.get(name, {
-                               "label": "basis material (0: diffuse only)",
-                               "weights": "BIC weight of each candidate (diffuse only, "
-                                          "then the materials)"}.get(name, ""))})
-        a[...] = arr.astype(dtype)
-    g.attrs.update({
-        "model": "mh", "model_version": 1, "lobes": str(K), "K_max": K,
-        "layout": "Kd.R Kd.G Kd.B m (lobeK.Ks.R lobeK.Ks.G lobeK.Ks.B lobeK.d.X lobeK.d.Y "
-                  "lobeK.d.Z)*K", "S": S, "T": T, "tile": tile,
-        "width_mm": obs.attrs["width_mm"], "height_mm": obs.attrs["height_mm"],
-        "observation_views": len(obs.attrs["view_ids"]), "source": cfg["source"],
-        "materials": [{"m": float(m), "specular_colour": np.asarray(k).tolist()}
-                      for m, k in basis]})
-    g.attrs[COMPLETE_ATTR] = True
-    if path.exists():
-        shutil.rmtree(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp.rename(path)
+    write_fit_store(path, arrays, tile, {
+        **mh_attrs(K, K, source=cfg["source"],
+                   materials=[{"m": float(m), "specular_colour": np.asarray(k).tolist()}
+                              for m, k in basis]),
+        **grid_attrs(obs, tile, provenance=False)})
     good = status == FitStatus.OK
     return {"texels": T * S, "fitted": int(good.sum()), "failed": 0,
             "too_few_observations": int((~good).sum()),
@@ -308,4 +294,4 @@ def _write_store(path: Path, obs: zarr.Group, out: dict, ok: np.ndarray, basis: 
             else None,
             "median_percentage_residual": np.nanmedian(mpr[good], 0).tolist() if good.any()
             else None,
-            "rmse": np.nanmean(rmse[good], 0).tolist() if good.any() else None}
+            FitArray.RMSE: np.nanmean(rmse[good], 0).tolist() if good.any() else None}

@@ -57,7 +57,6 @@ from typing import Any
 
 import cv2
 import numpy as np
-import zarr
 
 from .. import __version__
 from ..config import default
@@ -68,15 +67,25 @@ from ..stores.capture import Capture
 from ..stores.common import COMPLETE_ATTR, mtime_ns, store_bytes
 from ..stores.hdr import read_hdr_noise
 from ..stores.metrics import digest, write_metrics
-from ..stores.observation import ObservationError, create_observation_map, open_observation_map
+from ..stores.observation import (
+    ObservationError,
+    create_observation_map,
+    create_scratch,
+    finish_observation_map,
+    open_scratch,
+    read_scratch_band,
+    set_build_attrs,
+    write_band,
+    write_view_rows,
+)
 from ..stores.paths import Processed
 from ..vision.pose import point_uncertainty
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["COMPLETE_ATTR", "ObservationError", "build_observation_map", "kept_poses",
-           "run_observation", "marker_texel_mask", "open_observation_map", "blend_bias",
-           "outside_fraction", "frontal_width", "texel_pixels", "sample_view", "texel_grid"]
+           "run_observation", "marker_texel_mask", "blend_bias", "outside_fraction",
+           "frontal_width", "texel_pixels", "sample_view", "texel_grid"]
 
 
 def texel_grid(cap: Capture, texels_x: int | str, texels_y: int | None = None,
@@ -356,7 +365,7 @@ def _pass1_view(job: tuple) -> tuple[str, float, int, float, int]:
     if (rad.shape[1], rad.shape[0]) != tuple(intr.image_size):
         raise ObservationError(f"{view.hdr}: frame {rad.shape[1]}x{rad.shape[0]} does not "
                                f"match the intrinsics image size {intr.image_size}")
-    g = zarr.open_group(scratch, mode="r+")
+    g = open_scratch(scratch)
     nvalid = 0
     stats: dict[str, int] = {}
     for r0 in range(0, T, band):
@@ -364,10 +373,7 @@ def _pass1_view(job: tuple) -> tuple[str, float, int, float, int]:
         r, _, v, sd = sample_view(rad, sat, intr, view.R, view.t, rows, S, T, w_mm, h_mm,
                                   max_zen, max_ss, noise, view.cov, view.max_texel_shift,
                                   max_blend, stats, resolved)
-        g["radiance"][n, rows] = r
-        g["valid"][n, rows] = v
-        if sd is not None:
-            g["noise"][n, rows] = sd
+        write_view_rows(g, n, rows, r, v, sd)
         nvalid += int(v.sum())
     return (view.id, nvalid / (S * T), rad.nbytes + sat.nbytes, time.perf_counter() - t0,
             stats.get("blended", 0))
@@ -375,20 +381,13 @@ def _pass1_view(job: tuple) -> tuple[str, float, int, float, int]:
 
 def _pass2_band(job: tuple) -> int:
     """Transpose one band of tile rows from the scratch store into the final store."""
-    scratch, final, r0, r1, centres, marker = job
-    src = zarr.open_group(scratch, mode="r")
-    dst = zarr.open_group(final, mode="r+")
-    rad = np.moveaxis(src["radiance"][:, r0:r1], 0, 2)  # (r, S, N, 3)
-    valid = np.moveaxis(src["valid"][:, r0:r1], 0, 2) & ~marker[r0:r1, :, None]
+    scratch, final, r0, r1, centres, marker, T, w_mm, h_mm = job
+    rad, valid, noise = read_scratch_band(scratch, r0, r1)  # (r, S, N, ...)
+    valid &= ~marker[r0:r1, :, None]
     S = rad.shape[1]
-    T = dst["valid"].shape[0]
-    h_mm, w_mm = dst.attrs["height_mm"], dst.attrs["width_mm"]
     ctr = texel_centres(S, T, w_mm, h_mm)[r0:r1]
     d = unit(np.asarray(centres)[None, None] - ctr[:, :, None, :]).astype(np.float32)
-    dst["radiance"][r0:r1] = rad
-    dst["direction"][r0:r1] = d
-    dst["valid"][r0:r1] = valid
-    dst["noise"][r0:r1] = np.moveaxis(src["noise"][:, r0:r1], 0, 2)
+    write_band(final, r0, r1, rad, d, valid, noise)
     return int(valid.sum())
 
 
@@ -462,14 +461,7 @@ def build_observation_map(
         tmp.mkdir(parents=True)
         marks.mkdir(parents=True)
         # Scratch: one view per chunk row band, fast compression, deleted at the end.
-        sg = zarr.open_group(scratch, mode="w")
-        fast = zarr.codecs.BloscCodec(cname="lz4", clevel=1, shuffle="shuffle")
-        sg.create_array("radiance", shape=(N, T, S, 3), chunks=(1, band, S, 3),
-                        dtype="float32", compressors=fast, fill_value=np.nan)
-        sg.create_array("valid", shape=(N, T, S), chunks=(1, band, S), dtype="bool",
-                        compressors=fast, fill_value=False)
-        sg.create_array("noise", shape=(N, T, S), chunks=(1, band, S), dtype="float32",
-                        compressors=fast, fill_value=np.nan)
+        create_scratch(scratch, N, T, S, band)
         (marks / "key").write_text(key)
     done = {n: json.loads((marks / f"view-{n}").read_text()) for n in range(N)
             if (marks / f"view-{n}").is_file()}
@@ -499,31 +491,23 @@ def build_observation_map(
     if not (marks / "final").is_file():
         create_observation_map(final, S, T, N, tile)
         (marks / "final").touch()
-    g = zarr.open_group(final, mode="r+")
-    g.attrs.update({
-        "width_mm": cap.width_mm, "height_mm": cap.height_mm, "S": S, "T": T,
-        "tile": tile, "view_ids": [v.id for v in views], "held_out_view_ids": held,
-        "camera_centres_mm": [v.centre.tolist() for v in views],
-        "calibration": {"K": intr.K.tolist(), "dist": intr.dist.tolist(),
-                        "image_size": list(intr.image_size), "rms_px": intr.rms_px},
-        "units": {"radiance": "relative linear radiance (one global scale)",
-                  "noise": "relative sd of each observation (NaN: not recorded)",
-                  "direction": "unit vector toward the camera, surface frame",
-                  "lengths": "mm"},
-        "sampling": {"method": "texel footprint supersampling, bilinear",
-                     "max_supersample": max_supersample,
-                     "max_zenith_deg": max_zenith_deg, "max_blend_sd": max_blend,
-                     "texel_px": texel_px, "blend_check": bool(max_blend is not None
-                                                               and resolved)},
-        "marker_texels": int(marker.sum()),
-        "surface_id": cap.surface_id, "software": f"parammap {__version__}",
-        "config": config or {},
-    })
+    set_build_attrs(
+        final, width_mm=cap.width_mm, height_mm=cap.height_mm, S=S, T=T, tile=tile,
+        view_ids=[v.id for v in views], held_out_view_ids=held,
+        camera_centres_mm=[v.centre.tolist() for v in views],
+        calibration={"K": intr.K.tolist(), "dist": intr.dist.tolist(),
+                     "image_size": list(intr.image_size), "rms_px": intr.rms_px},
+        sampling={"method": "texel footprint supersampling, bilinear",
+                  "max_supersample": max_supersample,
+                  "max_zenith_deg": max_zenith_deg, "max_blend_sd": max_blend,
+                  "texel_px": texel_px, "blend_check": bool(max_blend is not None
+                                                            and resolved)},
+        marker_texels=int(marker.sum()), surface_id=cap.surface_id, config=config or {})
     centres = np.array([v.centre for v in views])
     written = {r0: int((marks / f"band-{r0}").read_text()) for r0 in range(0, T, tile)
                if (marks / f"band-{r0}").is_file()}
-    bands = [(str(scratch), str(final), r0, min(r0 + tile, T), centres, marker)
-             for r0 in range(0, T, tile) if r0 not in written]
+    bands = [(str(scratch), str(final), r0, min(r0 + tile, T), centres, marker, T,
+              cap.width_mm, cap.height_mm) for r0 in range(0, T, tile) if r0 not in written]
     with executor(workers) as ex:
         for k, (job, nv) in enumerate(zip(bands, ex.map(_pass2_band, bands), strict=True)):
             written[job[2]] = nv
@@ -532,11 +516,8 @@ def build_observation_map(
                 logger.info(f"observation: wrote {len(written)}/{len(range(0, T, tile))} "
                             "tile rows")
     nvalid = sum(written.values())
-    g.attrs[COMPLETE_ATTR] = True
     shutil.rmtree(scratch)
-    if out.exists():
-        shutil.rmtree(out)
-    final.rename(out)
+    finish_observation_map(final, out)
     shutil.rmtree(tmp, ignore_errors=True)
     shutil.rmtree(marks, ignore_errors=True)
     seconds = time.perf_counter() - t_start
@@ -557,9 +538,8 @@ def build_observation_map(
     }
 
 
-def run_observation(cap: Capture, processed: str | Path, config: dict[str, Any],
-                    workers: int | None = None,
-                    ) -> dict[str, Any]:
+def run_observation(cap: Capture, processed: str | Path, config: dict[str, Any], *,
+                    workers: int | None = None) -> dict[str, Any]:
     """The observe stage: build ``observation.zarr`` with the config section
     ``observation`` of the whole (validated) ``config``, write
     ``metrics/observation.json``."""

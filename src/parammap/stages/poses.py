@@ -190,13 +190,14 @@ def corner_gate(recs: list[dict], max_rms_px: float) -> None:
             rec.update(ok=False, reason=what)
 
 
-def run_poses(cap: Capture, processed: str | Path, cfg: dict, obs_cfg: dict,
-              workers: int = 1) -> dict[str, Any]:
+def run_poses(cap: Capture, processed: str | Path, config: dict[str, Any], *,
+              workers: int | None = None) -> dict[str, Any]:
     """The poses stage: the pose of every view (on ``workers`` processes), the map
     resolution and the view policy; writes ``camera/poses.yaml`` and
-    ``metrics/poses.json`` and returns the latter's figures. ``cfg``, ``obs_cfg``:
-    config sections ``poses`` and ``observation``."""
-
+    ``metrics/poses.json`` and returns the latter's figures. ``config``: the validated
+    workflow config (sections ``poses`` and ``observation``)."""
+    cfg, obs_cfg = config["poses"], config["observation"]
+    workers = workers or config["workers"]
     out = Processed(processed)
     intr = load_intrinsics(out.intrinsics)
     jobs = [(cap, intr, out.hdr(v.id), cfg) for v in cap.views]

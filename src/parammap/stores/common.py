@@ -7,11 +7,27 @@ from pathlib import Path
 
 import zarr
 
-__all__ = ["COMPLETE_ATTR", "mtime_ns", "open_complete", "store_bytes"]
+from .. import __version__
+
+__all__ = ["COMPLETE_ATTR", "HEIGHT_ATTR", "SOFTWARE_ATTR", "S_ATTR", "TILE_ATTR", "T_ATTR",
+           "UNITS_ATTR", "WIDTH_ATTR", "mtime_ns", "open_complete", "software", "store_bytes"]
 
 # Set on a store's group only after every chunk is written and just before the rename
 # from its temporary name: a store without it is never accepted.
 COMPLETE_ATTR = "parammap_complete"
+
+# The map's grid and provenance, carried by every map artifact (zarr attributes of the
+# observation map and the fit stores, header attributes of the parameter-map EXRs).
+S_ATTR, T_ATTR, TILE_ATTR = "S", "T", "tile"
+WIDTH_ATTR, HEIGHT_ATTR = "width_mm", "height_mm"
+SOFTWARE_ATTR = "software"
+# what an array or a file holds, in words (xarray shows it)
+UNITS_ATTR = "units"
+
+
+def software() -> str:
+    """The provenance string stores carry (``parammap <version>``)."""
+    return f"parammap {__version__}"
 
 
 def mtime_ns(path: str | Path) -> int:

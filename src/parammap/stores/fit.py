@@ -1,65 +1,326 @@
 """Fit stores (``fit/<model>.zarr``): per-texel parameters and fit figures of one model.
 
 One array per output of the model's tile function (``models.mh.mh_outputs``,
-``models.sh.sh_outputs``), chunked in the observation map's texel tiles, with the
-per-texel ``status`` (:class:`parammap.conventions.FitStatus`). Attributes: ``model``
-(``mh``, ``sh``), its settings and the MH parameter layout.
+``models.sh.sh_outputs``; names :class:`parammap.conventions.FitArray`), chunked in
+texel tiles, with the per-texel ``status`` (:class:`parammap.conventions.FitStatus`).
+Attributes: ``model`` (``mh``, ``sh``), its settings and parameter layout, and the map's
+grid. The store is written under a temporary name and renamed once complete; a fit
+that was killed keeps its partial store with the key of the fit that wrote it.
 """
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import zarr
 
-from ..conventions import FitStatus
+from ..conventions import FitArray, FitStatus
 from ..errors import InputError
-from ..stores.paths import Processed
-from .common import open_complete
-from .observation import open_observation_map
+from .common import (
+    COMPLETE_ATTR,
+    HEIGHT_ATTR,
+    S_ATTR,
+    SOFTWARE_ATTR,
+    T_ATTR,
+    TILE_ATTR,
+    UNITS_ATTR,
+    WIDTH_ATTR,
+    open_complete,
+    software,
+)
+from .observation import ObservationMap, open_observation_map
+from .paths import Processed
 
-__all__ = ["FIT_UNITS", "MATERIALS_MODEL", "FitError", "open_fit", "open_mh_source"]
+__all__ = ["FIT_UNITS", "MATERIALS_MODEL", "MH_LAYOUT", "SH_LAYOUT", "FitError", "FitStore",
+           "TileArrays", "create_partial", "finish", "grid_attrs", "mh_attrs",
+           "open_fit", "open_mh_source", "partial_key", "sh_attrs", "tile_arrays",
+           "write_fit_store"]
 
+MATERIALS_MODEL = "mh-materials"  # the model name of the materials stage's map (outputs.md)
+
+# the parameter layouts a store states (``layout`` attribute)
+MH_LAYOUT = ("Kd.R Kd.G Kd.B m (lobeK.Ks.R lobeK.Ks.G lobeK.Ks.B lobeK.d.X lobeK.d.Y "
+             "lobeK.d.Z)*K")
+SH_LAYOUT = "sh.R.00 .. sh.R.(n^2-1), then G, then B; index l(l+1)+m"
 
 # units of the fit stores' arrays (zarr attribute "units", read by xarray)
 FIT_UNITS = {
-    "params": "as the layout attribute: Kd, Ks in the observation map's radiance units, "
-              "m 1, d unit vector (surface frame)",
-    "coeffs": "the observation map's radiance units (orthonormal SH basis)",
-    "rmse": "the observation map's radiance units", "mpr": "percent",
-    "chi2": "1 (reduced chi-square)", "k_used": "lobes", "evals": "objective evaluations",
-    "status": "parammap.conventions.FitStatus code", "reg": "1 (relative prior weight)",
-    "guard": "prior escalations", "bands": "SH bands",
-    "sd": "standard deviations in the parameters' units, MH lobe direction in degrees "
-          "(conventions.sd_channels)",
+    FitArray.PARAMS: "as the layout attribute: Kd, Ks in the observation map's radiance "
+                     "units, m 1, d unit vector (surface frame)",
+    FitArray.COEFFS: "the observation map's radiance units (orthonormal SH basis)",
+    FitArray.RMSE: "the observation map's radiance units", FitArray.MPR: "percent",
+    FitArray.CHI2: "1 (reduced chi-square)", FitArray.K_USED: "lobes",
+    FitArray.EVALS: "objective evaluations",
+    FitArray.STATUS: "parammap.conventions.FitStatus code",
+    FitArray.REG: "1 (relative prior weight)", FitArray.GUARD: "prior escalations",
+    FitArray.BANDS: "SH bands",
+    FitArray.SD: "standard deviations in the parameters' units, MH lobe direction in "
+                 "degrees (conventions.sd_channels)",
 }
+# the materials stage's extra arrays say what they hold in place of units
+_MATERIAL_UNITS = {FitArray.LABEL: "basis material (0: diffuse only)",
+                   FitArray.WEIGHTS: "BIC weight of each candidate (diffuse only, then the "
+                                     "materials)"}
+
+_RESUME_ATTR = "parammap_resume_key"  # the key of the fit that wrote a partial store
+_MODEL, _LAYOUT = "model", "layout"
 
 
 class FitError(InputError):
     """A missing, incomplete or mismatched fit store, or a bad fit setting."""
 
 
+def _compressor():
+    return zarr.codecs.BloscCodec(cname="zstd", clevel=3, shuffle="shuffle")
+
+
+# ---------------------------------------------------------------------------------
+# Attributes
+
+
+def mh_attrs(K: int | str, K_max: int, **settings: Any) -> dict[str, Any]:
+    """The attributes that describe an MH fit: lobes asked for (``K``), the most stored
+    (``K_max``), the layout, and ``settings`` (``fit``, ``repair``; the materials
+    stage's ``source`` and ``materials``)."""
+    return {_MODEL: "mh", "model_version": 1, "lobes": str(K), "K_max": K_max,
+            _LAYOUT: MH_LAYOUT, **settings}
+
+
+def sh_attrs(hemisphere: str, n: int, sampled_cap: bool, solid_angles: str,
+             regularisation: float | str | None) -> dict[str, Any]:
+    """The attributes that describe an SH fit of ``n`` bands."""
+    # "bands": the store's n (its array of that name: the bands each texel resolves)
+    return {_MODEL: "sh", "model_version": 2, "hemisphere": hemisphere, FitArray.BANDS: n,
+            "coefficients": n * n, "sampled_cap": sampled_cap, "solid_angles": solid_angles,
+            "regularisation": regularisation, _LAYOUT: SH_LAYOUT}
+
+
+def grid_attrs(obs: ObservationMap, tile: int, provenance: bool = True) -> dict[str, Any]:
+    """The map's grid, copied from the observation map the fit read, its tile and (with
+    ``provenance``) the version that wrote the store."""
+    return {S_ATTR: obs.S, T_ATTR: obs.T, TILE_ATTR: tile, WIDTH_ATTR: obs.width_mm,
+            HEIGHT_ATTR: obs.height_mm, "observation_views": len(obs.view_ids),
+            **({SOFTWARE_ATTR: software()} if provenance else {})}
+
+
+# ---------------------------------------------------------------------------------
+# Reading
+
+
+class FitStore:
+    """A finished fit store opened for reading.
+
+    Arrays are named by :class:`parammap.conventions.FitArray` (``store[FitArray.RMSE]``,
+    or :meth:`get` for one a model may not have written); the attributes that stages
+    read are properties. (T, S, ...) zarr arrays, read lazily.
+    """
+
+    def __init__(self, group: zarr.Group, path: str | Path) -> None:
+        self.group, self.path = group, Path(path)
+
+    def __getitem__(self, name: str) -> zarr.Array:
+        return self.group[name]
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.group
+
+    def get(self, name: FitArray) -> zarr.Array | None:
+        """The array ``name``, or None where this store has none (e.g. ``chi2`` of a fit
+        without recorded noise, ``sd`` of an older store)."""
+        return self.group[name] if name in self.group else None
+
+    @property
+    def attrs(self):
+        """The zarr group's attributes, as zarr hands them out (for notebooks and tests;
+        the package reads the typed properties)."""
+        return self.group.attrs
+
+    @property
+    def metadata(self) -> dict[str, Any]:
+        """Every attribute (a copy), for provenance and the resume keys of later stages."""
+        return dict(self.group.attrs)
+
+    @property
+    def model(self) -> str:
+        """``mh`` or ``sh``."""
+        return self.group.attrs[_MODEL]
+
+    @property
+    def lobes(self) -> str | None:
+        """MH lobes asked for: ``"1"``, ``"2"``, ``"auto"``, ..."""
+        return self.group.attrs.get("lobes")
+
+    @property
+    def K_max(self) -> int | None:
+        """Most lobes an MH store holds per texel."""
+        return self.group.attrs.get("K_max")
+
+    @property
+    def hemisphere(self) -> str | None:
+        """The SH hemisphere handling (``zh``, ``mirror``, ``lsop``, ``rlsop``, ``wls``)."""
+        return self.group.attrs.get("hemisphere")
+
+    @property
+    def n_bands(self) -> int | None:
+        """SH bands n of the store (n^2 coefficients per channel)."""
+        return self.group.attrs.get(FitArray.BANDS)
+
+    @property
+    def coefficients(self) -> int | None:
+        """SH coefficients per channel (n^2)."""
+        return self.group.attrs.get("coefficients")
+
+    @property
+    def sampled_cap(self) -> bool:
+        """Whether the SH fit was restricted to the sampled cap."""
+        return bool(self.group.attrs.get("sampled_cap"))
+
+    @property
+    def solid_angles(self) -> str:
+        """SH quadrature weights (``spherical`` in stores from before it was recorded)."""
+        return self.group.attrs.get("solid_angles", "spherical")
+
+    @property
+    def regularisation(self) -> float | str | None:
+        return self.group.attrs.get("regularisation")
+
+    @property
+    def S(self) -> int:
+        return self.group.attrs[S_ATTR]
+
+    @property
+    def T(self) -> int:
+        return self.group.attrs[T_ATTR]
+
+    @property
+    def tile(self) -> int:
+        return self.group.attrs[TILE_ATTR]
+
+    @property
+    def width_mm(self) -> float:
+        return self.group.attrs[WIDTH_ATTR]
+
+    @property
+    def height_mm(self) -> float:
+        return self.group.attrs[HEIGHT_ATTR]
+
+    def describe(self) -> dict[str, Any]:
+        """The model settings a parameter map carries into its EXR header."""
+        keys = ("lobes", "K_max", FitArray.BANDS, "coefficients", "regularisation")
+        return {k: self.group.attrs[k] for k in keys if self.group.attrs.get(k) is not None}
+
+
+def open_fit(path: str | Path) -> FitStore:
+    """Open a finished fit store; refuses a missing or incomplete one."""
+    return FitStore(open_complete(path, FitError, "fit store"), path)
+
+
 def open_mh_source(processed: str | Path, model: str, setting: str,
-                   ) -> tuple[zarr.Group, zarr.Group, np.ndarray, np.ndarray]:
+                   ) -> tuple[FitStore, ObservationMap, np.ndarray, np.ndarray]:
     """A finished MH fit that a later stage builds on (``setting``: the config key that
     named it, for the error) and its observation map: (fit store, observation map,
     parameters (T S, 4 + 6K) float64, (T S,) bool fitted)."""
-
     proc = Processed(processed)
     src = open_fit(proc.fit(model))
-    if src.attrs.get("model") != "mh":
+    if src.model != "mh":
         raise InputError(f"{setting}: {model!r} is not an MH fit")
     obs = open_observation_map(proc.observation)
-    T, S, _ = obs["valid"].shape
-    P = np.asarray(src["params"][:], float).reshape(T * S, -1)
-    ok = (np.asarray(src["status"][:]) == FitStatus.OK).ravel()
+    P = np.asarray(src[FitArray.PARAMS][:], float).reshape(obs.T * obs.S, -1)
+    ok = (np.asarray(src[FitArray.STATUS][:]) == FitStatus.OK).ravel()
     return src, obs, P, ok
 
 
-def open_fit(path: str | Path) -> zarr.Group:
-    """Open a finished fit store; refuses a missing or incomplete one."""
-    return open_complete(path, FitError, "fit store")
+# ---------------------------------------------------------------------------------
+# Writing
 
 
-MATERIALS_MODEL = "mh-materials"  # the model name of the stage's map (outputs.md mh-*)
+class TileArrays:
+    """A store's arrays, each opened (its metadata read from disk) on first use."""
+
+    def __init__(self, path: str, mode: str):
+        self.group = zarr.open_group(path, mode=mode)
+        self.arrays: dict[str, zarr.Array] = {}
+
+    def __getitem__(self, name: str) -> zarr.Array:
+        if name not in self.arrays:
+            self.arrays[name] = self.group[name]
+        return self.arrays[name]
+
+    def __contains__(self, name: str) -> bool:
+        try:
+            self[name]
+        except KeyError:
+            return False
+        return True
+
+
+_OPENED: dict[tuple[str, str], TileArrays] = {}
+
+
+def tile_arrays(path: str, token: str) -> TileArrays:
+    """The store at ``path``, opened once per process and ``token`` (the fit's resume key:
+    a store of another fit at the same path is opened anew; "": read only). Opening an
+    array reads its metadata from disk, a third of a small tile's I/O."""
+    key = (path, token)
+    if key not in _OPENED:
+        if len(_OPENED) > 8:
+            _OPENED.clear()
+        _OPENED[key] = TileArrays(path, "r+" if token else "r")
+    return _OPENED[key]
+
+
+def partial_key(tmp: Path) -> str | None:
+    """The key of the fit that wrote the partial store ``tmp`` (None: none readable)."""
+    try:
+        return zarr.open_group(tmp, mode="r").attrs.get(_RESUME_ATTR)
+    except Exception:  # noqa: BLE001 - an unreadable partial store is started afresh
+        return None
+
+
+def create_partial(tmp: Path, key: str, outputs: dict[str, tuple[tuple[int, ...], str, Any]],
+                   grid: tuple[int, int, int], attrs: dict[str, Any]) -> None:
+    """A new partial store: one array per output (name -> trailing shape, dtype, fill)
+    over the (T, S) grid in tiles of ``tile``, the fit's ``key`` and ``attrs``."""
+    T, S, tile = grid
+    g = zarr.open_group(tmp, mode="w")
+    comp = _compressor()
+    for name, (shape, dtype, fill) in outputs.items():
+        # dimension names let xarray.open_zarr label the maps
+        dims = ("row", "col") + tuple(f"{name}_{k}" for k in range(len(shape)))
+        g.create_array(name, shape=(T, S) + tuple(shape), chunks=(tile, tile) + tuple(shape),
+                       dtype=dtype, compressors=comp, fill_value=fill, dimension_names=dims,
+                       attributes={UNITS_ATTR: FIT_UNITS.get(name, "")})
+    g.attrs.update({**attrs, _RESUME_ATTR: key})
+
+
+def finish(tmp: Path, out_path: Path) -> None:
+    """Mark a partial store complete and move it to ``out_path`` (replacing it)."""
+    g = zarr.open_group(tmp, mode="r+")
+    if _RESUME_ATTR in g.attrs:
+        del g.attrs[_RESUME_ATTR]
+    g.attrs[COMPLETE_ATTR] = True
+    if out_path.exists():
+        shutil.rmtree(out_path)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    tmp.rename(out_path)
+
+
+def write_fit_store(path: Path, arrays: dict[str, tuple[np.ndarray, str, Any]], tile: int,
+                    attrs: dict[str, Any]) -> None:
+    """Write a whole fit store from in-memory (T, S, ...) arrays (name -> array, dtype,
+    fill value), under a temporary name, then renamed."""
+    tmp = path.with_name(f".{path.name}.partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    g = zarr.open_group(tmp, mode="w")
+    comp = _compressor()
+    for name, (arr, dtype, fill) in arrays.items():
+        a = g.create_array(name, shape=arr.shape, chunks=(tile, tile) + arr.shape[2:],
+                           dtype=dtype, compressors=comp, fill_value=fill,
+                           attributes={UNITS_ATTR: FIT_UNITS.get(name,
+                                                              _MATERIAL_UNITS.get(name, ""))})
+        a[...] = arr.astype(dtype)
+    g.attrs.update(attrs)
+    finish(tmp, path)

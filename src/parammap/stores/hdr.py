@@ -13,12 +13,51 @@ from pathlib import Path
 
 import numpy as np
 
-from ..conventions import NOISE_CHANNEL
 from ..errors import InputError
-from .exr import read_exr
+from .common import SOFTWARE_ATTR, UNITS_ATTR, software
+from .exr import read_exr, write_exr
 
-__all__ = ["HdrError", "load_reference_response", "load_response", "read_hdr", "read_hdr_noise",
-           "save_response"]
+__all__ = ["HDR_CHANNELS", "NOISE_CHANNEL", "HdrError", "load_reference_response",
+           "load_response", "read_hdr", "read_hdr_noise", "read_rgb", "save_response",
+           "hdr_provenance", "write_hdr", "write_rgb"]
+
+#: Channels of a merged HDR frame (``hdr/<view>.exr``): radiance, the masks, and the
+#: relative noise sd per pixel that the fits weigh observations by.
+RGB = ("R", "G", "B")
+SATURATED, DARK, NOISE_CHANNEL = "saturated", "dark", "noise"
+HDR_CHANNELS = (*RGB, SATURATED, DARK, NOISE_CHANNEL)
+
+
+def write_rgb(path: str | Path, rgb: np.ndarray, attrs: dict | None = None) -> Path:
+    """Write (H, W, 3) linear radiance as an RGB OpenEXR (atomically)."""
+    return write_exr(path, {c: rgb[..., i] for i, c in enumerate(RGB)}, attrs or {})
+
+
+def read_rgb(path: str | Path) -> np.ndarray:
+    """(H, W, 3) radiance of an RGB OpenEXR (:func:`write_rgb`, a merged frame)."""
+    ch, _ = read_exr(path)
+    return np.stack([ch[c] for c in RGB], -1)
+
+
+def hdr_provenance(config_digest: str, response_digest: str) -> dict[str, str]:
+    """Header attributes that say what made a frame: the software, and digests of the hdr
+    config and of the response (``linear`` for linear input)."""
+    return {SOFTWARE_ATTR: software(), "config_digest": config_digest,
+            "response_digest": response_digest}
+
+
+def write_hdr(path: str | Path, radiance: np.ndarray, saturated: np.ndarray,
+              dark: np.ndarray, noise: np.ndarray, view_id: str,
+              provenance: dict[str, str] | None = None) -> Path:
+    """Write a merged HDR frame: (H, W, 3) radiance, (H, W) bool masks of saturated and
+    dark pixels, (H, W) relative noise sd; the header names the view, the units and
+    ``provenance`` (:func:`hdr_provenance`)."""
+    return write_exr(path, {**{c: radiance[..., i] for i, c in enumerate(RGB)},
+                            SATURATED: saturated.astype(np.float32),
+                            DARK: dark.astype(np.float32), NOISE_CHANNEL: noise},
+                     {"view_id": view_id, UNITS_ATTR: "relative radiance (response exp(g)/t)",
+                      NOISE_CHANNEL: "relative sd of the radiance per pixel (merge_noise)",
+                      **(provenance or {})})
 
 
 class HdrError(InputError):
@@ -35,8 +74,8 @@ def read_hdr_noise(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray
     """:func:`read_hdr` plus the (H, W) relative noise sd of the frame (None for
     frames written before the merge recorded it)."""
     ch, _ = read_exr(path)
-    rad = np.stack([ch["R"], ch["G"], ch["B"]], -1).astype(np.float32)
-    return rad, ch["saturated"] > 0.5, ch["dark"] > 0.5, ch.get(NOISE_CHANNEL)
+    rad = np.stack([ch[c] for c in RGB], -1).astype(np.float32)
+    return rad, ch[SATURATED] > 0.5, ch[DARK] > 0.5, ch.get(NOISE_CHANNEL)
 
 
 def save_response(path: str | Path, g: np.ndarray, meta: dict | None = None) -> Path:

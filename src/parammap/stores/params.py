@@ -26,16 +26,17 @@ from typing import Any
 
 import numpy as np
 
-from .. import __version__
 from ..conventions import (
     BEST_CHANNELS,
     DIFFUSE_CHANNELS,
+    FitArray,
     mh_channels,
     mh_lobes,
     sd_channels,
     sh_bands,
     sh_channels,
 )
+from .common import HEIGHT_ATTR, S_ATTR, SOFTWARE_ATTR, T_ATTR, WIDTH_ATTR, software
 from .exr import ExrError, read_exr, write_exr
 from .fit import open_fit
 from .observation import open_observation_map
@@ -105,8 +106,8 @@ def write_param_map(path: str | Path, pm: ParamMap, half: bool = False) -> Path:
     T, S = pm.shape
     attrs = {"parammap_model": pm.model, "parammap_model_version": MODELS[pm.model],
              "parammap_layout": " ".join(names), "parammap_radiance_scale": 1.0,
-             "width_mm": float(pm.width_mm), "height_mm": float(pm.height_mm),
-             "S": int(S), "T": int(T), "software": f"parammap {__version__}"}
+             WIDTH_ATTR: float(pm.width_mm), HEIGHT_ATTR: float(pm.height_mm),
+             S_ATTR: int(S), T_ATTR: int(T), SOFTWARE_ATTR: software()}
     if pm.hemisphere:
         attrs["parammap_hemisphere"] = pm.hemisphere
     for k, v in pm.attrs.items():
@@ -148,7 +149,7 @@ def read_param_map(path: str | Path) -> ParamMap:
         raise ParamMapError(f"{path}: channels do not follow the {model} layout "
                             f"(expected {expected[:6]}...)")
     params = np.stack([chans[n] for n in layout], -1).astype(np.float32)
-    if params.shape[:2] != (int(h.get("T", -1)), int(h.get("S", -1))):
+    if params.shape[:2] != (int(h.get(T_ATTR, -1)), int(h.get(S_ATTR, -1))):
         raise ParamMapError(f"{path}: image size does not match S, T in the header")
     extra = {k[len("parammap_"):]: v for k, v in h.items() if k.startswith("parammap_")
              and k not in ("parammap_model", "parammap_model_version", "parammap_layout",
@@ -160,7 +161,7 @@ def read_param_map(path: str | Path) -> ParamMap:
         if not names:
             raise ParamMapError(f"{path}: a best map names no candidates")
         parts = {n: read_param_map(Path(path).parent / f"{n}.exr") for n in names}
-    return ParamMap(model, params, float(h["width_mm"]), float(h["height_mm"]),
+    return ParamMap(model, params, float(h[WIDTH_ATTR]), float(h[HEIGHT_ATTR]),
                     h.get("parammap_hemisphere"), extra, sd, parts)
 
 
@@ -177,25 +178,14 @@ def param_map_from_fit(fit_path: str | Path) -> ParamMap:
     """The parameter map of a finished fit store (``fit/<model>.zarr``)."""
 
     g = open_fit(fit_path)
-    model = g.attrs["model"]
-    key = "params" if model == "mh" else "coeffs"
-    attrs = {k: g.attrs[k] for k in ("lobes", "K_max", "bands", "coefficients",
-                                     "regularisation") if g.attrs.get(k) is not None}
-    return ParamMap(model, g[key][:], g.attrs["width_mm"], g.attrs["height_mm"],
-                    g.attrs.get("hemisphere"), attrs, g["sd"][:] if "sd" in g else None)
+    key = FitArray.PARAMS if g.model == "mh" else FitArray.COEFFS
+    sd = g.get(FitArray.SD)
+    return ParamMap(g.model, g[key][:], g.width_mm, g.height_mm, g.hemisphere, g.describe(),
+                    sd[:] if sd is not None else None)
 
 
 def diffuse_map(obs_path: str | Path) -> ParamMap:
     """The diffuse-only baseline: each texel's mean radiance over its valid
     observations (tile by tile)."""
     g = open_observation_map(obs_path)
-    T, S, _ = g["valid"].shape
-    tile = g.attrs["tile"]
-    kd = np.full((T, S, 3), np.nan, np.float32)
-    for r0 in range(0, T, tile):
-        for c0 in range(0, S, tile):
-            sl = (slice(r0, r0 + tile), slice(c0, c0 + tile))
-            v = g["valid"][sl][..., None]
-            L = np.nan_to_num(g["radiance"][sl])
-            kd[sl] = (L * v).sum(2) / np.maximum(v.sum(2), 1)
-    return ParamMap("diffuse", kd, g.attrs["width_mm"], g.attrs["height_mm"])
+    return ParamMap("diffuse", g.mean_radiance(), g.width_mm, g.height_mm)

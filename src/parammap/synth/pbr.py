@@ -39,7 +39,7 @@ import numpy as np
 from ..errors import InputError
 from ..geometry import texel_centres, undistort_normalized
 from ..stores.capture import aruco_dictionary
-from ..stores.exr import read_exr, write_exr
+from ..stores.hdr import read_rgb, write_rgb
 from ..stores.images import write_image_atomic
 from .generate import (
     _expose,
@@ -487,13 +487,11 @@ def generate_pbr(
     for k, (R, t) in enumerate(poses):
         rad = _render(mi, scene, cam, R, t, preset.spp, int(seeds[k]) % 2**31)
         radiance.append(rad)
-        write_exr(tmp_truth / "radiance" / f"{view_ids[k]}.exr",
-                  {"R": rad[..., 0], "G": rad[..., 1], "B": rad[..., 2]},
+        write_rgb(tmp_truth / "radiance" / f"{view_ids[k]}.exr", rad,
                   {"view_id": view_ids[k], "units": "scene radiance (exposure = radiance * t)"})
         if is_hold[k]:
             clean = _render(mi, scene, cam, R, t, preset.clean_spp, int(seeds[k]) % 2**31 + 1)
-            write_exr(tmp_truth / "clean" / f"{view_ids[k]}.exr",
-                      {"R": clean[..., 0], "G": clean[..., 1], "B": clean[..., 2]},
+            write_rgb(tmp_truth / "clean" / f"{view_ids[k]}.exr", clean,
                       {"view_id": view_ids[k], "spp": str(preset.clean_spp)})
         if (k + 1) % 10 == 0 or k + 1 == len(poses):
             logger.info(f"  rendered {k + 1}/{len(poses)} views ({time.perf_counter() - t0:.0f} s)")
@@ -567,8 +565,7 @@ def read_truth_radiance(truth_dir: str | Path, view_id: str, clean: bool = False
     """The radiance (H, W, 3) a generated photo was exposed from (``clean``: the
     high-sample render of a held-out view)."""
 
-    ch, _ = read_exr(Path(truth_dir) / ("clean" if clean else "radiance") / f"{view_id}.exr")
-    return np.stack([ch["R"], ch["G"], ch["B"]], -1)
+    return read_rgb(Path(truth_dir) / ("clean" if clean else "radiance") / f"{view_id}.exr")
 
 
 def patch_labels(truth_dir: str | Path, S: int, T: int, width_mm: float,

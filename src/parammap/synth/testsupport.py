@@ -220,9 +220,9 @@ def directions_against_truth(truth: str | Path, processed: str | Path, models: l
     obs = open_observation_map(proc.observation)
     rng = np.random.default_rng(seed)
     pick = rng.choice(T * S, min(samples, T * S), replace=False)
-    L = np.asarray(obs["radiance"][...], float).reshape(T * S, -1, 3)[pick]
-    V = np.asarray(obs["direction"][...], float).reshape(T * S, -1, 3)[pick]
-    W = np.asarray(obs["valid"][...], bool).reshape(T * S, -1)[pick] & np.isfinite(L).all(-1)
+    L = np.asarray(obs.radiance[...], float).reshape(T * S, -1, 3)[pick]
+    V = np.asarray(obs.direction[...], float).reshape(T * S, -1, 3)[pick]
+    W = np.asarray(obs.valid[...], bool).reshape(T * S, -1)[pick] & np.isfinite(L).all(-1)
     n, N = W.shape
     true_obs = true_radiance(scene, np.repeat(rows[pick], N), np.repeat(cols[pick], N),
                              V.reshape(-1, 3)).reshape(n, N, 3)

@@ -250,7 +250,7 @@ def write_surface_viewer(cap: Capture, processed: str | Path, models: list[str],
     poses = [(np.asarray(v["R"], float), np.asarray(v["t"], float)) for v in shown]
 
     g = open_observation_map(proc.observation)
-    inspector = inspector_payload(maps, g["radiance"], g["direction"], g["valid"])
+    inspector = inspector_payload(maps, g.radiance, g.direction, g.valid)
     logger.info(f"viewer: inspector every {inspector[0]['step']} texel(s), "
                 f"{len(inspector[1]) / 1e6:.1f} MB")
     path = write_viewer(out_dir, cap.surface_id, maps, intr, views, gamma, poses, inspector)

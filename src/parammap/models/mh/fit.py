@@ -16,6 +16,7 @@ from ...conventions import (
     MH_M,
     MHX_KD,
     MHX_LNM,
+    FitArray,
     FitStatus,
     mh_dir,
     mh_dir_z,
@@ -518,14 +519,14 @@ def fit_texel(V: np.ndarray, L: np.ndarray, p0: np.ndarray,
 def mh_outputs(K_max: int) -> dict[str, tuple[tuple[int, ...], str, float]]:
     """Arrays of an MH fit store: name -> (trailing shape, dtype, fill value)."""
     return {
-        "params": ((mh_size(K_max),), "float32", float("nan")),
-        "rmse": ((3,), "float32", float("nan")),
-        "mpr": ((3,), "float32", float("nan")),
-        "chi2": ((), "float32", float("nan")),
-        "sd": ((mh_sd_size(K_max),), "float32", float("nan")),
-        "k_used": ((), "int8", 0),
-        "evals": ((), "int32", 0),
-        "status": ((), "int8", int(FitStatus.NOT_FITTED)),
+        FitArray.PARAMS: ((mh_size(K_max),), "float32", float("nan")),
+        FitArray.RMSE: ((3,), "float32", float("nan")),
+        FitArray.MPR: ((3,), "float32", float("nan")),
+        FitArray.CHI2: ((), "float32", float("nan")),
+        FitArray.SD: ((mh_sd_size(K_max),), "float32", float("nan")),
+        FitArray.K_USED: ((), "int8", 0),
+        FitArray.EVALS: ((), "int32", 0),
+        FitArray.STATUS: ((), "int8", int(FitStatus.NOT_FITTED)),
     }
 
 
@@ -571,7 +572,7 @@ def fit_mh_tile(
     todo = np.flatnonzero(nobs >= 4)  # 004: at least four observations
     few = np.flatnonzero(nobs < 4)
     flat = {k: v.reshape((t * u,) + v.shape[2:]) for k, v in out.items()}
-    flat["status"][few] = FitStatus.TOO_FEW
+    flat[FitArray.STATUS][few] = FitStatus.TOO_FEW
     if len(todo) == 0:
         return out
     init = initial_guess_batch if cfg.init == "better" else initial_guess_published
@@ -673,23 +674,23 @@ def fit_mh_tile(
                 stopped[j] = True
     for j, b in enumerate(todo):
         r, k = best[j]
-        flat["params"][b] = _padded(r.params, k, Kmax)
-        flat["k_used"][b] = k
-        flat["evals"][b] = evals[j]
-        flat["status"][b] = r.status
+        flat[FitArray.PARAMS][b] = _padded(r.params, k, Kmax)
+        flat[FitArray.K_USED][b] = k
+        flat[FitArray.EVALS][b] = evals[j]
+        flat[FitArray.STATUS][b] = r.status
     # residual diagnostics for the whole tile at once
-    ok = todo[flat["status"][todo] == FitStatus.OK]
+    ok = todo[flat[FitArray.STATUS][todo] == FitStatus.OK]
     if select and len(ok):
         _select_lobes(flat, alts, ok, (t, u), V, L, W, NW, cfg.lobe_window)
     if len(ok):
-        P = flat["params"][ok].astype(float)
+        P = flat[FitArray.PARAMS][ok].astype(float)
         before = _lobes_present(P)
         P = drop_negligible_lobes(P, V[ok], L[ok], W[ok])
         after = _lobes_present(P)
         for j in np.flatnonzero(after < before):
             # the lobes left were fitted beside the one now gone: refit them alone
             b, k = ok[j], int(after[j])
-            flat["k_used"][b] = k
+            flat[FitArray.K_USED][b] = k
             w = W[b]
             v, y, wt = V[b][w], L[b][w], NW[b][w]
             if k == 0:
@@ -703,15 +704,16 @@ def fit_mh_tile(
                 continue
             if r.status == FitStatus.OK and r.rss < rss0:
                 P[j, : mh_size(k)] = r.params
-        flat["params"][ok] = P
-        P = flat["params"][ok].astype(float)
-        flat["rmse"][ok], flat["mpr"][ok] = residual_stats(P, V[ok], L[ok], W[ok])
-        flat["sd"][ok] = parameter_sd(flat["params"][ok].astype(float), V[ok], L[ok], W[ok],
+        flat[FitArray.PARAMS][ok] = P
+        P = flat[FitArray.PARAMS][ok].astype(float)
+        flat[FitArray.RMSE][ok], flat[FitArray.MPR][ok] = residual_stats(P, V[ok], L[ok], W[ok])
+        flat[FitArray.SD][ok] = parameter_sd(flat[FitArray.PARAMS][ok].astype(float), V[ok],
+                                             L[ok], W[ok],
                                       NW[ok])
         if NZ is not None:
             # free parameters: Kd, m, and per lobe Ks and a direction (two angles)
-            flat["chi2"][ok] = reduced_chi2(L[ok], mh_eval(P, V[ok]), NZ[ok], W[ok],
-                                            mhx_size(flat["k_used"][ok].astype(int)))
+            flat[FitArray.CHI2][ok] = reduced_chi2(L[ok], mh_eval(P, V[ok]), NZ[ok], W[ok],
+                                            mhx_size(flat[FitArray.K_USED][ok].astype(int)))
     return out
 
 
@@ -763,7 +765,7 @@ def _select_lobes(flat: dict, alts: dict[int, np.ndarray], ok: np.ndarray,
     ks = sorted(alts)
     # whether a texel has a lobe at all stays BIC's choice (and drop_negligible_lobes'):
     # a lobe that one view alone saw has no leave-one-out support, yet may be real
-    ok = ok[np.isin(flat["k_used"][ok], ks)]
+    ok = ok[np.isin(flat[FitArray.K_USED][ok], ks)]
     if len(ok) == 0:
         return
     errs = np.full((len(ks), len(ok)), np.inf)
@@ -791,7 +793,7 @@ def _select_lobes(flat: dict, alts: dict[int, np.ndarray], ok: np.ndarray,
         pooled.append(uniform_filter(g.reshape(shape), window, mode="nearest").ravel()[ok])
     pooled = np.array(pooled)
     # a texel keeps its fit unless another is available and predicts better
-    cur = np.searchsorted(ks, flat["k_used"][ok])
+    cur = np.searchsorted(ks, flat[FitArray.K_USED][ok])
     avail = np.array([np.isfinite(alts[k][ok]).all(1) for k in ks])
     pooled = np.where(avail, pooled, np.inf)
     choice = np.argmin(pooled, 0)  # argmin takes the first: fewer lobes on a tie
@@ -799,8 +801,8 @@ def _select_lobes(flat: dict, alts: dict[int, np.ndarray], ok: np.ndarray,
                                 < pooled[cur, np.arange(len(ok))])
     for i, k in enumerate(ks):
         b = ok[change & (choice == i)]
-        flat["params"][b] = alts[k][b]
-        flat["k_used"][b] = k
+        flat[FitArray.PARAMS][b] = alts[k][b]
+        flat[FitArray.K_USED][b] = k
 
 
 # Observations that must see a lobe above twice the texel's noise for it to count as

@@ -16,6 +16,7 @@ from scipy.stats import chi2
 from ...conventions import (
     MH_KD,
     MH_M,
+    FitArray,
     FitStatus,
     mh_dir,
     mh_dir_z,
@@ -224,14 +225,14 @@ def repair_mh_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
     # working copies over the halo: a texel repaired in one round is a start for the
     # next (a large stain is repaired from its rim inwards, and its shrinking lowers
     # the neighbourhood medians that hid its core)
-    params = np.array(fields["params"], copy=True)
-    status = np.array(fields["status"], copy=True)
-    kused = np.array(fields["k_used"], copy=True)
-    rmse = np.array(fields["rmse"], copy=True)
-    out = {k: np.array(fields[k][sl]) for k in ("params", "rmse", "mpr", "chi2", "sd",
-                                                "k_used", "evals", "status")
-           if k in fields}
-    out["changed"] = np.zeros((t, u), np.int8)
+    params = np.array(fields[FitArray.PARAMS], copy=True)
+    status = np.array(fields[FitArray.STATUS], copy=True)
+    kused = np.array(fields[FitArray.K_USED], copy=True)
+    rmse = np.array(fields[FitArray.RMSE], copy=True)
+    out = {k: np.array(fields[k][sl])
+           for k in (FitArray.PARAMS, FitArray.RMSE, FitArray.MPR, FitArray.CHI2, FitArray.SD,
+                     FitArray.K_USED, FitArray.EVALS, FitArray.STATUS) if k in fields}
+    out[FitArray.CHANGED] = np.zeros((t, u), np.int8)
     tried = np.zeros((t, u), bool)
     data = _tile_data(radiance, direction, valid, noise)
     NZ = None if noise is None else noise.reshape(t * u, -1)
@@ -241,16 +242,16 @@ def repair_mh_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
         w = data[2][i * u + j] > 0
         V, L = data[0][i * u + j][w], data[1][i * u + j][w]
         fitted = mh_eval(p, V)
-        out["params"][i, j] = params[i + oy, j + ox] = p
-        out["k_used"][i, j] = kused[i + oy, j + ox] = k
-        out["status"][i, j] = status[i + oy, j + ox] = FitStatus.OK
-        out["rmse"][i, j] = rmse[i + oy, j + ox] = np.sqrt(((fitted - L) ** 2).mean(0))
-        out["mpr"][i, j] = mean_percentage_residual(L, fitted)
-        if "chi2" in out:
-            out["chi2"][i, j] = reduced_chi2(
+        out[FitArray.PARAMS][i, j] = params[i + oy, j + ox] = p
+        out[FitArray.K_USED][i, j] = kused[i + oy, j + ox] = k
+        out[FitArray.STATUS][i, j] = status[i + oy, j + ox] = FitStatus.OK
+        out[FitArray.RMSE][i, j] = rmse[i + oy, j + ox] = np.sqrt(((fitted - L) ** 2).mean(0))
+        out[FitArray.MPR][i, j] = mean_percentage_residual(L, fitted)
+        if FitArray.CHI2 in out:
+            out[FitArray.CHI2][i, j] = reduced_chi2(
                 L[None], fitted[None], None if NZ is None else NZ[i * u + j][w][None],
                 np.ones((1, len(L)), bool), mhx_size(k))[0]
-        out["changed"][i, j] = 1
+        out[FitArray.CHANGED][i, j] = 1
 
     fresh = None  # texels changed in the last round: their neighbours are tried again
     for _ in range(REPAIR_ROUNDS):
@@ -280,23 +281,23 @@ def repair_mh_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
             if r is None:
                 continue
             p, k, evals = r
-            out["evals"][i, j] += evals
+            out[FitArray.EVALS][i, j] += evals
             if p is None:
                 continue
             take(i, j, p, k)
             fresh[i + oy, j + ox] = True
         if not fresh.any():
             break
-    if "sd" in out and out["changed"].any():
-        _update_sd(out, data, u, out["changed"] > 0)
-    if pool and "sd" in out and "sd" in fields:
-        sd = np.array(fields["sd"], copy=True)
-        sd[sl] = out["sd"]
+    if FitArray.SD in out and out[FitArray.CHANGED].any():
+        _update_sd(out, data, u, out[FitArray.CHANGED] > 0)
+    if pool and FitArray.SD in out and FitArray.SD in fields:
+        sd = np.array(fields[FitArray.SD], copy=True)
+        sd[sl] = out[FitArray.SD]
         pooled = _pool_shininess(params, sd, kused, status, data, offset, (t, u), take,
                                  out, cfg=cfg, radius=radius)
         if pooled.any():
             _update_sd(out, data, u, pooled)
-    return out if out["changed"].any() or tried.any() else None
+    return out if out[FitArray.CHANGED].any() or tried.any() else None
 
 
 def _update_sd(out: dict[str, np.ndarray], data: tuple[np.ndarray, np.ndarray, np.ndarray],
@@ -304,7 +305,7 @@ def _update_sd(out: dict[str, np.ndarray], data: tuple[np.ndarray, np.ndarray, n
     """The parameter uncertainties of the tile's texels ``which`` (t, u), all at once."""
     ci, cj = np.nonzero(which)
     b = ci * width + cj
-    out["sd"][ci, cj] = parameter_sd(out["params"][ci, cj].astype(float), data[0][b],
+    out[FitArray.SD][ci, cj] = parameter_sd(out[FitArray.PARAMS][ci, cj].astype(float), data[0][b],
                                      data[1][b], data[2][b] > 0, data[2][b])
 
 
@@ -417,7 +418,7 @@ def _pool_shininess(params: np.ndarray, sd: np.ndarray, kused: np.ndarray,
             r = fit_texel(V, L, p0, cfg, w=wt, fixed_m=True)
         except Exception:  # noqa: BLE001 - the texel keeps its own fit
             continue
-        out["evals"][i, j] += r.evals
+        out[FitArray.EVALS][i, j] += r.evals
         if r.status != FitStatus.OK or not (3 * len(V) * math.log(max(r.rss, 1e-300)
                                                                / max(rss0, 1e-300)) < POOL_LR):
             continue
