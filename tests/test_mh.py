@@ -244,8 +244,8 @@ def test_unknown_scheduler_is_a_clear_error(tmp_path):
 
 @pytest.mark.parametrize("loss", ["linear", "soft_l1", "huber"])
 def test_compiled_objective_matches_numpy_and_finite_differences(loss):
-    from parammap.models.mh.fit import _objective
     from parammap.models.mh.kernel import cost_grad
+    from parammap.models.mh.optim import _objective
 
     if cost_grad is None:
         pytest.skip("numba not installed: only the numpy objective exists")
@@ -281,8 +281,8 @@ def test_gram_matches_numpy():
 
 def test_fit_without_numba_gives_the_same_parameters(monkeypatch):
     """The numpy fallback (no numba installed) fits to the same optimum."""
-    import parammap.models.mh.fit as mh
     import parammap.models.mh.kernel as kern
+    import parammap.models.mh.optim as mh
 
     case = phong_case(noise=0.002)
     with_numba = _fit(case, 1)
@@ -721,9 +721,9 @@ def test_compiled_lm_reaches_the_truth_and_respects_bounds():
     """The bounded LM (active set) recovers a noise-free texel's parameters from a start
     far off (half the Kd, 2.2x the m, 3x the Ks, the lobe 15-20 deg away) and ends within
     its bounds."""
-    from parammap.models.mh.fit import _bounds
-    from parammap.models.mh.kernel import LM_CONVERGED, lm_batch
     from parammap.models.mh.model import _params_to_x_batch, _x_to_params_batch
+    from parammap.models.mh.optim import _bounds
+    from parammap.models.mh.solve import LM_CONVERGED, lm_batch
 
     case = phong_case(texels=4)
     V = case.direction[1, 1].astype(float)

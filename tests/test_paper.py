@@ -156,7 +156,7 @@ def test_planar_voronoi_areas_as_published():
     """004's quadrature: planar Voronoi cells in the unit disc divided by cos(theta);
     they cover the hemisphere (2 pi) when the views reach the equator, and differ from
     the spherical cells most near the equator."""
-    from parammap.models.sh import planar_solid_angles, solid_angles
+    from parammap.models.sh.basis import planar_solid_angles, solid_angles
     from parammap.synth.sampling import icosahedron
 
     d = icosahedron(3, 90.0)

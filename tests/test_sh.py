@@ -7,14 +7,8 @@ import pytest
 from scipy.spatial import SphericalVoronoi
 from scipy.special import sph_harm_y
 
-from parammap.models.sh import (
-    hemisphere_gram,
-    parse_sh_model,
-    project,
-    sh_basis,
-    sh_eval,
-    solid_angles,
-)
+from parammap.models.sh import parse_sh_model
+from parammap.models.sh.basis import hemisphere_gram, project, sh_basis, sh_eval, solid_angles
 from parammap.stages.fit import fit_sh_map
 from parammap.stores.fit import open_fit
 from parammap.stores.observation import write_observation_arrays

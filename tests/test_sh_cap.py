@@ -5,14 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from parammap.models.sh import (
-    SampledCap,
-    cap_radius,
-    guarded_project,
-    project,
-    sh_eval,
-    solid_angles,
-)
+from parammap.models.sh.basis import project, sh_eval, solid_angles
+from parammap.models.sh.cap import SampledCap, cap_radius, guarded_project
 from parammap.synth.cases import phong_case
 from parammap.synth.sampling import icosahedron
 
@@ -118,7 +112,7 @@ def test_map_fit_records_lambda_and_guard(tmp_path):
 
 
 def test_bands_follow_the_view_spacing():
-    from parammap.models.sh import resolvable_bands
+    from parammap.models.sh.cap import resolvable_bands
 
     def spiral(n, max_deg):
         k = np.arange(n)
@@ -170,7 +164,7 @@ def test_coefficient_sd_matches_the_spread_over_noise_realisations(tmp_path):
 
 
 def test_smoother_loo_is_exact_for_a_fixed_prior():
-    from parammap.models.sh import smoother, smoother_loo
+    from parammap.models.sh.cap import smoother, smoother_loo
 
     rng = np.random.default_rng(3)
     B, N, k = 2, 15, 9

@@ -25,7 +25,7 @@ from .geometry import (
     unit,
 )
 from .models.mh import mh_eval
-from .models.sh import sh_eval
+from .models.sh.basis import sh_eval
 from .stores.params import ParamMap, best_shares
 
 __all__ = ["bilinear_corners", "evaluate", "evaluate_bilinear", "lookup_bilinear", "render",

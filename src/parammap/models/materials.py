@@ -45,8 +45,8 @@ import numpy as np
 
 from ..config import default
 from ..conventions import MH_KD, MH_M, FitArray, mh_dir, mh_ks, mh_lobes, mh_size
-from .mh.fit import KS_CAP
 from .mh.model import M_MAX, M_MIN, mh_eval
+from .mh.optim import KS_CAP
 
 __all__ = [
     "adjusted_rand_index",

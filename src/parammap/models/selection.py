@@ -22,7 +22,7 @@ import numpy as np
 from ..conventions import MH_KD, mh_ks, mh_lobes, mhx_phi, mhx_theta
 from .mh.model import mh_eval
 from .mh.uncertainty import jacobian_x
-from .sh import sh_basis, sh_eval
+from .sh.basis import sh_basis, sh_eval
 
 __all__ = ["INFLUENCE", "display_error", "influential", "loo_amplitudes", "loo_diffuse",
            "loo_linear", "loo_sh", "predict", "press", "press_linear", "view_errors"]

@@ -35,7 +35,7 @@ from ..conventions import (
 )
 from ..errors import InputError
 from ..models.mh import mh_eval
-from ..models.sh import sh_eval
+from ..models.sh.basis import sh_eval
 from ..plots import (
     default_lobe_texels,
     fit_figures,

@@ -51,7 +51,8 @@ from ..models.mh import (
     repair_mh_tile,
     stains,
 )
-from ..models.sh import GUARD_STEPS, fit_sh_tile, parse_sh_model, sh_outputs
+from ..models.sh import fit_sh_tile, parse_sh_model, sh_outputs
+from ..models.sh.cap import GUARD_STEPS
 from ..parallel import worker_initializer
 from ..stores.common import mtime_ns
 from ..stores.fit import (

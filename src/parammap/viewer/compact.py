@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 
 from ..conventions import MH_HEAD, mh_dir, mh_ks, mh_size
-from ..models.sh import sh_basis
+from ..models.sh.basis import sh_basis
 from ..render import render, tone_map
 from .layers import (
     MH_LAYERS_PER_LOBE,  # the viewer's texture layout (viewer_layers)

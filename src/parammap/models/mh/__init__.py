@@ -19,20 +19,10 @@ guesses), :mod:`.fit` (batched LM, nlopt, lobe selection, a tile), :mod:`.repair
 """
 
 from ..residuals import mean_percentage_residual
-from .fit import (
-    ALGORITHMS,
-    K_MAX_AUTO,
-    FitResult,
-    MhFitConfig,
-    drop_negligible_lobes,
-    fit_mh_tile,
-    fit_texel,
-    mh_outputs,
-    polish_batch,
-    refine_batch,
-)
+from .fit import K_MAX_AUTO, drop_negligible_lobes, fit_mh_tile, mh_outputs
 from .initial import initial_guess_batch, initial_guess_published
 from .model import M_MAX, M_MIN, bic, mh_eval, parse_lobes
+from .optim import ALGORITHMS, FitResult, MhFitConfig, fit_texel, polish_batch, refine_batch
 from .repair import REPAIR_FACTOR, REPAIR_RADIUS, REPAIR_STARTS, repair_mh_tile, stains
 
 __all__ = [

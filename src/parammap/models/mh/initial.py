@@ -8,8 +8,9 @@ import math
 import numpy as np
 
 from ...conventions import MH_KD, MH_M, mh_dir, mh_ks, mh_lobes, mh_size
-from .kernel import gram, initial_batch
+from .kernel import gram
 from .model import LN_M_MAX, mh_eval
+from .starts import initial_batch
 
 
 def _nnls_batch(A: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

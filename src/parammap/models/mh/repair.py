@@ -27,9 +27,9 @@ from ...conventions import (
 )
 from ..residuals import mean_percentage_residual
 from ..weights import noise_weights, reduced_chi2
-from .fit import MhFitConfig, fit_texel, refine_batch
-from .kernel import rescaled_batch
 from .model import bic, mh_eval
+from .optim import MhFitConfig, fit_texel, refine_batch
+from .starts import rescaled_batch
 from .uncertainty import parameter_sd
 
 # A texel whose RMSE exceeds this many times the median of its neighbourhood is refit

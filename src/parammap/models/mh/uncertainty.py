@@ -36,8 +36,8 @@ from ...conventions import (
     mhx_size,
     mhx_theta,
 )
-from .kernel import sandwich_batch
 from .model import M_MAX, M_MIN, _lobes_present, _params_to_x_batch, mh_eval
+from .solve import sandwich_batch
 
 __all__ = ["jacobian_x", "loo_error", "loo_residuals", "parameter_sd"]
 

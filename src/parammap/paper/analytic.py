@@ -1,180 +1,46 @@
-"""Regenerate the published experiments of 004 (and 000) under the published conditions.
-
-``parammap paper --out reports/paper`` (``make paper``) writes one CSV per experiment
-with the published figure, ours under the published method and ours under our
-defaults, and ``reports/paper/README.md`` with the conditions chosen where the thesis
-leaves them unstated. Experiments (004 chapter in brackets):
-
-- ``point_area`` (11.3.1): one point light, then a small area light; MH, one lobe.
-- ``second_light`` (11.3.2): a second, weaker light ever further away; one lobe as
-  published, then two lobes and ``auto``.
-- ``sh_sweep`` (12.5): SH with 16 ... 100 coefficients, ZH and LSOP as published (and
-  mirror), against our sampled-cap projections; residuals and the values near the
-  equator.
-- ``shininess`` (13.1): eight bands of increasing shininess; the highest each model
-  follows.
-- ``view_count`` (13.2-13.3): 17 / 73 / 305 views and the non-uniform 73 + 81.
-- ``initialisers`` (001): the greedy virtual lights against 004's initial guess.
-- ``holdout`` (16, tables 16.1 / 16.2): held-out views of one of our captures, with
-  the models 004 compared (given a capture and its processed folder).
-- ``sizes`` (tables 9.1, 11.1, 12.1): storage by formula, as published, and measured
-  for our EXR files.
-- ``sampling`` (8.1): the spiral and latitude-longitude schemes as published, with a
-  coverage figure each.
-
-The published conditions (004 ch. 11.3): a 1000 x 1000 surface in 16 x 16 texels, a
-white point light at [1500, 1500, 2000] from the surface centre, a Phong material of
-colour [200, 15, 15], 289 icosahedron views, renders in 8 bits (clipped at 255).
-"""
+"""The experiments on analytic scenes under the published conditions (004 ch. 8, 11-13;
+001)."""
 
 from __future__ import annotations
 
-import csv
-import inspect
 import logging
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .config import default
-from .conventions import LUMINANCE, FitArray, mh_size
-from .errors import InputError
-from .models.mh import (
-    K_MAX_AUTO,
+from ..conventions import LUMINANCE, FitArray, mh_size
+from ..models.mh import (
     MhFitConfig,
     fit_mh_tile,
     initial_guess_batch,
     initial_guess_published,
     mh_eval,
 )
-from .models.residuals import mean_percentage_residual
-from .models.sh import fit_sh_tile, hemisphere_grid, sh_eval
-from .plots import plot_lobes, save_figure
-from .render import render, surface_points
-from .stages.fit import fit_mh_map, fit_sh_map
-from .stages.holdout import choose_gamma, compare, marker_pixels
-from .stores.camera import load_intrinsics, read_poses
-from .stores.capture import load_capture
-from .stores.common import store_bytes
-from .stores.hdr import read_hdr
-from .stores.observation import open_observation_map
-from .stores.params import param_map_from_fit, read_param_map
-from .stores.paths import Processed
-from .synth.cases import Case, phong_case
-from .synth.sampling import icosahedron
-from .synth.scene import true_radiance
-
-__all__ = ["CONDITIONS", "EXPERIMENTS", "quantise_8bit", "run_paper"]
+from ..models.residuals import mean_percentage_residual
+from ..models.sh import fit_sh_tile
+from ..models.sh.basis import sh_eval
+from ..models.sh.cap import hemisphere_grid
+from ..plots import save_figure
+from ..synth.cases import phong_case
+from ..synth.sampling import icosahedron
+from ..synth.scene import true_radiance
+from .common import (
+    CONDITIONS,
+    PUBLISHED,
+    Conditions,
+    _entry,
+    _fit_mh,
+    _lobe_figure,
+    _luminance,
+    _mh_fitted,
+    _row,
+    _st,
+    published_case,
+    quantise_8bit,
+)
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class Conditions:
-    """The published set-up, with a value for what 004 leaves unstated (``why``)."""
-
-    colour: tuple[int, int, int] = (200, 15, 15)
-    light: tuple[float, float, float] = (1500.0, 1500.0, 2000.0)
-    texels: int = 16
-    # 004: "289 directions following the icosahedron sampling scheme"; the level-3
-    # subdivision has 289 vertices up to 85 deg (305 up to the ring at 85.35 deg).
-    views_level: int = 3
-    views_max_zenith_deg: float = 85.0
-    ks: float = 1.0
-    m: float = 30.0
-    camera_distance_mm: float = 3000.0
-    area_pitch_mm: float = 150.0
-    second_light_intensity: float = 0.8
-    why: dict[str, str] = field(default_factory=lambda: {
-        "ks, m": "unstated; a white specular of 255 levels at its peak and shininess 30, "
-                 "a moderately glossy 3ds Max Phong material",
-        "diffuse level": "the surface colour is the diffuse level under one light; "
-                         "lights add (with two lights red exceeds 255 everywhere, which "
-                         "is why 004's red residual is 0.00 in ch. 11.3.2)",
-        "camera distance": "unstated; 3000 mm from the centre (views see the surface "
-                           "from nearly one direction per view)",
-        "area light": "'8 point light sources at the same height around' the first: a "
-                      "3 x 3 grid, 150 mm pitch, each 1/9 of the intensity",
-        "second light": "'slightly lower intensity': 0.8",
-        "texel [8, 8]": "004's map position (s, t) = (8, 8), t upwards: our row 7, col 8",
-    })
-
-
-CONDITIONS = Conditions()
-
-#: 004's published figures (mean percentage residual per channel, R G B).
-PUBLISHED = {
-    "point light [8, 8]": (0.94, 2.34, 2.34),
-    "point light [14, 14]": (0.89, 2.27, 2.27),
-    "area light [8, 8]": (0.69, 4.30, 4.30),
-    "second light at [450, 450]": (0.00, 9.89, 9.89),
-    "second light at [-450, -450]": (0.00, 20.58, 20.58),
-    "second light at [-1500, -1500]": (0.00, 22.07, 22.07),
-    "sh-lsop-100": (11.61, 16.03, 16.03),
-    "sh-zh-100": (7.67, 16.72, 16.72),
-}
-
-
-def quantise_8bit(radiance: np.ndarray) -> np.ndarray:
-    """Radiance as 004's renders stored it: 8-bit levels, clipped at 255, back in
-    radiance units (level / 255)."""
-    return np.clip(np.round(np.asarray(radiance) * 255.0), 0, 255) / 255.0
-
-
-def _st(s: int, t: int, c: Conditions = CONDITIONS) -> tuple[int, int]:
-    """(row, col) of 004's map position (s, t) with t upwards."""
-    return c.texels - 1 - t, s
-
-
-def published_case(lights, intensities, c: Conditions = CONDITIONS) -> Case:
-    """004's scene with the given lights (positions from the surface centre), observed
-    from the published 289 views and quantised to 8 bits."""
-    total = float(np.sum(intensities))
-    case = phong_case(colour=tuple(np.asarray(c.colour) * total), ks=c.ks, m=c.m,
-                      lights=lights, intensities=intensities, level=c.views_level,
-                      max_zenith_deg=c.views_max_zenith_deg, texels=c.texels,
-                      camera_distance_mm=c.camera_distance_mm)
-    case.radiance = quantise_8bit(case.radiance).astype(np.float32)
-    return case
-
-
-def _fit_mh(case: Case, K, init: str, polish: str = default("fit.mh.polish")) -> dict[str,
-                                                                                      np.ndarray]:
-    return fit_mh_tile(case.radiance, case.direction, case.valid, K,
-                       MhFitConfig(init=init, polish=polish),
-                       K_max=K_MAX_AUTO if K == "auto" else K)
-
-
-def _row(experiment: str, case: str, published, ours_pub, ours_def, note: str = ""):
-    def f(v) -> str:
-        return "" if v is None else " ".join(f"{x:.2f}" for x in np.ravel(v))
-
-    return {"experiment": experiment, "case": case, "published": f(published),
-            "ours_published_method": f(ours_pub), "ours_defaults": f(ours_def),
-            "note": note}
-
-
-def _lobe_figure(out_dir: str | Path | None, name: str, entries: list[dict],
-                 title: str) -> None:
-    """Measured and fitted radiance over the hemisphere with percentage residuals, as
-    004's figures draw them (``<out_dir>/<name>.png``)."""
-    if out_dir is not None and entries:
-
-        plot_lobes(entries, Path(out_dir) / f"{name}.png", title)
-
-
-def _entry(label: str, case: Case, texel: tuple[int, int], fitted: np.ndarray) -> dict:
-    r, col = texel
-    return {"label": label, "direction": case.direction[r, col].astype(float),
-            "measured": case.radiance[r, col].astype(float), "fitted": fitted}
-
-
-def _mh_fitted(o: dict, case: Case, texel: tuple[int, int]) -> np.ndarray:
-
-    r, col = texel
-    return mh_eval(o[FitArray.PARAMS][r, col].astype(float), case.direction[r, col].astype(float))
 
 
 def exp_point_area(c: Conditions = CONDITIONS, out_dir: str | Path | None = None,
@@ -301,11 +167,9 @@ def exp_sizes() -> list[dict[str, Any]]:
 
 
 SHININESS_BANDS = (2.0, 5.0, 10.0, 15.0, 25.0, 50.0, 100.0, 200.0)
+
+
 PEAK_TOLERANCE = 0.10  # a model "follows" a band when its peak is within 10 %
-
-
-def _luminance(x: np.ndarray) -> np.ndarray:
-    return np.asarray(x, float) @ LUMINANCE
 
 
 def exp_shininess(c: Conditions = CONDITIONS, out_dir: str | Path | None = None,
@@ -460,80 +324,6 @@ def exp_initialisers(c: Conditions = CONDITIONS) -> list[dict[str, Any]]:
     return rows
 
 
-#: 004 tables 16.1 (flyer) and 16.2 (patchwork): mean and sd of the 8-bit difference
-#: images per held-out view; gammas of 16.2 (16.1 does not state them).
-PUBLISHED_HOLDOUT = {
-    "16.1 flyer view 1": ((12.66, 20.03, 15.95, 19.67, 38.29),
-                          (20.57, 35.87, 30.61, 35.23, 36.79)),
-    "16.1 flyer view 2": ((3.66, 4.17, 6.52, 4.05, 22.12), (12.71, 12.97, 13.50, 12.74, 31.50)),
-    "16.2 patchwork view 1 (gamma 500)": ((5.03, 20.22, 15.33, 21.61, 12.54),
-                                          (17.92, 38.15, 23.84, 36.15, 21.15)),
-    "16.2 patchwork view 2 (gamma 100)": ((7.15, 15.60, 18.98, 17.60, 16.03),
-                                          (24.31, 32.16, 31.73, 32.87, 32.90)),
-}
-HOLDOUT_METHODS = ("Phong", "SHZH16", "SHZH64", "SHLSOP16", "SHLSOP64")
-
-
-def exp_holdout(capture: str | Path, processed: str | Path, workers: int = default("workers"),
-                quick: bool = False) -> list[dict[str, Any]]:
-    """004 ch. 16 on one of our captures: every held-out view, the mean and sd of the
-    8-bit difference image for Phong (MH, one lobe, 004's initial guess), SH ZH and
-    LSOP with 16 and 64 coefficients as published (no sampled cap), and our defaults
-    (mh-auto, sh-rlsop-36 with the sampled cap), at the gamma our comparison chooses
-    (004's gammas 500 and 100 assume its radiance units: on ours every pixel
-    saturates). 004's tables follow for reference (other surfaces). Fits run in a
-    temporary folder from the capture's observation map; nothing of the processed
-    folder changes. ``quick`` (the test suite) fits Phong, SHZH16 and ours only."""
-    import tempfile
-
-
-    proc = Processed(processed)
-    cap = load_capture(capture)
-    intr = load_intrinsics(proc.intrinsics)
-    maps = {}
-    with tempfile.TemporaryDirectory() as tmp:
-        jobs = {"Phong": ("mh", 1, {"init": "published", "repair": False}),
-                "SHZH16": ("sh", ("zh", 4), {}), "SHZH64": ("sh", ("zh", 8), {}),
-                "SHLSOP16": ("sh", ("lsop", 4), {"sampled_cap": False}),
-                "SHLSOP64": ("sh", ("lsop", 8), {"sampled_cap": False}),
-                "ours mh-auto": ("mh", "auto", {}), "ours sh-rlsop-36": ("sh", ("rlsop", 6), {})}
-        if quick:
-            jobs = {k: v for k, v in jobs.items() if k in ("Phong", "SHZH16",
-                                                             "ours sh-rlsop-36")}
-        for name, (family, args, cfg) in jobs.items():
-            store = Path(tmp) / f"{len(maps)}.zarr"
-            if family == "mh":
-                fit_mh_map(proc.observation, store, args, cfg, "processes", workers)
-            else:
-                fit_sh_map(proc.observation, store, *args, cfg, "processes", workers)
-            maps[name] = param_map_from_fit(store)
-    rows = []
-    for r in read_poses(proc.poses)["views"]:
-        if not (r.get("holdout") and r.get("kept")):
-            continue
-        R, t = np.asarray(r["R"], float), np.asarray(r["t"], float)
-        photo, sat, _ = read_hdr(proc.hdr(str(r["id"])))
-        size = (photo.shape[1], photo.shape[0])
-        P, inside = surface_points(intr, R, t, cap.width_mm, cap.height_mm, size)
-        mask = inside & ~sat & ~marker_pixels(cap, P)
-        renders = {name: render(pm, intr, R, t, size)[0] for name, pm in maps.items()}
-        # 004's gammas (500, 100) assume its radiance units: on ours every pixel of
-        # photo and render saturates, so the comparison uses our choice (median
-        # radiance to mid-grey), stated per view
-        gamma = choose_gamma(photo, mask)
-        res = {name: compare(photo, img, mask, gamma) for name, img in renders.items()}
-        rows.append({"view": f"{r['id']} (gamma {gamma:.3g})", "statistic": "Mean"}
-                    | {n: f"{res[n]['mean_diff_8bit']:.2f}" for n in maps})
-        rows.append({"view": "", "statistic": "Std.dev"}
-                    | {n: f"{res[n]['std_diff_8bit']:.2f}" for n in maps})
-    for view, (mean, sd) in PUBLISHED_HOLDOUT.items():
-        rows.append({"view": f"published {view}", "statistic": "Mean"}
-                    | dict(zip(HOLDOUT_METHODS, (f"{x:.2f}" for x in mean), strict=True)))
-        rows.append({"view": "", "statistic": "Std.dev"}
-                    | dict(zip(HOLDOUT_METHODS, (f"{x:.2f}" for x in sd), strict=True)))
-    return rows
-
-
 def spiral_published(n: int = 100, turns: float = 6.0) -> np.ndarray:
     """004 ch. 8.1.1 as published: zenith in equal steps from the horizon to the normal,
     azimuth in steps of 2 pi R / N (004 writes the zenith range as [pi; 0] in pi / N
@@ -600,89 +390,3 @@ def exp_sampling(out_dir: str | Path | None = None) -> list[dict[str, Any]]:
             ax.axis("off")
         save_figure(fig, Path(out_dir) / "sampling.png")
     return rows
-
-
-EXPERIMENTS = {"point_area": exp_point_area, "second_light": exp_second_light,
-               "sh_sweep": exp_sh_sweep, "shininess": exp_shininess,
-               "view_count": exp_view_count, "initialisers": exp_initialisers,
-               "sizes": exp_sizes, "sampling": exp_sampling}
-
-
-def measured_sizes(processed: str | Path) -> list[dict[str, Any]]:
-    """Storage of a capture's parameter maps as written (``params/*.exr``, float32, ZIP)
-    and of its observation map (zarr, compressed), against 004's float formula."""
-
-    proc = Processed(processed)
-    rows = []
-    if proc.observation.is_dir():
-
-        T, S, N = open_observation_map(proc.observation).shape
-        b = store_bytes(proc.observation)
-        rows.append({"item": "observation map (zarr)", "texels": S * T,
-                     "bytes": b, "bytes_per_texel": round(b / (S * T), 1),
-                     "formula_bytes_per_texel": N * 5 * 4,
-                     "note": "004: S T N 5 floats (we also store validity and noise)"})
-    for exr in sorted((proc.root / "params").glob("*.exr")):
-        pm = read_param_map(exr)
-        T, S, P = pm.params.shape
-        extra = 0 if pm.sd is None else pm.sd.shape[-1]
-        b = exr.stat().st_size
-        rows.append({"item": f"params/{exr.name}", "texels": S * T, "bytes": b,
-                     "bytes_per_texel": round(b / (S * T), 1),
-                     "formula_bytes_per_texel": P * 4,
-                     "note": f"{P} parameters" + (f" + {extra} standard deviations"
-                                                  if extra else "")})
-    return rows or [{"item": "no maps found", "texels": 0, "bytes": 0,
-                     "bytes_per_texel": 0, "formula_bytes_per_texel": 0, "note": ""}]
-
-
-def _write_csv(path: Path, rows: list[dict[str, Any]]) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    with tmp.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))
-        w.writeheader()
-        w.writerows(rows)
-    tmp.replace(path)
-    return path
-
-
-def run_paper(out_dir: str | Path, experiments: list[str] | None = None,
-              quick: bool = False, capture: str | Path | None = None,
-              processed: str | Path | None = None, workers: int = default("workers")) -> list[Path]:
-    """Run the experiments (default: all) and write ``<out_dir>/<experiment>.csv`` and
-    ``<out_dir>/README.md`` (conditions and the values chosen where 004 is silent).
-    ``quick`` runs a reduced SH sweep (16 and 100 coefficients) for the test suite.
-    With a ``capture`` and its ``processed`` folder, 004 ch. 16's held-out tables are
-    added (``holdout.csv``, :func:`exp_holdout`)."""
-    out = Path(out_dir)
-    names = experiments or list(EXPERIMENTS)
-    paths = []
-    for name in names:
-        if name not in EXPERIMENTS:
-
-            raise InputError(f"unknown experiment {name!r} (one of {', '.join(EXPERIMENTS)})")
-        logger.info(f"paper: {name}")
-        fn = EXPERIMENTS[name]
-        kw = {"bands": (4, 10)} if name == "sh_sweep" and quick else {}
-        if "out_dir" in inspect.signature(fn).parameters:
-            kw["out_dir"] = out
-        rows = fn(**kw)
-        paths += [p for p in (out / f"{name}.png",) if p.is_file()]
-        paths.append(_write_csv(out / f"{name}.csv", rows))
-    if capture is not None and processed is not None:
-        logger.info("paper: holdout (004 ch. 16)")
-        paths.append(_write_csv(out / "holdout.csv", exp_holdout(capture, processed,
-                                                                 workers, quick)))
-        paths.append(_write_csv(out / "sizes_measured.csv", measured_sizes(processed)))
-    lines = ["# 004 / 000 experiments under the published conditions", "",
-             "Conditions 004 leaves unstated, and the values chosen:", ""]
-    lines += [f"- {k}: {v}" for k, v in CONDITIONS.why.items()]
-    n_views = len(icosahedron(CONDITIONS.views_level, CONDITIONS.views_max_zenith_deg))
-    lines += ["", f"Views: {n_views} icosahedron directions; observations quantised to 8 "
-              "bits, clipped at 255.",
-              "Columns: published figure, ours with the published method (004's initial "
-              "guess; ZH / mirror / LSOP as 004 defines them), ours with our defaults."]
-    readme = out / "README.md"
-    readme.write_text("\n".join(lines) + "\n")
-    return paths + [readme]
