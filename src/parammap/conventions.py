@@ -59,7 +59,7 @@ class FitStatus(IntEnum):
     FAILED = 3  # the optimisation or projection failed; parameters are NaN
 
 
-# --- Multiple Highlight (MH) parameter vector (conventions.md, 000 eq. 1) ------------
+# --- Multiple Highlight (MH) parameter vector (docs/reference/conventions.md, 000 eq. 1) ---
 #: ``Kd.R Kd.G Kd.B m`` then for each lobe k ``Ks.R Ks.G Ks.B d.X d.Y d.Z``.
 MH_KD = slice(0, 3)
 MH_M = 3
@@ -181,7 +181,7 @@ DIFFUSE_CHANNELS = ("Kd.R", "Kd.G", "Kd.B")
 BEST_CHANNELS = ("choice", "partner")
 
 
-# --- Spherical harmonics (conventions.md, 004 eqs. 12.1-12.5) -------------------------
+# --- Spherical harmonics (docs/reference/conventions.md, 004 eqs. 12.1-12.5) ---
 #: Hemisphere handling of an SH fit: the published zero hemisphere, mirror and
 #: least-squares-optimal projection, and ours (regularised LSOP, noise-weighted LS).
 SH_HEMISPHERES = ("zh", "mirror", "lsop", "rlsop", "wls")

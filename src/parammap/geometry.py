@@ -1,6 +1,6 @@
 """Camera and surface geometry shared by every stage.
 
-Frames follow ``conventions.md``: the surface lies in z = 0 of the surface (world)
+Frames follow ``docs/reference/conventions.md``: the surface lies in z = 0 of the surface (world)
 frame, units are millimetres, and a pose maps ``p_cam = R @ p_world + t`` (OpenCV).
 Intrinsics are a 3x3 camera matrix ``K`` and OpenCV's distortion vector
 ``(k1, k2, p1, p2[, k3])`` (004 app. F).

@@ -144,7 +144,7 @@ LUMA = LUMINANCE
 
 def plot_map(img: np.ndarray, path: str | Path, title: str, label: str = "",
              cmap: str = "viridis", vmin: float | None = None, vmax: float | None = None) -> Path:
-    """One scalar map over the texels (row 0 at the top, as conventions.md)."""
+    """One scalar map over the texels (row 0 at the top, as docs/reference/conventions.md)."""
     fig, ax = plt.subplots(figsize=(4.2, 3.6))
     im = ax.imshow(img, cmap=cmap, vmin=vmin, vmax=vmax, interpolation="nearest")
     fig.colorbar(im, ax=ax, label=label, shrink=0.85)

@@ -140,7 +140,7 @@ def loo_amplitudes(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
 def loo_sh(C: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
            w: np.ndarray) -> Loo:
     """Leave-one-out residuals of SH maps, coefficients C (n, 3 nc) (channel-major,
-    conventions.md), refitting without the view by plain least squares only the
+    docs/reference/conventions.md), refitting without the view by plain least squares only the
     coefficients the texel uses (non-zero). For projections with a prior or
     regularisation this overstates the error of views at the edge of the sampled cap
     (their exact smoother: :func:`parammap.models.sh.fit_sh_tile` with ``loo``)."""
@@ -164,7 +164,7 @@ def loo_sh(C: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
 
 def predict(model: str, P: np.ndarray, V: np.ndarray) -> np.ndarray:
     """(n, N, 3) radiance of parameter rows P (n, p) of ``model`` (``mh``, ``sh``,
-    ``diffuse``; conventions.md layouts) seen from directions V (n, N, 3)."""
+    ``diffuse``; docs/reference/conventions.md layouts) seen from directions V (n, N, 3)."""
     P = np.nan_to_num(np.asarray(P, float))
     if model == "diffuse":
         return np.broadcast_to(P[:, None, MH_KD], V.shape)

@@ -15,7 +15,7 @@ between the views, or the surface is matte), the candidates are ranked by their 
 the nearest captured view instead (filling the largest gaps), and the advice says so.
 
 Writes ``metrics/advice.json`` (the ranked directions: zenith and azimuth in degrees in
-the surface frame, conventions.md, and each one's gain) and, with a report folder,
+the surface frame, docs/reference/conventions.md, and each one's gain) and, with a report folder,
 ``advice.png``: the gain of every candidate on the hemisphere, the captured views and
 the advised ones numbered.
 """

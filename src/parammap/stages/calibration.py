@@ -2,7 +2,7 @@
 
 OpenCV 5 APIs (``pitfalls.md``): ``CharucoDetector.detectBoard`` and
 ``ArucoDetector.detectMarkers``, then ``calibrateCamera`` / ``solvePnP``. Poses follow
-conventions.md: ``p_cam = R @ p_world + t`` with the surface in z = 0 (mm).
+docs/reference/conventions.md: ``p_cam = R @ p_world + t`` with the surface in z = 0 (mm).
 """
 
 from __future__ import annotations

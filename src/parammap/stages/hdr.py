@@ -3,7 +3,7 @@
 The response is stored as the log-exposure curve ``g[z, c] = ln X`` for every 8-bit
 level z and channel c, anchored at ``g[128] = 0``; radiance is then
 ``exp(g(z)) / t``, relative, with one global scale shared by every view of a capture
-(conventions.md, *Radiance*).
+(docs/reference/conventions.md, *Radiance*).
 """
 
 from __future__ import annotations

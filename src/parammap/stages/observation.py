@@ -1,6 +1,6 @@
 """The observation map: every texel seen from every kept view, in a zarr v3 store.
 
-Layout (conventions.md): ``radiance`` float32 ``[T, S, N, 3]``, ``direction`` float32
+Layout (docs/reference/conventions.md): ``radiance`` float32 ``[T, S, N, 3]``, ``direction`` float32
 ``[T, S, N, 3]`` (unit vectors toward the camera, surface frame), ``valid`` bool
 ``[T, S, N]``, all chunked ``tile x tile x N``. Held-out and dropped views never enter.
 

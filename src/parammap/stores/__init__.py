@@ -1,6 +1,6 @@
 """The stores: one module per on-disk artifact, the only code that knows its names.
 
-Each module owns one artifact of a processed folder (``docs/outputs.md``): its file and
+Each module owns one artifact of a processed folder (``docs/reference/outputs.md``): its file and
 array names, attributes, format versions and the branches for older files, and hands
 out typed readers and writers. Stages read and write through these modules only.
 

@@ -1,4 +1,4 @@
-"""Loading and validating a capture directory (``capture-format.md``).
+"""Loading and validating a capture directory (``docs/reference/capture-format.md``).
 
 Every problem stops the run before any work with one line naming the file and the
 key, e.g. ``capture.yaml: views[3].exposures[0].exposure_s: must be positive (got -1)``.

@@ -4,13 +4,15 @@ finished store, its size on disk and its inputs' modification times."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import zarr
 
 from .. import __version__
 
-__all__ = ["COMPLETE_ATTR", "HEIGHT_ATTR", "SOFTWARE_ATTR", "S_ATTR", "TILE_ATTR", "T_ATTR",
-           "UNITS_ATTR", "WIDTH_ATTR", "mtime_ns", "open_complete", "software", "store_bytes"]
+__all__ = ["COMPLETE_ATTR", "HEIGHT_ATTR", "MapStore", "SOFTWARE_ATTR", "S_ATTR", "TILE_ATTR",
+           "T_ATTR", "UNITS_ATTR", "WIDTH_ATTR", "mtime_ns", "open_complete", "software",
+           "store_bytes"]
 
 # Set on a store's group only after every chunk is written and just before the rename
 # from its temporary name: a store without it is never accepted.
@@ -57,3 +59,52 @@ def open_complete(path: str | Path, error: type[Exception], what: str) -> zarr.G
     if not g.attrs.get(COMPLETE_ATTR):
         raise error(f"{path}: incomplete {what} (interrupted run?)")
     return g
+
+
+class MapStore:
+    """A finished zarr store of a map (observation map, fit store) opened for reading:
+    its arrays by name (``store[name]``), its attributes and its grid. Subclasses add
+    the artifact's own arrays and attributes as properties."""
+
+    def __init__(self, group: zarr.Group, path: str | Path) -> None:
+        self.group, self.path = group, Path(path)
+
+    def __getitem__(self, name: str) -> zarr.Array:
+        return self.group[name]
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.group
+
+    @property
+    def attrs(self):
+        """The zarr group's attributes, as zarr hands them out (for notebooks and tests;
+        the package reads the typed properties)."""
+        return self.group.attrs
+
+    @property
+    def metadata(self) -> dict[str, Any]:
+        """Every attribute (a copy): settings, figures and provenance."""
+        return dict(self.group.attrs)
+
+    @property
+    def T(self) -> int:
+        """Texel rows."""
+        return self.group.attrs[T_ATTR]
+
+    @property
+    def S(self) -> int:
+        """Texel columns."""
+        return self.group.attrs[S_ATTR]
+
+    @property
+    def tile(self) -> int:
+        """Texels across a chunk."""
+        return int(self.group.attrs[TILE_ATTR])
+
+    @property
+    def width_mm(self) -> float:
+        return self.group.attrs[WIDTH_ATTR]
+
+    @property
+    def height_mm(self) -> float:
+        return self.group.attrs[HEIGHT_ATTR]

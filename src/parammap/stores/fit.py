@@ -28,6 +28,7 @@ from .common import (
     TILE_ATTR,
     UNITS_ATTR,
     WIDTH_ATTR,
+    MapStore,
     open_complete,
     software,
 )
@@ -39,7 +40,8 @@ __all__ = ["FIT_UNITS", "MATERIALS_MODEL", "MH_LAYOUT", "SH_LAYOUT", "FitError",
            "open_fit", "open_mh_source", "partial_key", "sh_attrs", "tile_arrays",
            "write_fit_store"]
 
-MATERIALS_MODEL = "mh-materials"  # the model name of the materials stage's map (outputs.md)
+# the model name of the materials stage's map (docs/reference/outputs.md)
+MATERIALS_MODEL = "mh-materials"
 
 # the parameter layouts a store states (``layout`` attribute)
 MH_LAYOUT = ("Kd.R Kd.G Kd.B m (lobeK.Ks.R lobeK.Ks.G lobeK.Ks.B lobeK.d.X lobeK.d.Y "
@@ -110,7 +112,7 @@ def grid_attrs(obs: ObservationMap, tile: int, provenance: bool = True) -> dict[
 # Reading
 
 
-class FitStore:
+class FitStore(MapStore):
     """A finished fit store opened for reading.
 
     Arrays are named by :class:`parammap.conventions.FitArray` (``store[FitArray.RMSE]``,
@@ -118,30 +120,10 @@ class FitStore:
     read are properties. (T, S, ...) zarr arrays, read lazily.
     """
 
-    def __init__(self, group: zarr.Group, path: str | Path) -> None:
-        self.group, self.path = group, Path(path)
-
-    def __getitem__(self, name: str) -> zarr.Array:
-        return self.group[name]
-
-    def __contains__(self, name: str) -> bool:
-        return name in self.group
-
     def get(self, name: FitArray) -> zarr.Array | None:
         """The array ``name``, or None where this store has none (e.g. ``chi2`` of a fit
         without recorded noise, ``sd`` of an older store)."""
         return self.group[name] if name in self.group else None
-
-    @property
-    def attrs(self):
-        """The zarr group's attributes, as zarr hands them out (for notebooks and tests;
-        the package reads the typed properties)."""
-        return self.group.attrs
-
-    @property
-    def metadata(self) -> dict[str, Any]:
-        """Every attribute (a copy), for provenance and the resume keys of later stages."""
-        return dict(self.group.attrs)
 
     @property
     def model(self) -> str:
@@ -186,26 +168,6 @@ class FitStore:
     @property
     def regularisation(self) -> float | str | None:
         return self.group.attrs.get("regularisation")
-
-    @property
-    def S(self) -> int:
-        return self.group.attrs[S_ATTR]
-
-    @property
-    def T(self) -> int:
-        return self.group.attrs[T_ATTR]
-
-    @property
-    def tile(self) -> int:
-        return self.group.attrs[TILE_ATTR]
-
-    @property
-    def width_mm(self) -> float:
-        return self.group.attrs[WIDTH_ATTR]
-
-    @property
-    def height_mm(self) -> float:
-        return self.group.attrs[HEIGHT_ATTR]
 
     def describe(self) -> dict[str, Any]:
         """The model settings a parameter map carries into its EXR header."""

@@ -3,7 +3,7 @@
 A frame holds linear relative radiance ``R, G, B``, the ``saturated`` and ``dark`` masks
 and the relative noise sd per pixel (``noise``); frames written before the merge
 recorded the noise read with ``noise`` None. The response is the log-exposure curve
-``g[z, c] = ln X`` per 8-bit level z and channel c (``docs/conventions.md``).
+``g[z, c] = ln X`` per 8-bit level z and channel c (``docs/reference/conventions.md``).
 """
 
 from __future__ import annotations

@@ -34,6 +34,7 @@ from .common import (
     TILE_ATTR,
     UNITS_ATTR,
     WIDTH_ATTR,
+    MapStore,
     open_complete,
     software,
 )
@@ -69,33 +70,13 @@ def _compressor():
     return zarr.codecs.BloscCodec(cname="zstd", clevel=3, shuffle="shuffle")
 
 
-class ObservationMap:
+class ObservationMap(MapStore):
     """A finished observation map opened for reading.
 
     ``radiance``, ``direction``, ``valid`` (zarr arrays, read lazily) and ``noise``
     (None for a store written before the merge recorded noise); the grid and the views
     as properties; :meth:`tile` gives a tile's observations cleaned for a model.
     """
-
-    def __init__(self, group: zarr.Group, path: str | Path) -> None:
-        self.group, self.path = group, Path(path)
-
-    def __getitem__(self, name: str) -> zarr.Array:
-        return self.group[name]
-
-    def __contains__(self, name: str) -> bool:
-        return name in self.group
-
-    @property
-    def attrs(self):
-        """The zarr group's attributes, as zarr hands them out (for notebooks and tests;
-        the package reads the typed properties)."""
-        return self.group.attrs
-
-    @property
-    def metadata(self) -> dict[str, Any]:
-        """Every attribute (a copy): the build's settings and figures."""
-        return dict(self.group.attrs)
 
     @property
     def radiance(self) -> zarr.Array:
@@ -124,29 +105,8 @@ class ObservationMap:
         return tuple(self.valid.shape)
 
     @property
-    def T(self) -> int:
-        return self.group.attrs[T_ATTR]
-
-    @property
-    def S(self) -> int:
-        return self.group.attrs[S_ATTR]
-
-    @property
     def N(self) -> int:
         return self.valid.shape[2]
-
-    @property
-    def tile(self) -> int:
-        """Texels across a chunk (all views in one chunk)."""
-        return int(self.group.attrs[TILE_ATTR])
-
-    @property
-    def width_mm(self) -> float:
-        return self.group.attrs[WIDTH_ATTR]
-
-    @property
-    def height_mm(self) -> float:
-        return self.group.attrs[HEIGHT_ATTR]
 
     @property
     def view_ids(self) -> list[str]:

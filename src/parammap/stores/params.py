@@ -1,6 +1,6 @@
 """Parameter-map EXR files: one multi-channel OpenEXR per surface and model.
 
-Channel names and header attributes follow conventions.md:
+Channel names and header attributes follow docs/reference/conventions.md:
 
 - MH (K lobes): ``Kd.R Kd.G Kd.B m`` then for each lobe k = 1..K
   ``lobek.Ks.R lobek.Ks.G lobek.Ks.B lobek.d.X lobek.d.Y lobek.d.Z``;
@@ -83,7 +83,7 @@ def channel_names(model: str, n_params: int) -> list[str]:
 
 @dataclass
 class ParamMap:
-    """A parameter map: ``params`` (T, S, P) in the model's conventions.md order."""
+    """A parameter map: ``params`` (T, S, P) in the model's docs/reference/conventions.md order."""
 
     model: str
     params: np.ndarray

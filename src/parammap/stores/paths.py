@@ -16,7 +16,7 @@ __all__ = ["Processed"]
 
 @dataclass(frozen=True)
 class Processed:
-    """The processed folder of one surface; every path of outputs.md is a member."""
+    """The processed folder of one surface; every path of docs/reference/outputs.md is a member."""
 
     root: Path
 

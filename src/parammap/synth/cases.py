@@ -3,7 +3,7 @@
 004's basic scene (fig. 11.5): a 1000 x 1000 surface sampled in 16 x 16 points, normal
 +z, one white point light at [1500, 1500, 2000] relative to the surface centre, Phong
 materials, cameras on a hemisphere around the centre (icosahedron scheme). Here the
-surface frame of conventions.md is used (origin at the bottom-left corner), and the
+surface frame of docs/reference/conventions.md is used (origin at the bottom-left corner), and the
 radiance of each texel comes from :func:`parammap.synth.scene.true_radiance`, i.e. the
 same physics as the rendered captures, evaluated at the texel centre.
 """

@@ -1,6 +1,6 @@
 """Synthetic capture generator (``parammap synth``).
 
-Writes exactly the layout of ``capture-format.md`` into ``out`` and the ground truth
+Writes exactly the layout of ``docs/reference/capture-format.md`` into ``out`` and the ground truth
 (response curve, intrinsics, poses, scene) into a separate ``truth`` folder that the
 pipeline never reads. Seeded and deterministic: the same preset and seed give the
 same bytes.
@@ -457,7 +457,7 @@ def write_rig_truth(tmp_truth: Path, view_ids: list[str], is_hold: np.ndarray, p
 
 def write_capture_yaml(tmp_out: Path, header: str, sid: str, preset, items: list[dict],
                        calib: dict, ext: str, views_yaml: list[dict]) -> None:
-    """``capture.yaml`` of a generated capture (capture-format.md), under a comment
+    """``capture.yaml`` of a generated capture (docs/reference/capture-format.md), under a comment
     ``header``."""
     cap = {
         "surface": {"id": sid, "width_mm": preset.width_mm, "height_mm": preset.height_mm},

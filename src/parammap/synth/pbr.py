@@ -16,8 +16,8 @@ enough to cover the distorted image at ``render_scale`` times the resolution, th
 resampled through OpenCV's distortion model, ``render_scale**2`` bilinear samples per
 photo pixel (a box filter over the pixel's area).
 
-The capture follows ``capture-format.md`` exactly. The ground truth goes to a separate
-folder the pipeline never reads: ``camera.yaml`` (K, distortion), ``poses.npz`` (R, t
+The capture follows ``docs/reference/capture-format.md`` exactly. The ground truth goes
+to a separate folder the pipeline never reads: ``camera.yaml`` (K, distortion), ``poses.npz`` (R, t
 per view and per board photo), ``response.npz`` (normalised exposure per 8-bit level),
 ``radiance/<view>.exr`` (the radiance each photo was exposed from, Monte Carlo noise
 included), ``clean/<view>.exr`` (high-sample renders of the held-out views),
@@ -570,7 +570,7 @@ def read_truth_radiance(truth_dir: str | Path, view_id: str, clean: bool = False
 
 def patch_labels(truth_dir: str | Path, S: int, T: int, width_mm: float,
                  height_mm: float) -> np.ndarray:
-    """(T, S) int: the material patch under each texel centre (conventions.md texel
+    """(T, S) int: the material patch under each texel centre (docs/reference/conventions.md texel
     mapping), from ``scene.json``."""
 
     patches = json.loads((Path(truth_dir) / "scene.json").read_text())["patches"]

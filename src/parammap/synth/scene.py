@@ -7,7 +7,7 @@ true radiance of texel ``[i, j]`` seen from direction ``v`` is well defined:
 Material kinds (one per patch; ``KIND_NAMES``):
 
 - ``diffuse``: view independent.
-- ``phong``: exactly the MH model (conventions.md) with one lobe per light, the lobe
+- ``phong``: exactly the MH model (docs/reference/conventions.md) with one lobe per light, the lobe
   direction being the mirror direction of the light at the texel centre.
 - ``blinn``: Blinn-Phong half-vector lobe (not an MH lobe).
 - ``area``: Phong lobes summed over many points of a disc light (not one MH lobe).
@@ -229,7 +229,7 @@ def true_radiance(
 
 
 def mh_truth(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
-    """True MH parameters (conventions.md order, K = number of lights) of the
+    """True MH parameters (docs/reference/conventions.md order, K = number of lights) of the
     ``phong`` texels.
 
     Returns

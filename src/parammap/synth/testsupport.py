@@ -2,8 +2,9 @@
 
 The pipeline never imports this module: it reads the ``<capture>.truth`` folder that
 :func:`parammap.synth.generate.generate` and :func:`parammap.synth.pbr.generate_pbr`
-write beside a capture. Radiance is relative (one unknown global scale, conventions.md),
-so every radiance comparison first fits that one scale (median ratio).
+write beside a capture. Radiance is relative (one unknown global scale,
+docs/reference/conventions.md), so every radiance comparison first fits that one scale
+(median ratio).
 """
 
 from __future__ import annotations

@@ -19,7 +19,7 @@ inflates them into RGBA layers of a 2-D texture array (texel row 0
 
 - MH: layer 0 = (Kd.R, Kd.G, Kd.B, m), then per lobe k (Ks.R, Ks.G, Ks.B, 0) at layer
   ``1 + 2k`` and (d.X, d.Y, d.Z, 0) at ``2 + 2k``;
-- SH: layer i = (sh.R.i, sh.G.i, sh.B.i, 0) for coefficient i (conventions.md basis);
+- SH: layer i = (sh.R.i, sh.G.i, sh.B.i, 0) for coefficient i (docs/reference/conventions.md basis);
 - diffuse: layer 0 = (Kd.R, Kd.G, Kd.B, 0).
 
 The fragment shader casts each pixel's ray exactly as :func:`parammap.render.render`

@@ -263,7 +263,7 @@ def encode_map(pm, gamma: float = 1.0, tile: int = TILE,
         info, L = layer_info(pm)
         T, S, P = pm.params.shape
         nc = P // 3
-        # parameters are RGB-major (conventions.md), the layers coefficient-major
+        # parameters are RGB-major (docs/reference/conventions.md), the layers coefficient-major
         perm = np.array([(i % 3) * nc + i // 3 for i in range(P)])
         return _encode_sh(pm.params, perm, gamma, tile, page_reduction(T, S, L, budget_mb))
     layers, info = viewer_layers(pm)
@@ -516,7 +516,7 @@ def _decode_tile(entry: dict, raw: np.ndarray, shape: tuple[int, int, int],
 
 
 def layers_to_params(layers: np.ndarray, info: dict[str, Any]) -> np.ndarray:
-    """Parameters (T, S, P) in the conventions.md layout from texture layers (the
+    """Parameters (T, S, P) in the docs/reference/conventions.md layout from texture layers (the
     inverse of :func:`parammap.viewer.viewer_layers`)."""
     L, T, S, _ = layers.shape
     if info["model"] == "mh":

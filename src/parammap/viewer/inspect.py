@@ -4,7 +4,7 @@ For texels on a regular grid over the map (every texel of a small map; every k-t
 and column where the map would exceed :data:`INSPECTOR_BYTES`), the payload holds each
 view's direction (zenith and azimuth in degrees, quantised to bytes), the observed
 luminance and each model's prediction of it (float16), and each model's parameters
-(float32, in the conventions.md layout named by ``params``). The page plots the
+(float32, in the docs/reference/conventions.md layout named by ``params``). The page plots the
 observations against the models and lists the parameters; nothing is evaluated in the
 browser, so the plot shows exactly what :func:`parammap.render.evaluate` predicts.
 

@@ -1,6 +1,6 @@
 """Markers on the surface: detection, sub-pixel corners from the markers' edges, a
 view's pose and its uncertainty (OpenCV 5 ``ArucoDetector``, ``solvePnP``; poses as in
-``docs/conventions.md``: ``p_cam = R @ p_world + t``, the surface in z = 0, mm)."""
+``docs/reference/conventions.md``: ``p_cam = R @ p_world + t``, the surface in z = 0, mm)."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """A view's pose from the markers it sees, and how uncertain it leaves each surface point:
 detected corners, refined on the markers' edges and on the printed pattern, then
 ``solvePnP``; the rotation's and the points' standard deviations from the fit's
-covariance (``docs/conventions.md``)."""
+covariance (``docs/reference/conventions.md``)."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """Multiple Highlight (MH) model: evaluation, initial guesses and the bounded fit.
 
 ``L_c(v) = Kd_c + sum_k Ks_kc * max(0, d_k . v) ** m`` per RGB channel, K lobes sharing
-one shininess m (000 eq. 1, 004 eq. 11.2). Parameter vectors follow conventions.md
+one shininess m (000 eq. 1, 004 eq. 11.2). Parameter vectors follow docs/reference/conventions.md
 (:mod:`parammap.conventions`, ``mh_*``): ``Kd.R Kd.G Kd.B m`` then per lobe
 ``Ks.R Ks.G Ks.B d.X d.Y d.Z`` (4 + 6K values).
 

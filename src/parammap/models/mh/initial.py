@@ -115,7 +115,7 @@ def initial_guess_batch(
 
     Returns
     -------
-    (B, 4 + 6K) parameter vectors (conventions.md layout).
+    (B, 4 + 6K) parameter vectors (docs/reference/conventions.md layout).
     """
     B, N, _ = V.shape
     if initial_batch is not None:

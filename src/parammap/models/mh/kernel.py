@@ -176,7 +176,7 @@ cost_grad = _jit(_cost_grad)
 
 
 def _eval_batch(P: np.ndarray, V: np.ndarray, out: np.ndarray) -> None:
-    """MH radiance of B parameter vectors P (B, 4 + 6K) (conventions.md layout) in
+    """MH radiance of B parameter vectors P (B, 4 + 6K) (docs/reference/conventions.md layout) in
     their directions V (B, N, 3), into ``out`` (B, N, 3): the compiled
     :func:`parammap.models.mh.model.mh_eval` for a batch of texels."""
     B, N = V.shape[0], V.shape[1]

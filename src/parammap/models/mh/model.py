@@ -38,7 +38,7 @@ def mh_eval(params: np.ndarray, directions: np.ndarray) -> np.ndarray:
 
     Parameters
     ----------
-    params : (..., 4 + 6K) conventions.md layout.
+    params : (..., 4 + 6K) docs/reference/conventions.md layout.
     directions : (..., N, 3) unit view directions, surface frame.
 
     Returns

@@ -427,7 +427,7 @@ def fit_texel(V: np.ndarray, L: np.ndarray, p0: np.ndarray,
 
     Returns
     -------
-    FitResult with parameters in conventions.md layout (lobes sorted by strength) and
+    FitResult with parameters in docs/reference/conventions.md layout (lobes sorted by strength) and
     the residual sum of squares in radiance units squared.
     """
     K = mh_lobes(len(p0))

@@ -208,7 +208,7 @@ def parameter_sd(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
 
     Parameters
     ----------
-    P : (n, 4 + 6K) fitted parameters (conventions.md layout).
+    P : (n, 4 + 6K) fitted parameters (docs/reference/conventions.md layout).
     V, L : (n, N, 3) directions and radiance; W : (n, N) bool validity.
     weights : (n, N) the fit's observation weights (default 1).
 

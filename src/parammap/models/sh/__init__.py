@@ -1,6 +1,6 @@
 """Spherical harmonics (SH) model: basis, hemisphere solid angles and projections.
 
-Basis (conventions.md, 004 eqs. 12.1-12.5): real, orthonormal over the full sphere,
+Basis (docs/reference/conventions.md, 004 eqs. 12.1-12.5): real, orthonormal over the full sphere,
 index ``i = l (l + 1) + m``, ``n`` bands give ``n^2`` coefficients per channel::
 
     y_l^m = sqrt(2) K_l^m cos(m phi) P_l^m(cos theta)      m > 0
