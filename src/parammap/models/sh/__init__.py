@@ -139,8 +139,8 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
                     Yk = Y[..., : bands * bands]
                     Sm = smoother(M, Yk, om)
                     r = y - np.matmul(Y, c.transpose(0, 2, 1))
-                    flat[FitArray.SD][sel] = coefficient_sd(Sm, Yk, r, n, sigma).reshape(len(sel),
-                                                                                         -1)
+                    sd = coefficient_sd(Sm, Yk, r, n, sigma)
+                    flat[FitArray.SD][sel] = sd.reshape(len(sel), -1)
                     if loo:
                         flat[FitArray.LOO][sel[:, None], np.flatnonzero(w)[None]] = \
                             smoother_loo(Sm, Yk, -r)  # prediction - observation
