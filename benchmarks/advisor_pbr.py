@@ -37,7 +37,7 @@ from parammap.cli import main
 from parammap.config import validate_config
 from parammap.geometry import unit
 from parammap.models.advisor import advise_directions
-from parammap.render import evaluate as ev
+from parammap.synth import testsupport as ev
 from parammap.stores.capture import load_capture
 from parammap.stores.fit import open_mh_source
 from parammap.stores.observation import sample_texel_observations

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from parammap.cli import main
-from parammap.render import evaluate as ev
+from parammap.synth import testsupport as ev
 
 
 def run(preset: str, root: Path, models: list[str], seed: int, reuse_hdr: bool = False,
