@@ -33,14 +33,14 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from parammap.cli import main
+from parammap.cli import ON_PROCESSED, main
 from parammap.config import validate_config
 from parammap.geometry import unit
 from parammap.models.advisor import advise_directions
-from parammap.synth import testsupport as ev
 from parammap.stores.capture import load_capture
 from parammap.stores.fit import open_mh_source
 from parammap.stores.observation import sample_texel_observations
+from parammap.synth import testsupport as ev
 from parammap.synth.sampling import stratified
 
 #: directions the analytic generator's truth is compared in: 256, stratified over the
@@ -79,7 +79,8 @@ def _fit(cap: Path, truth: Path, work: Path, poses: dict, kept: set[str],
         shutil.rmtree(work / d, ignore_errors=True)
     lobes = model.split("-")[1]
     for stage in (["observe"], ["fit-mh", "--lobes", lobes], ["export", "--model", model]):
-        assert main(["-q", stage[0], str(cap), "--out", str(work), *stage[1:]]) == 0, stage
+        reads = [] if stage[0] in ON_PROCESSED else [str(cap)]
+        assert main(["-q", stage[0], *reads, "--out", str(work), *stage[1:]]) == 0, stage
     return _errors(cap, truth, work, model)
 
 

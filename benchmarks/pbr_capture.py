@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from parammap.cli import main
+from parammap.cli import ON_PROCESSED, main
 from parammap.synth import testsupport as ev
 
 
@@ -48,7 +48,8 @@ def run(preset: str, root: Path, models: list[str], seed: int, reuse_hdr: bool =
                ["holdout", *compared]]
     for stage in stages:
         t0 = time.perf_counter()
-        assert main([stage[0], str(cap), "--out", str(out), *stage[1:]]) == 0, stage
+        reads = [] if stage[0] in ON_PROCESSED else [str(cap)]
+        assert main([stage[0], *reads, "--out", str(out), *stage[1:]]) == 0, stage
         times[" ".join(stage[:3] if stage[0].startswith("fit") else stage[:1])] = \
             time.perf_counter() - t0
     import yaml

@@ -193,8 +193,7 @@ def test_sh_is_judged_by_its_own_projection_not_a_plain_refit(tmp_path):
     # diffuse: the same model either way, judged on views chosen with the other's help
     assert abs(np.median(plain[:, 1]) / np.median(exact[:, 1]) - 1) < 0.1
     fin = np.isfinite(plain[:, 0])
-    # 1.10 measured (1.18 before each texel chose its bands: fewer left to overstate)
-    assert np.median(plain[fin, 0]) > 1.05 * np.median(exact[:, 0])
+    assert np.median(plain[fin, 0]) > 1.1 * np.median(exact[:, 0])  # 1.18 measured
 
 
 def test_the_mean_of_two_models_is_judged_exactly_and_taken_where_their_errors_cancel(

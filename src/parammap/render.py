@@ -24,6 +24,7 @@ from .geometry import (
     sample_image,
     unit,
 )
+from .models.display import tone_map
 from .models.mh import mh_eval
 from .models.sh.basis import sh_eval
 from .stores.params import ParamMap, best_shares
@@ -178,9 +179,3 @@ def reproject_frame(frame: np.ndarray, intr: Intrinsics, R_src: np.ndarray,
     vals = sample_image(np.asarray(frame, np.float32), uv[:, 0], uv[:, 1])
     out[mask] = vals
     return out
-
-
-def tone_map(radiance: np.ndarray, gamma: float) -> np.ndarray:
-    """``1 - exp(-gamma L)`` (000 ch. 6, 004 ch. 7.3.2) as 8-bit (NaN -> 0)."""
-    x = 1 - np.exp(-gamma * np.nan_to_num(np.asarray(radiance, float), nan=0.0))
-    return np.clip(np.round(255 * x), 0, 255).astype(np.uint8)

@@ -64,7 +64,6 @@ model.
 from __future__ import annotations
 
 import logging
-import math
 from pathlib import Path
 from typing import Any
 
@@ -93,8 +92,8 @@ from ..stores.paths import Processed
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["BEST_MODEL", "CRITERIA", "candidates", "choose", "display_gamma", "error_table",
-           "loo", "resolve", "run_best", "sample_tiles", "significance_z", "tile_errors",
+__all__ = ["BEST_MODEL", "CRITERIA", "candidates", "choose", "error_table",
+           "loo", "resolve", "run_best", "significance_z", "tile_errors",
            "values_stored"]
 
 BEST_MODEL = "best"
@@ -121,30 +120,9 @@ def loo(name: str, model: str, p: np.ndarray, V: np.ndarray, L: np.ndarray,
     return e, bad | ~np.isfinite(p).all(1)
 
 
-def sample_tiles(obs, samples: int = 64, seed: int = 0) -> list[tuple[slice, slice]]:
-    """Up to ``samples`` tiles (rows, cols) of the observation map, at random (all of
-    them on a map of fewer)."""
-    T, S, _ = obs.shape
-    tiles = _tiles(T, S, obs.tile)
-    rng = np.random.default_rng(seed)
-    return [tiles[i] for i in sorted(rng.permutation(len(tiles))[:samples])]
-
-
 def _tiles(T: int, S: int, tile: int) -> list[tuple[slice, slice]]:
     return [(slice(r, min(r + tile, T)), slice(c, min(c + tile, S)))
             for r in range(0, T, tile) for c in range(0, S, tile)]
-
-
-def display_gamma(obs, samples: int = 64, seed: int = 0) -> float:
-    """The held-out comparison's tone-map gamma (:func:`parammap.stages.holdout.choose_gamma`:
-    the 99th percentile at 0.95) from the valid radiance of up to ``samples`` tiles of
-    the observation map, at random."""
-    vals = []
-    for rows, cols in sample_tiles(obs, samples, seed):
-        _, L, W, _ = tile_observations(obs, rows, cols)
-        vals.append(L[W].ravel())
-    vals = np.concatenate(vals)
-    return math.log(20.0) / max(float(np.percentile(vals, 99)) if vals.size else 1.0, 1e-12)
 
 
 def candidates(J: int, blend: bool = default("best.blend")) -> list[tuple[int, int]]:
@@ -242,7 +220,7 @@ def tile_errors(proc: Processed, maps: dict[str, ParamMap], obs, criterion: str,
             logger.warning(f"best: {name} is judged by a plain least-squares refit of its "
                            f"coefficients ({proc.fit(name)}: no fit store on the sampled "
                            "cap to rerun), which overstates its error at the cap's edge")
-    gamma = display_gamma(obs) if criterion == "display" else None
+    gamma = obs.display_gamma() if criterion == "display" else None
     flat_of = np.arange(T * S).reshape(T, S)
     for rows, cols in tiles or _tiles(T, S, obs.tile):
         flat = flat_of[rows, cols].ravel()
@@ -405,7 +383,7 @@ def run_best(source: str | Path, processed: str | Path, config: dict[str, Any], 
     # the default from a sample of tiles (16 x 1024 texels pin the map's mean), so that
     # the full pass keeps each candidate's difference from it alone
     B0, _ = error_table(src, maps, obs, criterion, cands,
-                        tiles=sample_tiles(obs, DEFAULT_SAMPLE_TILES))
+                        tiles=obs.sample_tiles(DEFAULT_SAMPLE_TILES))
     fin0 = np.isfinite(B0).all(1)
     default = int(np.argmin(B0[fin0].mean(0))) if fin0.any() else 0
     logger.info(f"best: default {labels[default]} (least mean leave-one-out error of "

@@ -29,6 +29,7 @@ import numpy as np
 
 from ..conventions import LUMINANCE
 from ..geometry import Intrinsics, plane_to_texel
+from ..models.display import tone_gamma
 from ..render import render, reproject_frame, surface_points, tone_map
 from ..stores.camera import kept_poses, load_intrinsics, read_poses
 from ..stores.capture import Capture
@@ -126,9 +127,7 @@ def region_errors(photo: np.ndarray, image: np.ndarray, mask: np.ndarray, gamma:
 
 def choose_gamma(photo: np.ndarray, mask: np.ndarray) -> float:
     """Tone-mapping gamma putting the photo's 99th percentile at 0.95."""
-    vals = photo[mask]
-    p99 = float(np.percentile(vals, 99)) if vals.size else 1.0
-    return math.log(20.0) / max(p99, 1e-12)
+    return tone_gamma(photo[mask])
 
 
 def marker_pixels(cap: Capture, points: np.ndarray, margin_mm: float = 1.0) -> np.ndarray:

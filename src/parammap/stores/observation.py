@@ -24,6 +24,7 @@ import zarr
 
 from ..config import default
 from ..errors import InputError
+from ..models.display import tone_gamma
 from ..models.weights import noise_weights
 from .common import (
     COMPLETE_ATTR,
@@ -117,6 +118,23 @@ class ObservationMap(MapStore):
         t = self.tile
         return [(slice(r0, min(r0 + t, self.T)), slice(c0, min(c0 + t, self.S)))
                 for r0 in range(0, self.T, t) for c0 in range(0, self.S, t)]
+
+    def sample_tiles(self, samples: int = 64, seed: int = 0) -> list[tuple[slice, slice]]:
+        """Up to ``samples`` tiles (rows, cols) of the map, at random (all of them on a
+        map of fewer)."""
+        tiles = self.tiles()
+        rng = np.random.default_rng(seed)
+        return [tiles[i] for i in sorted(rng.permutation(len(tiles))[:samples])]
+
+    def display_gamma(self, samples: int = 64, seed: int = 0) -> float:
+        """The tone map's gamma for this map's radiance as the held-out views are shown
+        (:func:`parammap.models.display.tone_gamma`), from the valid radiance of up to
+        ``samples`` tiles at random."""
+        vals = []
+        for rows, cols in self.sample_tiles(samples, seed):
+            _, L, W, _ = tile_observations(self, rows, cols)
+            vals.append(L[W].ravel())
+        return tone_gamma(np.concatenate(vals) if vals else np.ones(1))
 
     def valid_count(self) -> np.ndarray:
         """(T, S) valid observations per texel, read tile row by tile row."""

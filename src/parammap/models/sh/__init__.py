@@ -52,7 +52,6 @@ from .cap import (
     GUARD_STEPS,
     SampledCap,
     coefficient_sd,
-    fit_on_cap,
     guarded_project,
     hemisphere_grid,
     project_cap,
@@ -132,18 +131,19 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
                     * NW[sel][:, w]
                 Y = sh_basis(v, n)
                 if sampled_cap and hemisphere in SH_CAP_AWARE:
-                    c, lam, esc, bands, groups = fit_on_cap(y, v, omega, n, hemisphere, reg, Y)
+                    c, lam, esc, bands, M, om = guarded_project(y, v, omega, n, hemisphere,
+                                                                reg, Y, system=True)
                     flat[FitArray.REG][sel], flat[FitArray.GUARD][sel] = lam, esc
                     flat[FitArray.BANDS][sel] = bands
-                    for g in groups:  # texels that chose the same bands
-                        idx = sel[g.mask]
-                        yg = y[g.mask]
-                        sigma = None if NZ is None else NZ[idx][:, w][..., None] * np.abs(yg)
-                        r = yg - np.matmul(g.Y, g.c.transpose(0, 2, 1))
-                        sd = coefficient_sd(g.S, g.Y, r, n, sigma)
-                        flat[FitArray.SD][idx] = sd.reshape(len(idx), -1)
-                        if loo:  # prediction - observation
-                            flat[FitArray.LOO][idx[:, None], np.flatnonzero(w)[None]] = g.loo
+                    sigma = None if NZ is None else NZ[sel][:, w][..., None] * np.abs(y)
+                    Yk = Y[..., : bands * bands]
+                    Sm = smoother(M, Yk, om)
+                    r = y - np.matmul(Y, c.transpose(0, 2, 1))
+                    sd = coefficient_sd(Sm, Yk, r, n, sigma)
+                    flat[FitArray.SD][sel] = sd.reshape(len(sel), -1)
+                    if loo:
+                        flat[FitArray.LOO][sel[:, None], np.flatnonzero(w)[None]] = \
+                            smoother_loo(Sm, Yk, -r)  # prediction - observation
                 else:
                     c = project(y, v, omega, n, hemisphere,
                                 1e-4 if reg == "auto" else float(reg), basis=Y)

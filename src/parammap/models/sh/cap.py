@@ -5,7 +5,6 @@ errors and the coefficients' standard deviations."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
@@ -238,7 +237,7 @@ GUARD_TOLERANCE = 0.1  # of the texel's observed range
 def guarded_project(
     radiance: np.ndarray, directions: np.ndarray, weights: np.ndarray, n: int,
     hemisphere: str, reg: float | str = "auto", basis: np.ndarray | None = None,
-    system: bool = False, bands: int | None = None,
+    system: bool = False,
 ) -> tuple:
     """:func:`project_cap` with the batch's :class:`SampledCap`, and a guard: a texel
     whose reconstruction at any unsampled direction leaves the range of its own
@@ -247,8 +246,8 @@ def guarded_project(
     prior ten times stronger, up to ``GUARD_STEPS`` times, so that directions no view
     looked at are filled by the low bands rather than by an extrapolated lobe.
 
-    Only the bands the views resolve are fitted (:func:`resolvable_bands`), or exactly
-    ``bands`` (1: the DC term alone); the coefficients above them are zero.
+    Only the bands the views resolve are fitted (:func:`resolvable_bands`); the
+    coefficients above them are zero.
 
     Returns
     -------
@@ -261,7 +260,7 @@ def guarded_project(
     """
     ref = directions.mean(0)
     full = n
-    n = resolvable_bands(ref, n) if bands is None else int(bands)
+    n = resolvable_bands(ref, n)
     Y = sh_basis(directions, n) if basis is None else basis[..., : n * n]
     cap = SampledCap(ref, n)
     mu = prior_strength(radiance, Y, weights * cap.fraction,
@@ -292,18 +291,6 @@ def guarded_project(
                                         hemisphere, cap, lam[sel], Y[sel],
                                         prior_scale=mu[sel] * 10.0 ** esc[sel], system=True)
     return (_pad_bands(c, full), lam, esc, n) + ((M, omega) if system else ())
-
-
-def loo_error(S: np.ndarray, Y: np.ndarray, radiance: np.ndarray, c: np.ndarray,
-              omega: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Leave-one-view-out residuals (B, N, 3) of a fit (:func:`smoother_loo`; S, Y over
-    its k^2 bands, c (B, 3, k^2)) and their weighted sum of squares (B,), the estimate
-    of its error at views it did not see (inf where a view alone determines it)."""
-    r = radiance - Y @ np.swapaxes(c, 1, 2)
-    e = smoother_loo(S, Y, -r)
-    with np.errstate(invalid="ignore"):
-        score = np.sum(omega[..., None] * e * e, axis=(1, 2))
-    return e, np.where(np.isnan(score), np.inf, score)
 
 
 def smoother(M: np.ndarray, Y: np.ndarray, omega: np.ndarray) -> np.ndarray:
@@ -360,62 +347,3 @@ def _pad_bands(c: np.ndarray, n: int, fill: float = 0.0) -> np.ndarray:
     out = np.full(c.shape[:2] + (n * n,), fill)
     out[..., : c.shape[-1]] = c
     return out
-
-
-@dataclass
-class BandGroup:
-    """Texels of a batch that chose the same bands: ``mask`` (B,) of the batch, ``k``
-    bands, the smoother ``S`` (b, k^2, N), basis ``Y`` (b, N, k^2), coefficients ``c``
-    (b, 3, k^2) and leave-one-view-out residuals ``loo`` (b, N, 3)."""
-
-    mask: np.ndarray
-    k: int
-    S: np.ndarray
-    Y: np.ndarray
-    c: np.ndarray
-    loo: np.ndarray
-
-
-def fit_on_cap(radiance: np.ndarray, directions: np.ndarray, weights: np.ndarray, n: int,
-               hemisphere: str, reg: float | str = "auto", basis: np.ndarray | None = None,
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[BandGroup]]:
-    """Each texel's bands chosen by its own views: :func:`guarded_project` with every
-    count of bands k from 1 (the DC term: a diffuse texture) to the most the views
-    resolve, and per texel the k whose leave-one-view-out error (:func:`loo_error`,
-    weighted as the fit) is least. A highlight the bands cannot draw rings between the
-    views, which the views left out see; there the texel keeps fewer bands, down to
-    its mean level, so that the fit does not lose to its own zero-order term on views
-    it did not see.
-
-    Returns
-    -------
-    (B, 3, n^2) coefficients, (B,) lambda, (B,) guard escalations and (B,) bands, and
-    the :class:`BandGroup` of each count of bands chosen.
-    """
-    Y = sh_basis(directions, n) if basis is None else basis
-    kmax = resolvable_bands(directions.mean(0), n) if n > 1 else 1
-    B = len(radiance)
-    best = np.full(B, np.inf)
-    choice = np.zeros(B, int)
-    fits = {}
-    for k in range(1, kmax + 1):
-        c, lam, esc, _, M, om = guarded_project(radiance, directions, weights, n, hemisphere,
-                                                reg, Y, system=True, bands=k)
-        Yk = Y[..., : k * k]
-        S = smoother(M, Yk, om)
-        e, score = loo_error(S, Yk, radiance, c[..., : k * k], om)
-        # ties (a texel every k predicts alike) keep the fewer bands
-        better = score < best * (1 - 1e-9)
-        best[better], choice[better] = score[better], k
-        fits[k] = (c, lam, esc, S, Yk, e)
-    # a texel no k predicts (a view alone determines every fit) keeps the most bands
-    choice[choice == 0] = kmax
-    c = np.empty((B, 3, n * n))
-    lam, esc = np.zeros(B), np.zeros(B, np.int8)
-    groups = []
-    for k in np.unique(choice):
-        m = choice == k
-        ck, lk, ek, S, Yk, e = fits[int(k)]
-        c[m], lam[m], esc[m] = ck[m], lk[m], ek[m]
-        groups.append(BandGroup(m, int(k), S[m], Yk[m], ck[m][..., : k * k], e[m]))
-    return c, lam, esc, choice.astype(np.int8), groups
