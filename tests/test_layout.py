@@ -95,6 +95,31 @@ def test_package_imports_are_at_the_top_of_modules():
     assert not bad, "\n".join(bad)
 
 
+# Imported where they are used, not at the top: optional (the physically based
+# generator's Mitsuba, numba's compiled kernels with numpy fallbacks, a dask cluster's
+# client), or heavy and wanted by a few figures (matplotlib).
+LOCAL_OK = ("mitsuba", "drjit", "numba", "matplotlib", "dask")
+
+
+def test_other_imports_are_at_the_top_unless_optional_or_heavy():
+    bad = []
+    for mod, path in MODULES.items():
+        if mod in LAZY:
+            continue
+        tree = ast.parse(path.read_text())
+        top = {id(n) for n in tree.body}
+        top |= {id(m) for n in tree.body if isinstance(n, ast.Try) for m in ast.walk(n)}
+        for node in ast.walk(tree):
+            if id(node) in top or not isinstance(node, ast.Import | ast.ImportFrom):
+                continue
+            if isinstance(node, ast.ImportFrom) and node.level:
+                continue  # package imports: the test above
+            name = (node.module if isinstance(node, ast.ImportFrom) else node.names[0].name)
+            if name.split(".")[0] not in LOCAL_OK + ("parammap",):
+                bad.append(f"{mod}:{node.lineno} imports {name} inside a function")
+    assert not bad, "\n".join(bad)
+
+
 def _graph() -> dict[str, set[str]]:
     graph: dict[str, set[str]] = {m: set() for m in MODULES}
     for mod, path in MODULES.items():

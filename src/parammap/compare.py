@@ -24,15 +24,20 @@ that only B has (metadata a newer version writes) are listed but do not count.
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import math
 import sys
+import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
+import yaml
+import zarr
 
 from .stores.exr import read_exr
 
@@ -155,9 +160,7 @@ def _compare_exr(a: Path, b: Path, diff: Difference) -> None:
 
 
 def _compare_zarr(a: Path, b: Path, diff: Difference) -> None:
-    import warnings
 
-    import zarr
 
     warnings.filterwarnings("ignore", message=".*not recognized as a component")
     ga, gb = zarr.open_group(a, mode="r"), zarr.open_group(b, mode="r")
@@ -175,7 +178,6 @@ def _compare_zarr(a: Path, b: Path, diff: Difference) -> None:
 
 
 def _compare_png(a: Path, b: Path, diff: Difference) -> None:
-    import cv2
 
     ia = cv2.imread(str(a), cv2.IMREAD_UNCHANGED)
     ib = cv2.imread(str(b), cv2.IMREAD_UNCHANGED)
@@ -192,7 +194,6 @@ def _load_text(p: Path) -> Any:
     if p.suffix == ".js":  # the viewer's data: ``window.NAME = {json};``
         text = p.read_text()
         return json.loads(text[text.index("=") + 1:].strip().rstrip(";"))
-    import yaml
 
     return yaml.safe_load(p.read_text())
 
@@ -202,7 +203,6 @@ def _compare_lines(a: Path, b: Path, diff: Difference) -> None:
     CSV's provenance) is compared by value, timings skipped."""
     la, lb = a.read_text().splitlines(), b.read_text().splitlines()
     if a.suffix == ".csv" and la and lb and la[0] == lb[0]:
-        import csv
 
         keep = [k for k, h in enumerate(next(csv.reader([la[0]])))
                 if h not in VOLATILE_KEYS and not h.endswith("seconds")]

@@ -3,7 +3,12 @@ worker: what the stages that run jobs in parallel share."""
 
 from __future__ import annotations
 
+import ctypes
+import os
+import signal
+import sys
 from concurrent.futures import ProcessPoolExecutor
+from functools import partial
 
 __all__ = ["die_with_parent", "executor", "worker_initializer"]
 
@@ -27,11 +32,6 @@ def die_with_parent(parent: int) -> None:
     started it) dies, even by SIGKILL (a pre-empting scheduler, the out-of-memory
     killer), which gives the pool no chance to stop its workers. Linux (prctl);
     elsewhere only the check that the parent is still there."""
-    import ctypes
-    import os
-    import signal
-    import sys
-
     if sys.platform.startswith("linux"):
         try:
             ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PDEATHSIG
@@ -43,9 +43,6 @@ def die_with_parent(parent: int) -> None:
 
 def worker_initializer():
     """:func:`die_with_parent` bound to this process, for a pool's ``initializer``."""
-    import os
-    from functools import partial
-
     return partial(die_with_parent, os.getpid())
 
 

@@ -42,6 +42,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.cluster.vq import kmeans2
 
 from ..config import default
 from ..conventions import MH_KD, MH_M, FitArray, mh_dir, mh_ks, mh_lobes, mh_size
@@ -119,8 +120,6 @@ def cluster_materials(F: np.ndarray, k: int, seed: int = 0) -> np.ndarray:
     """k-means labels (n,) of material features F (n, 4) (:func:`material_features`) in
     appearance units (k-means++ starts, the best of 8 runs by within-cluster sum of
     squares)."""
-    from scipy.cluster.vq import kmeans2
-
     Z = _appearance_units(F)
     if k <= 1 or len(Z) <= k:
         return np.zeros(len(Z), int)

@@ -237,7 +237,6 @@ def exp_view_count(c: Conditions = CONDITIONS) -> list[dict[str, Any]]:
     """004 ch. 13.2-13.3: MH parameters from 17 and 73 views (and 73 uniform + 81
     around the highlight = 154) against 305 (004: Kd and d within 1 %, Ks ~15 %, m ~5 %
     with 17), and SH-36's error against the true radiance at 2562 directions."""
-
     mirror = np.array([-c.light[0], -c.light[1], c.light[2]])
     sets = {"17": icosahedron(1, 90.0), "73": icosahedron(2, 90.0),
             "73 + 81 around the highlight": np.concatenate([icosahedron(2, 90.0),
@@ -295,7 +294,6 @@ def exp_initialisers(c: Conditions = CONDITIONS) -> list[dict[str, Any]]:
     initialiser, adapted to one shared m) against 004's published initial guess, on the
     scenes of 004 ch. 11.3.1-11.3.2: residual of the start, of the fit, and the
     objective evaluations the fit needed."""
-
     rows = []
     scenes = {"point light, K = 1": ([c.light], [1.0], 1),
               "second light at [-1500, -1500], K = 2":
@@ -350,7 +348,6 @@ def latlong_published() -> np.ndarray:
 def coverage(directions: np.ndarray, max_zenith_deg: float = 90.0) -> dict[str, float]:
     """Largest gap (deg: the angular distance from any direction of the hemisphere up to
     ``max_zenith_deg`` to its nearest sample) and median nearest-neighbour spacing."""
-
     grid, _ = hemisphere_grid(1.0)
     grid = grid[grid[:, 2] >= np.cos(np.radians(max_zenith_deg))]
     d = np.asarray(directions, float)

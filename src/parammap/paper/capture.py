@@ -4,6 +4,7 @@ of the EXR files we write."""
 from __future__ import annotations
 
 import logging
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -50,7 +51,6 @@ def exp_holdout(capture: str | Path, processed: str | Path, workers: int = defau
     saturates). 004's tables follow for reference (other surfaces). Fits run in a
     temporary folder from the capture's observation map; nothing of the processed
     folder changes. ``quick`` (the test suite) fits Phong, SHZH16 and ours only."""
-    import tempfile
 
 
     proc = Processed(processed)
@@ -103,7 +103,6 @@ def exp_holdout(capture: str | Path, processed: str | Path, workers: int = defau
 def measured_sizes(processed: str | Path) -> list[dict[str, Any]]:
     """Storage of a capture's parameter maps as written (``params/*.exr``, float32, ZIP)
     and of its observation map (zarr, compressed), against 004's float formula."""
-
     proc = Processed(processed)
     rows = []
     if proc.observation.is_dir():

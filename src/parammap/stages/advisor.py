@@ -54,7 +54,6 @@ def run_advisor(source: str | Path, processed: str | Path, config: dict[str, Any
     """The advisor stage (module docstring); ``config`` the validated workflow config
     (sections ``advisor`` and ``observation``). Returns what ``metrics/advice.json``
     holds."""
-
     src, proc = Processed(source), Processed(processed)
     cfg = config["advisor"]
     _, obs, P, fitted = open_mh_source(src.root, cfg["source"], "advisor.source")

@@ -159,7 +159,6 @@ def _sh_loo(g, obs, rows: slice, cols: slice) -> tuple[np.ndarray, np.ndarray] |
 
 def _fit_store(path: Path):
     """The finished fit store at ``path``, or None when there is none."""
-
     try:
         return open_fit(path)
     except InputError:
@@ -358,7 +357,6 @@ def run_best(source: str | Path, processed: str | Path, config: dict[str, Any], 
     """The best-model stage (module docstring) over the exported maps of ``models``;
     ``config`` the validated workflow config (section ``best``). Returns what
     ``metrics/best.json`` holds."""
-
     if len(models) < 2:
         raise InputError(f"best: needs at least two candidate models (got {models})")
     src, proc = Processed(source), Processed(processed)

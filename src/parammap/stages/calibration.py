@@ -187,7 +187,6 @@ def _pattern_view_job(job: tuple) -> tuple[str, PatternView, list, np.ndarray, f
     (at most ``max_pixels``), for :func:`refine_intrinsics_pattern`: (view id,
     view, blurred textures, pose (6,), residual noise), or None without a pattern pose.
     A process pool's job."""
-
     cap, intr, vid, path, max_pixels = job
     rad = read_hdr(path)[0]
     rec = estimate_pose(cap, intr, to_gray8(rad), radiance=rad,
@@ -233,7 +232,6 @@ def pattern_views(cap: Capture, intr: Intrinsics, frames: list[tuple[str, Path]]
 
 def _marker_view_job(job: tuple) -> tuple[str, np.ndarray, np.ndarray] | None:
     """:func:`_marker_view` of a view's HDR frame on disk (a process pool's job)."""
-
     cap, intr, vid, path, min_markers = job
     return _marker_view(cap, intr, vid, read_hdr(path)[0], min_markers)
 

@@ -21,7 +21,6 @@ def run_export(source: str | Path, processed: str | Path, config: dict[str, Any]
     ``fit/<model>.zarr`` of ``source``; ``diffuse`` is the mean-radiance baseline of the
     observation map. ``half``: half floats instead of float32. ``config`` holds no
     setting of this stage (one signature for every stage)."""
-
     src, proc = Processed(source), Processed(processed)
     paths = []
     for name in models:

@@ -222,7 +222,6 @@ def make_figures(kind: str, capture_dir: str | Path, processed: str | Path,
                  models: list[str] | None = None, timings: list[Path] | None = None,
                  lobe_texels: list[tuple[int, int]] | None = None) -> list[Path]:
     """Build one kind of report figure (see the module docstring)."""
-
     proc, out = Processed(processed), Path(out_dir)
     if kind not in KINDS:
         raise InputError(f"unknown figure kind {kind!r} (one of {', '.join(KINDS)})")
@@ -267,7 +266,6 @@ def mh_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path, 
                texels: list[tuple[int, int]] | None = None) -> list[Path]:
     """Parameter maps, residual maps and lobe plots (measured vs fitted with percentage
     residuals, like 004 fig. 11.6) of an MH fit store."""
-
     g = open_fit(fit_path)
     obs = open_observation_map(obs_path)
     out_dir = Path(out_dir)
@@ -298,7 +296,6 @@ def mh_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path, 
 def sh_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path, name: str,
                texels: list[tuple[int, int]] | None = None) -> list[Path]:
     """Coefficient maps of the first bands, residual maps and lobe plots."""
-
     g = open_fit(fit_path)
     obs = open_observation_map(obs_path)
     out_dir = Path(out_dir)
@@ -387,7 +384,6 @@ def batch_summary(processed_dir: str | Path, surfaces: list[str], models: list[s
 def observation_figures(store: str | Path, out_dir: str | Path,
                         texels: list[tuple[int, int]] | None = None) -> list[Path]:
     """Valid-observation count per texel and lobe plots of chosen texels, from the store."""
-
     g = open_observation_map(store)
     out_dir = Path(out_dir)
     S, T = g.S, g.T

@@ -21,11 +21,13 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import multiprocessing
 import os
 import shutil
 import sys
 import time
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -182,8 +184,6 @@ def _mp_context(start_method: str = default("fit.start_method")):
     spawned one imports them again: about a second per fit on the demo, a sixth of its
     mh-auto time); elsewhere dask's configured context (``spawn``: fork is unsafe on
     macOS)."""
-    import multiprocessing
-
     if start_method not in START_METHODS:
         raise FitError(f"fit.start_method: unknown {start_method!r} "
                        f"(one of {', '.join(START_METHODS)})")
@@ -203,7 +203,6 @@ def _process_pool(scheduler: str, workers: int, start_method: str = default("fit
     if scheduler != "processes":
         yield None
         return
-    from concurrent.futures import ProcessPoolExecutor
 
     from dask.multiprocessing import initialize_worker_process
 
@@ -469,7 +468,6 @@ def run_fit(source: str | Path, processed: str | Path, config: dict[str, Any], *
     ``fit/<model>.zarr`` from the observation map with the whole (validated) ``config``
     (section ``fit``) and ``metrics/fit-<model>.json``. Returns the metrics; its
     figures come from :mod:`parammap.stages.figures`."""
-
     src, proc = Processed(source), Processed(processed)
     cfg = config["fit"]
     workers = workers or cfg["workers"] or config["workers"]

@@ -504,7 +504,6 @@ def gather_hdr_metrics(stats_paths: list[str | Path], out: str | Path,
     """Pool per-view HDR stats (``hdr/<view>.json``) into ``metrics/hdr.json``: views,
     worst saturated fraction and the re-exposure self-check (mean and 95th percentile,
     8-bit levels, pixels in the working range)."""
-
     views = {Path(p).stem: json.loads(Path(p).read_text()) for p in stats_paths}
     pooled = pool_reexposure([v.get("reexposure") for v in views.values()])
     per_view = {k: {kk: vv for kk, vv in v.items() if kk != "reexposure"}

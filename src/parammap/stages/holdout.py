@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.cluster.vq import kmeans2
 
 from ..conventions import LUMINANCE
 from ..geometry import Intrinsics, plane_to_texel
@@ -62,8 +63,6 @@ def texel_regions(obs_path: str | Path, k: int = REGIONS, seed: int = 0,
     labels : (T, S) int; regions : one dict per label (texels, mean radiance,
         gloss ratio), ordered by label.
     """
-    from scipy.cluster.vq import kmeans2
-
     g = open_observation_map(obs_path)
     T, S, _ = g.shape
     feat = np.full((T, S, 4), np.nan)
@@ -101,7 +100,6 @@ def texel_regions(obs_path: str | Path, k: int = REGIONS, seed: int = 0,
 def pixel_regions(labels: np.ndarray, points: np.ndarray, inside: np.ndarray,
                   width_mm: float, height_mm: float) -> np.ndarray:
     """(H, W) region label of each pixel's texel (-1 outside the region)."""
-
     T, S = labels.shape
     out = np.full(points.shape[:2], -1, int)
     P = points[inside]
@@ -168,7 +166,6 @@ def holdout_comparison(
 
     Writes 8-bit images (photo, render and difference per model) under ``out_dir``;
     returns the metrics for ``metrics/holdout.json``."""
-
     proc = Processed(processed)
     out_dir = Path(out_dir)
     held = [r for r in read_poses(proc.poses)["views"] if r.get("holdout")]
@@ -223,7 +220,6 @@ def run_holdout(cap: Capture, processed: str | Path, config: dict[str, Any], *,
     """The holdout stage: render the exported maps ``params/<model>.exr`` of ``models``
     in every held-out view and compare (images under ``holdout/``, figures in
     ``metrics/holdout.json``, also returned)."""
-
     proc = Processed(processed)
     maps = {name: read_param_map(proc.params(name)) for name in models}
     res = holdout_comparison(cap, load_intrinsics(proc.intrinsics), proc.root, maps,

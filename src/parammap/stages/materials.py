@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.ndimage import uniform_filter
+from scipy.ndimage import distance_transform_edt, uniform_filter
 
 from ..conventions import MH_M, FitArray, FitStatus, mh_dir, mh_ks, mh_lobes, mh_size
 from ..models.materials import (
@@ -74,8 +74,6 @@ def _borrowed(P: np.ndarray, ok: np.ndarray, T: int, S: int) -> np.ndarray:
     the nearest texel that has one: a lobe is the mirror image of a light, which moves
     slowly across the surface, so a texel whose own fit missed its highlight (a poor
     minimum, a highlight few views saw) is still judged with the lobes it should have."""
-    from scipy.ndimage import distance_transform_edt
-
     _, present = _lobes(P)
     has = (present.any(1) & ok).reshape(T, S)
     if not has.any() or has.all():
@@ -163,7 +161,6 @@ def run_materials(source: str | Path, processed: str | Path,
                   config: dict[str, Any]) -> dict[str, Any]:
     """The materials stage (module docstring); ``config`` the validated workflow config
     (section ``materials``). Returns the figures written to ``metrics/fit-mh-materials.json``."""
-
     src, proc = Processed(source), Processed(processed)
     cfg = config["materials"]
     _, obs, P, ok = open_mh_source(src.root, cfg["source"], "materials.source")

@@ -543,7 +543,6 @@ def run_observation(cap: Capture, processed: str | Path, config: dict[str, Any],
     """The observe stage: build ``observation.zarr`` with the config section
     ``observation`` of the whole (validated) ``config``, write
     ``metrics/observation.json``."""
-
     proc = Processed(processed)
     cfg = config["observation"]
     m = build_observation_map(

@@ -161,7 +161,6 @@ def map_resolution(cap: Capture, ppmm: list[float], n_views: int, texels_x: int 
 
 def _view_pose(job: tuple) -> dict[str, Any]:
     """The pose of one view from its HDR frame (a process pool's job)."""
-
     cap, intr, path, cfg = job
     try:
         rad, _, _ = read_hdr(path)

@@ -8,10 +8,12 @@ from __future__ import annotations
 
 import glob
 from dataclasses import dataclass, field
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import cv2
+import jsonschema
 import numpy as np
 import yaml
 
@@ -135,8 +137,6 @@ def _kind_name(kind) -> str:
 
 def capture_schema() -> dict[str, Any]:
     """The JSON schema of ``capture.yaml`` (``schemas/capture.schema.yaml``) as a dict."""
-    from importlib import resources
-
     text = resources.files("parammap").joinpath("schemas/capture.schema.yaml").read_text()
     return yaml.safe_load(text)
 
@@ -157,8 +157,6 @@ def _key(path) -> str:
 def _check_schema(c: _Ctx, raw: Any) -> None:
     """Stop at the first value (in document order) that breaks the capture schema,
     naming its key: a missing key, a wrong type, or the node's ``x-message``."""
-    import jsonschema
-
     validator = jsonschema.Draft202012Validator(capture_schema())
     errors = sorted(validator.iter_errors(raw), key=lambda e: [str(p) for p in e.path])
     if not errors:

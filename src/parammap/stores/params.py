@@ -176,7 +176,6 @@ def best_shares(params: np.ndarray, n_candidates: int) -> np.ndarray:
 
 def param_map_from_fit(fit_path: str | Path) -> ParamMap:
     """The parameter map of a finished fit store (``fit/<model>.zarr``)."""
-
     g = open_fit(fit_path)
     key = FitArray.PARAMS if g.model == "mh" else FitArray.COEFFS
     sd = g.get(FitArray.SD)

@@ -628,7 +628,6 @@ def true_observations(
 ) -> tuple[np.ndarray, np.ndarray]:
     """True view directions and radiances of texels ``[rows, cols]`` (each (M,)) in the
     given views, from the generator's poses: (M, N, 3) directions, (M, N, 3) radiance."""
-
     truth_dir = Path(truth_dir)
     scene = load_scene(truth_dir / "scene.npz")
     poses = np.load(truth_dir / "poses.npz")

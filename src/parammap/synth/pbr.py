@@ -564,7 +564,6 @@ def generate_pbr(
 def read_truth_radiance(truth_dir: str | Path, view_id: str, clean: bool = False) -> np.ndarray:
     """The radiance (H, W, 3) a generated photo was exposed from (``clean``: the
     high-sample render of a held-out view)."""
-
     return read_rgb(Path(truth_dir) / ("clean" if clean else "radiance") / f"{view_id}.exr")
 
 
@@ -572,7 +571,6 @@ def patch_labels(truth_dir: str | Path, S: int, T: int, width_mm: float,
                  height_mm: float) -> np.ndarray:
     """(T, S) int: the material patch under each texel centre (docs/reference/conventions.md texel
     mapping), from ``scene.json``."""
-
     patches = json.loads((Path(truth_dir) / "scene.json").read_text())["patches"]
     ctr = texel_centres(S, T, width_mm, height_mm)
     lab = np.full((T, S), -1, int)

@@ -51,7 +51,6 @@ def hdr_errors(capture: str | Path, truth: str | Path, processed: str | Path,
     dict with ``median``, ``p95`` (ours) and ``oracle_median``, ``oracle_p95``, as
     fractions, and ``pixels``.
     """
-
     cap = load_capture(capture)
     exposure = np.load(Path(truth) / "response.npz")["exposure"]
     g_true = np.log(np.maximum(exposure, 1e-12))
@@ -114,7 +113,6 @@ def pose_errors(truth: str | Path, processed: str | Path) -> dict:
 def true_directions(truth: str | Path, view_ids: list[str], S: int, T: int, width_mm: float,
                     height_mm: float) -> np.ndarray:
     """True view directions (T, S, N, 3) of every texel centre in the given views."""
-
     P = np.load(Path(truth) / "poses.npz")
     ids = list(P["view_ids"])
     k = [ids.index(v) for v in view_ids]
@@ -151,7 +149,6 @@ def holdout_against_truth(capture: str | Path, truth: str | Path, processed: str
     {model: mean 8-bit difference}}`` over all held-out views (pixel-weighted), each
     patch named ``<index> <kind> <parameters>`` from ``scene.json``.
     """
-
     cap = load_capture(capture)
     proc = Processed(processed)
     intr = load_intrinsics(proc.intrinsics)
@@ -208,7 +205,6 @@ def directions_against_truth(truth: str | Path, processed: str | Path, models: l
     directions (:func:`parammap.stages.holdout.choose_gamma`). Texels are looked up in the
     truth scene at their centres (any map size).
     """
-
     scene = load_scene(Path(truth) / "scene.npz")
     proc = Processed(processed)
     maps = {m: read_param_map(proc.params(m)) for m in models}

@@ -164,7 +164,6 @@ def write_viewer(out_dir: str | Path, surface_id: str, maps: dict[str, ParamMap]
         under it also travels at that reduction (``payload-<model>-f<f>.js``), which is
         all the page then loads.
     """
-
     budget_mb = budget_mb or FLOAT_LAYER_BUDGET_MB
 
     out_dir = Path(out_dir)
@@ -232,7 +231,6 @@ def write_surface_viewer(cap: Capture, processed: str | Path, models: list[str],
     """The viewer stage: the page for the exported maps ``params/<model>.exr`` of
     ``models``, with every kept view's pose to snap to; the initial gamma is the
     median of the held-out comparison's (1 before that stage has run)."""
-
     proc = Processed(processed)
     maps = {name: read_param_map(proc.params(name)) for name in models}
     for pm in list(maps.values()):  # the best map's candidates are shown by it

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import math
 import zlib
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -177,7 +178,6 @@ def _weight_steps(Xs: np.ndarray, V: np.ndarray, Ws: np.ndarray, span: np.ndarra
     ``budget`` by bisection on theta. Deflate's Huffman codes then spend few bits on a
     component whose weights span few steps (texel noise).
     """
-
     k = V.shape[1]
     nc = Xs.shape[1] // 3
     Y = sh_basis(_render_directions(64), int(round(np.sqrt(nc))))  # (M, c)
@@ -258,7 +258,6 @@ def encode_map(pm, gamma: float = 1.0, tile: int = TILE,
     SH-64 map needs little more memory than its own parameters, and those the page shows
     reduced (:func:`page_reduction` at ``budget_mb``) also carry that level (see
     :func:`_encode_sh`)."""
-
     if pm.model == "sh":
         info, L = layer_info(pm)
         T, S, P = pm.params.shape
@@ -540,7 +539,6 @@ def quantisation_error(pm, entry: dict, payloads: list[bytes], intr, poses,
     map from its compact payload (:func:`encode_map`) against renders of the float map,
     over ``poses`` (R, t) pairs and the surface pixels of each (a map above
     :data:`ERROR_TEXELS` texels: both maps' every s-th texel, s the smallest that fits)."""
-    from dataclasses import replace
 
 
     info, L = layer_info(pm)

@@ -9,6 +9,8 @@ import math
 
 import cv2
 import numpy as np
+from scipy.optimize import least_squares
+from scipy.special import ndtr
 
 from ..geometry import (
     Intrinsics,
@@ -117,8 +119,6 @@ def _fit_step_columns(vals: np.ndarray, lo: float, span: np.ndarray, e0: np.ndar
     e : (n,) positions; ok : (n,) columns that converged inside the window with a
         residual not far above the edge's median (a second edge in the window is not).
     """
-    from scipy.special import ndtr
-
     j = np.arange(vals.shape[1], dtype=float)[None, :]
     target = (vals - lo) / np.maximum(span, 1e-12)[:, None]
 
@@ -354,8 +354,6 @@ def refine_pose_edges(
     None without at least 12 edge points; else a dict with ``R``, ``t``, ``cov`` (6, 6)
     covariance of (rvec, tvec), ``edge_noise_px``, ``n`` (edge points).
     """
-    from scipy.optimize import least_squares
-
     pts, xa, xb, n_edges = [], [], [], 0
     for quad, per in zip(quads_mm, edges, strict=True):
         for k, e in enumerate(per):

@@ -10,6 +10,9 @@ from dataclasses import replace
 
 import cv2
 import numpy as np
+import scipy.ndimage as ndi
+from scipy.ndimage import map_coordinates
+from scipy.optimize import least_squares
 
 from ..geometry import (
     Intrinsics,
@@ -42,8 +45,6 @@ def _marker_pattern(dictionary: str, marker_id: int, cells: int, blur_texels: fl
     """The marker's black-and-white pattern, black border included, (n, n) floats in
     [0, 1] with ``PATTERN_TEXELS_PER_CELL`` samples per cell, blurred by
     ``blur_texels`` (Gaussian sd, samples)."""
-    import scipy.ndimage as ndi
-
     img = aruco_dictionary(dictionary).generateImageMarker(
         int(marker_id), cells * PATTERN_TEXELS_PER_CELL).astype(float) / 255.0
     return ndi.gaussian_filter(img, blur_texels) if blur_texels > 0 else img
@@ -166,7 +167,6 @@ class PatternView:
                           ) -> tuple[np.ndarray, np.ndarray]:
         """Photo minus prediction (photo units) of marker ``m`` at pose ``p``, and its
         fitted levels (:func:`_levels`)."""
-        from scipy.ndimage import map_coordinates
 
 
         if pattern_predict is not None:
@@ -190,7 +190,6 @@ class PatternView:
         compiled kernel's derivatives of the prediction, with the levels refitted at
         the moved pose (variable projection) and the step they scale by. None where
         numba is missing."""
-
         if pattern_predict_grad is None:
             return None
         Rm, dR = cv2.Rodrigues(np.asarray(p[:3], float))
@@ -300,8 +299,6 @@ def refine_pose_pattern(lum: np.ndarray, cap: Capture, marker_ids: list[int],
         black-to-white step), ``blur_px``, ``pixels``, ``markers`` (how many),
         ``marker_ids`` (which: the detected ones and the others that joined).
     """
-    from scipy.optimize import least_squares
-
     rvec, _ = cv2.Rodrigues(np.asarray(R, float))
     view = PatternView(lum, cap, marker_ids, rvec, np.asarray(t, float), intr, max_pixels)
     if not view.markers:
@@ -488,8 +485,6 @@ def _joint_view_pose(job: tuple) -> tuple[float, np.ndarray]:
     squared pattern residuals there: the poses follow each step of the intrinsics
     (variable projection), which keeps the solver out of the curved valley where
     linearised poses creep."""
-    from scipy.optimize import least_squares
-
     view, tex, p, th, intr = job
     view.set_intrinsics(_with_intrinsics(intr, th))
     last: dict = {}
@@ -574,7 +569,6 @@ def refine_intrinsics_pattern(
     (refined minus starting value of each intrinsic); each view's pose (rvec, tvec) (6,)
     with them.
     """
-
     th0 = _intrinsic_vector(intr)
     steps = _intrinsic_steps(intr)
     pixels = max(sum(v[1].pixels for v in views), 1)

@@ -7,6 +7,7 @@ import math
 import warnings
 
 import numpy as np
+from scipy.ndimage import uniform_filter
 
 from ...config import default
 from ...conventions import (
@@ -296,8 +297,6 @@ def _select_lobes(flat: dict, alts: dict[int, np.ndarray], ok: np.ndarray,
     is noisy), and each texel takes the number of lobes with the lowest sum (the fewer
     lobes on a tie). Changes ``flat`` in place.
     """
-    from scipy.ndimage import uniform_filter
-
     ks = sorted(alts)
     # whether a texel has a lobe at all stays BIC's choice (and drop_negligible_lobes'):
     # a lobe that one view alone saw has no leave-one-out support, yet may be real

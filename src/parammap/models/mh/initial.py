@@ -179,7 +179,6 @@ def extend_guess_batch(V: np.ndarray, L: np.ndarray, W: np.ndarray, P: np.ndarra
     kept, the new lobe at the direction of the largest remaining residual (at least
     ``min_sep_deg`` from theirs), Kd and every Ks solved again by non-negative least
     squares. (B, N, 3) V, L; W (B, N) weights. Returns (B, 4 + 6(K + 1))."""
-
     B, N, _ = V.shape
     K = mh_lobes(P.shape[1])
     D = np.stack([P[:, mh_dir(k)] for k in range(K)], 1) if K else np.zeros((B, 0, 3))

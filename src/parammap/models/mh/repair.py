@@ -10,7 +10,8 @@ import math
 import warnings
 
 import numpy as np
-from scipy.ndimage import maximum_filter
+from numpy.lib.stride_tricks import sliding_window_view
+from scipy.ndimage import label, maximum_filter
 from scipy.stats import chi2
 
 from ...conventions import (
@@ -60,8 +61,6 @@ def _neighbourhood_median(e: np.ndarray, radius: int, strip_elements: int = 1 <<
     where the whole window is). Computed in strips of rows whose windows hold about
     ``strip_elements`` values: the whole map's windows at once took 2 KB a texel (8 GB
     for a 2048^2 map, in the fit's driver)."""
-    from numpy.lib.stride_tricks import sliding_window_view
-
     H, W = e.shape
     w = 2 * radius + 1
     pad = np.pad(np.asarray(e, float), radius, constant_values=np.nan)
@@ -83,8 +82,6 @@ def stains(rmse: np.ndarray, status: np.ndarray, factor: float = REPAIR_FACTOR,
     """Sizes (texels) of the connected blobs of texels whose RMSE (mean over channels)
     exceeds ``factor`` times the median of their (2 ``radius`` + 1)^2 neighbourhood,
     largest first: ``rmse`` (T, S, 3), ``status`` (T, S)."""
-    from scipy.ndimage import label
-
     e = np.where(status == FitStatus.OK, np.nanmean(rmse, -1), np.nan)
     with np.errstate(invalid="ignore"):
         out = e > factor * _neighbourhood_median(e, radius)

@@ -7,7 +7,7 @@ import math
 from functools import lru_cache
 
 import numpy as np
-from scipy.spatial import ConvexHull
+from scipy.spatial import ConvexHull, cKDTree
 
 from ...conventions import (
     SH_HEMISPHERES,
@@ -178,8 +178,6 @@ def planar_solid_angles(directions: np.ndarray, grid: int = 512) -> np.ndarray:
     (..., N) weights in steradians (approximately; they sum to about 2 pi only where
     the views reach the equator).
     """
-    from scipy.spatial import cKDTree
-
     d = np.asarray(directions, float)
     batch, N = d.shape[:-2], d.shape[-2]
     d = d.reshape((-1, N, 3))
