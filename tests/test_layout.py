@@ -20,7 +20,7 @@ BELOW_STAGES = ("parammap.stores", "parammap.models", "parammap.vision",
 # the store layer and the pure numerics never reach up into a stage or an application
 LOWER = ("parammap.stores", "parammap.models", "parammap.conventions",
          "parammap.errors", "parammap.geometry", "parammap.parallel", "parammap.vision")
-UPPER = ("parammap.stages", "parammap.cli", "parammap.paper", "parammap.viewer",
+UPPER = ("parammap.stages", "parammap.cli", "parammap.paper", "parammap.viewer", "parammap.sheets",
          "parammap.synth", "parammap.compare")
 
 

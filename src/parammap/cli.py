@@ -294,6 +294,41 @@ def _batch_summary(a: argparse.Namespace) -> int:
     return 0
 
 
+@_command("markers")
+def _markers(a: argparse.Namespace) -> int:
+    from .sheets import check_markers, marker_sheet, write_sheet
+
+    marker = a.marker_mm or 0.2 * min(a.width_mm, a.height_mm)
+    sheet, layout = marker_sheet(a.width_mm, a.height_mm, a.dictionary, marker, a.count,
+                                 a.gap_mm)
+    return _sheet_out(a, "markers", sheet, layout, check_markers(sheet, layout),
+                      write_sheet)
+
+
+@_command("board")
+def _board(a: argparse.Namespace) -> int:
+    from .sheets import board_sheet, check_board, write_sheet
+
+    sheet, layout = board_sheet(a.squares_x, a.squares_y, a.square_mm,
+                                a.marker_mm or 0.72 * a.square_mm, a.dictionary)
+    return _sheet_out(a, "board", sheet, layout, check_board(sheet, layout), write_sheet)
+
+
+def _sheet_out(a: argparse.Namespace, name: str, sheet, layout: dict, check: dict,
+               write) -> int:
+    """Write a checked sheet; refuse one whose raster does not show all it should."""
+    missing = check.get("missing") or (check["corners"] - check["detected"]
+                                       if "corners" in check else 0)
+    if missing:
+        raise InputError(f"{name}: the sheet rasterised at {check['dpi']} dpi does not show "
+                         f"all it should ({missing} not detected); try larger markers")
+    paths = write(sheet, layout, a.out, name, check)
+    _log(f"{name}: page {sheet.width_mm:.0f} x {sheet.height_mm:.0f} mm, corners within "
+         f"{check['max_corner_error_mm']:.3f} mm of the layout at {check['dpi']} dpi; "
+         f"wrote {', '.join(str(p) for p in paths)}")
+    return 0
+
+
 @_command("figures")
 def _figures(a: argparse.Namespace) -> int:
     from .stages.figures import make_figures
@@ -332,6 +367,25 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--truth", help="ground-truth directory (default <out>.truth)")
     s.add_argument("--workers", type=int, default=1, help="rendering processes")
     s.add_argument("--id", help="surface id (default synth-<preset>)")
+
+    s = add("markers", help="printable ArUco marker sheet around a surface, and its layout")
+    s.add_argument("--width-mm", type=float, required=True, help="surface width (mm)")
+    s.add_argument("--height-mm", type=float, required=True, help="surface height (mm)")
+    s.add_argument("--dictionary", default="DICT_5X5_250", help="OpenCV ArUco dictionary")
+    s.add_argument("--marker-mm", type=float,
+                   help="marker side (default: a fifth of the surface's shorter side)")
+    s.add_argument("--count", type=int, default=8, help="markers, a multiple of 4")
+    s.add_argument("--gap-mm", type=float, help="surface edge to markers (default: a "
+                                                "quarter of the marker side)")
+    s.add_argument("--out", required=True, help="folder for markers.pdf/.svg/.png/.yaml")
+
+    s = add("board", help="printable ChArUco calibration board, and its layout")
+    s.add_argument("--squares-x", type=int, default=7)
+    s.add_argument("--squares-y", type=int, default=5)
+    s.add_argument("--square-mm", type=float, default=30.0)
+    s.add_argument("--marker-mm", type=float, help="default: 0.72 of the square")
+    s.add_argument("--dictionary", default="DICT_5X5_100", help="OpenCV ArUco dictionary")
+    s.add_argument("--out", required=True, help="folder for board.pdf/.svg/.png/.yaml")
 
     s = add("validate-capture", help="check a capture directory, images included")
     s.add_argument("capture")

@@ -32,6 +32,7 @@ from ..geometry import (
     unit,
 )
 from ..parallel import executor
+from ..sheets import marker_layout
 from ..stores.capture import aruco_dictionary
 from ..stores.images import write_image_atomic
 from .sampling import sample_directions
@@ -271,19 +272,10 @@ def _expose(radiance, t_s, response: Response, preset: Preset, rng) -> np.ndarra
 
 
 def _marker_layout(preset: Preset) -> list[dict]:
-    """Eight markers around the sampled region: corners and edge midpoints."""
-    W, H = preset.width_mm, preset.height_mm
-    s = 0.2 * min(W, H)
-    g = 0.05 * min(W, H)
-    lo_x, mid_x, hi_x = -g - s, W / 2 - s / 2, W + g
-    lo_y, mid_y, hi_y = -g - s, H / 2 - s / 2, H + g
-    origins = [(lo_x, hi_y), (mid_x, hi_y), (hi_x, hi_y), (hi_x, mid_y),
-               (hi_x, lo_y), (mid_x, lo_y), (lo_x, lo_y), (lo_x, mid_y)]
-    items = []
-    for k, (x0, y0) in enumerate(origins):
-        corners = [[x0, y0 + s], [x0 + s, y0 + s], [x0 + s, y0], [x0, y0]]
-        items.append({"id": k, "corners_mm": [[round(a, 4), round(b, 4)] for a, b in corners]})
-    return items
+    """Eight markers around the sampled region: corners and edge midpoints
+    (:func:`parammap.sheets.marker_layout`, what a lab prints)."""
+    side = min(preset.width_mm, preset.height_mm)
+    return marker_layout(preset.width_mm, preset.height_mm, 0.2 * side, 0.05 * side, 8)
 
 
 def _world(scene: Scene, preset: Preset, items: list[dict]) -> _World:
