@@ -21,7 +21,7 @@ import numpy as np
 from ..config import default
 from ..parallel import executor
 from ..plots import plot_reexposure, plot_response
-from ..stores.capture import Capture, View
+from ..stores.capture import Capture, Exposure, View
 from ..stores.hdr import (
     HdrError,
     hdr_provenance,
@@ -309,10 +309,33 @@ def level_noise(err: np.ndarray, exposures: int) -> float:
     return max(sd, QUANTISATION_SD)
 
 
-def load_bracket(view: View) -> tuple[np.ndarray, np.ndarray]:
-    """Read a view's photos as (P, H, W, 3) uint8 and its times (P,)."""
+BRIGHTNESS_TOLERANCE = 1.0  # levels: a photo's mean level is known far better than this
+
+
+def bracket(view: View) -> tuple[list[Exposure], list[dict]]:
+    """A view's exposures in one order whatever the order they are listed in: longest
+    first, ties by file name. Of photos that claim one exposure time only the first is
+    kept: the others are left out, each with the reason (``file``, ``reason``)."""
+    ordered = sorted(view.exposures, key=lambda e: (-e.exposure_s, e.path.name))
+    kept: list[Exposure] = []
+    left_out = []
+    for e in ordered:
+        if kept and math.isclose(e.exposure_s, kept[-1].exposure_s, rel_tol=1e-6):
+            left_out.append({"file": e.path.name, "reason": f"claims the exposure time of "
+                             f"{kept[-1].path.name} ({e.exposure_s:g} s)"})
+        else:
+            kept.append(e)
+    return kept, left_out
+
+
+def load_bracket_checked(view: View) -> tuple[np.ndarray, np.ndarray, list[dict]]:
+    """A view's photos as (P, H, W, 3) uint8, longest exposure first, their times (P,)
+    and the photos left out (:func:`bracket`; and a photo brighter on average than a
+    longer exposure of the bracket by more than ``BRIGHTNESS_TOLERANCE`` levels: its
+    time is wrong or the scene changed)."""
+    kept, left_out = bracket(view)
     imgs = []
-    for ex in view.exposures:
+    for ex in kept:
         img = read_image(ex.path)
         if img.dtype != np.uint8:
             raise HdrError(f"{ex.path}: 16-bit photo needs camera.response: linear")
@@ -320,7 +343,25 @@ def load_bracket(view: View) -> tuple[np.ndarray, np.ndarray]:
     shapes = {im.shape for im in imgs}
     if len(shapes) > 1:
         raise HdrError(f"view {view.id}: photos of different sizes {sorted(shapes)}")
-    return np.stack(imgs), np.array([e.exposure_s for e in view.exposures])
+    keep = []
+    for i, (ex, img) in enumerate(zip(kept, imgs, strict=True)):
+        level = float(img.mean())
+        brighter = [kept[j].path.name for j in keep
+                    if level > float(imgs[j].mean()) + BRIGHTNESS_TOLERANCE]
+        if brighter:
+            left_out.append({"file": ex.path.name, "reason": f"brighter than the longer "
+                             f"exposure {brighter[0]} ({ex.exposure_s:g} s claimed)"})
+        else:
+            keep.append(i)
+    return (np.stack([imgs[i] for i in keep]),
+            np.array([kept[i].exposure_s for i in keep]), left_out)
+
+
+def load_bracket(view: View) -> tuple[np.ndarray, np.ndarray]:
+    """A view's photos as (P, H, W, 3) uint8, longest exposure first, and their times
+    (P,) (:func:`load_bracket_checked` without the photos it left out)."""
+    stack, t, _ = load_bracket_checked(view)
+    return stack, t
 
 
 def merge_view(
@@ -332,9 +373,10 @@ def merge_view(
     means linear input (16-bit or RAW): radiance = value / t, averaged over unsaturated
     exposures. ``provenance``: extra header attributes (:func:`hdr_provenance`)."""
     if g is None:
-        imgs = [read_image(e.path).astype(np.float32) for e in view.exposures]
+        kept, left_out = bracket(view)
+        imgs = [read_image(e.path).astype(np.float32) for e in kept]
         full = 65535.0 if imgs[0].max() > 255 else 255.0
-        t = np.array([e.exposure_s for e in view.exposures])
+        t = np.array([e.exposure_s for e in kept])
         stack = np.stack(imgs)
         ok = stack < full * high / 255.0
         # sum(z) / sum(t) over unsaturated exposures: the longest exposures, with the
@@ -350,7 +392,7 @@ def merge_view(
                  / np.maximum(zsum, 1e-30)).mean(-1).astype(np.float32)
         rad = rad.astype(np.float32)
     else:
-        stack, t = load_bracket(view)
+        stack, t, left_out = load_bracket_checked(view)
         rad, saturated, dark = merge_bracket(stack, t, g, low, high)
         err = reexposure_error(stack, t, rad, g, low, high)
         noise = merge_noise(stack, t, g, level_noise(err, len(t)), low, high)
@@ -359,6 +401,10 @@ def merge_view(
              "dark_fraction": float(dark.mean())}
     if g is not None:
         stats["reexposure"] = reexposure_summary(err)
+    if left_out:  # photos that contradict their exposure times: named, not merged
+        stats["left_out"] = left_out
+        for x in left_out:
+            logger.warning(f"hdr: view {view.id}: {x['file']} left out: {x['reason']}")
     return stats
 
 
@@ -511,8 +557,10 @@ def gather_hdr_metrics(stats_paths: list[str | Path], out: str | Path,
                     "reexposure_p95_levels": v["reexposure"]["p95_levels"]}
                    if v.get("reexposure") else {})
                 for k, v in views.items()}
+    left_out = {k: v["left_out"] for k, v in views.items() if v.get("left_out")}
     data = {"views": len(views),
             "saturated_fraction_max": max(v["saturated_fraction"] for v in views.values()),
+            **({"photos_left_out": left_out} if left_out else {}),
             "reexposure_mean_levels": pooled["mean_levels"],
             "reexposure_p95_levels": pooled["p95_levels"],
             "reexposure_pixels": pooled["pixels"],
