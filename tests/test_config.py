@@ -180,3 +180,29 @@ def test_shipped_config_holds_only_what_users_change():
         return same
 
     assert not walk(cfg, [])
+
+
+def test_long_steps_say_how_far_they_got(caplog):
+    """Progress of a long step: a log line at every tenth and at the end where nobody
+    watches a terminal (a resumed step counts what was done before); a bar redrawn in
+    place on a terminal."""
+    import io
+    import logging
+
+    from parammap.parallel import progress
+
+    log = logging.getLogger("parammap.test_progress")
+    with caplog.at_level(logging.INFO, logger=log.name):
+        assert list(progress(range(20), 20, "step:", log, done=5, of=25)) == list(range(20))
+    lines = [r.getMessage() for r in caplog.records if r.name == log.name]
+    assert lines == [f"step: {5 + k}/25" for k in range(2, 21, 2)]
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    term = Terminal()
+    log.setLevel(logging.INFO)
+    assert list(progress(iter("abc"), 3, "step:", log, stream=term)) == ["a", "b", "c"]
+    out = term.getvalue()
+    assert out.count("\r") == 3 and out.endswith("3/3\n") and "#" * 30 in out

@@ -1,16 +1,21 @@
-"""Process pools whose workers end with their parent, and in-process execution for one
-worker: what the stages that run jobs in parallel share."""
+"""Process pools whose workers end with their parent, in-process execution for one
+worker, and progress output: what the stages that run jobs in parallel share."""
 
 from __future__ import annotations
 
 import ctypes
+import logging
 import os
 import signal
 import sys
+from collections.abc import Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from functools import partial
+from typing import TextIO, TypeVar
 
-__all__ = ["die_with_parent", "executor", "worker_initializer"]
+__all__ = ["die_with_parent", "executor", "progress", "worker_initializer"]
+
+T = TypeVar("T")
 
 
 class _Serial:
@@ -51,3 +56,27 @@ def executor(workers: int):
     or in-process execution for one worker."""
     return ProcessPoolExecutor(workers, initializer=worker_initializer()) if workers > 1 \
         else _Serial()
+
+
+def progress(items: Iterable[T], total: int, label: str, log: logging.Logger,
+             done: int = 0, of: int | None = None, stream: TextIO | None = None,
+             ) -> Iterator[T]:
+    """Yield ``items`` (results of a long step, ``total`` of them) and say how far it got:
+    a bar redrawn on ``stream`` (stderr) where a person watches it (a terminal, the log
+    at INFO), else a log line ``<label> k/n`` at every tenth and at the end. ``done``
+    items finished before (a resumed step) count towards ``of`` (default ``done +
+    total``)."""
+    stream = sys.stderr if stream is None else stream
+    n = done + total if of is None else of
+    bar = stream.isatty() and log.isEnabledFor(logging.INFO)
+    step = max(1, total // 10)
+    for k, item in enumerate(items, 1):
+        yield item
+        if bar:
+            filled = int(30 * (done + k) / max(n, 1))
+            stream.write(f"\r{label} [{'#' * filled}{'.' * (30 - filled)}] {done + k}/{n}")
+            if k == total:
+                stream.write("\n")
+            stream.flush()
+        elif k % step == 0 or k == total:
+            log.info(f"{label} {done + k}/{n}")

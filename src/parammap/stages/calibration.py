@@ -20,7 +20,7 @@ from ..conventions import LUMINANCE
 from ..geometry import (
     Intrinsics,
 )
-from ..parallel import executor
+from ..parallel import executor, progress
 from ..stores.camera import CalibrationError, load_intrinsics, save_intrinsics
 from ..stores.capture import Capture, aruco_dictionary
 from ..stores.hdr import read_hdr
@@ -218,8 +218,9 @@ def pattern_views(cap: Capture, intr: Intrinsics, frames: list[tuple[str, Path]]
     lo, hi = PATTERN_JOINT_VIEW_PIXELS
     per_view = int(np.clip(PATTERN_JOINT_PIXELS / max(len(frames), 1), lo, hi))
     with executor(max(1, min(workers, len(frames)))) as ex:
-        got = [g for g in ex.map(_pattern_view_job, [(cap, intr, vid, p, per_view)
-                                                     for vid, p in frames]) if g is not None]
+        jobs = [(cap, intr, vid, p, per_view) for vid, p in frames]
+        got = [g for g in progress(ex.map(_pattern_view_job, jobs), len(jobs),
+                                   "calibration: pattern views", logger) if g is not None]
     if not got:
         return []
     limit = PATTERN_NOISE_FACTOR * float(np.median([g[4] for g in got]))
@@ -267,7 +268,9 @@ def run_calibration(cap: Capture, processed: str | Path, config: dict[str, Any],
 
             jobs = [(cap, intr, vid, p, cfg["min_markers_per_view"]) for vid, p in hdr]
             with executor(max(1, min(workers, len(jobs)))) as ex:
-                extra = [m for m in ex.map(_marker_view_job, jobs) if m is not None]
+                extra = [m for m in progress(ex.map(_marker_view_job, jobs), len(jobs),
+                                             "calibration: marker views", logger)
+                         if m is not None]
             logger.info(f"calibration: {len(extra)} captured views add their surface markers")
             if extra:
                 intr = calibrate(cap, cfg["min_images"], cfg["min_corners"],

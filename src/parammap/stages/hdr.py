@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from ..config import default
-from ..parallel import executor
+from ..parallel import executor, progress
 from ..plots import plot_reexposure, plot_response
 from ..stores.capture import Capture, Exposure, View
 from ..stores.hdr import (
@@ -539,8 +539,9 @@ def run_hdr(cap: Capture, processed: str | Path, config: dict[str, Any], *,
             for v in views]
     stats = []
     with executor(min(workers, len(jobs)) if jobs else 1) as ex:
-        for v, st in zip(views, ex.map(_merge_job, jobs), strict=True):
-            logger.info(f"hdr: {v.id} saturated {st['saturated_fraction']:.4f}")
+        merged = progress(ex.map(_merge_job, jobs), len(jobs), "hdr: merged", logger)
+        for v, st in zip(views, merged, strict=True):
+            logger.debug(f"hdr: {v.id} saturated {st['saturated_fraction']:.4f}")
             stats.append(st)
     return stats
 

@@ -61,7 +61,7 @@ import numpy as np
 from .. import __version__
 from ..config import default
 from ..geometry import Intrinsics, sample_image, texel_centres, unit
-from ..parallel import executor
+from ..parallel import executor, progress
 from ..stores.camera import PosesError, kept_poses, load_intrinsics, read_poses
 from ..stores.capture import Capture
 from ..stores.common import COMPLETE_ATTR, mtime_ns, store_bytes
@@ -477,11 +477,11 @@ def build_observation_map(
              max_zenith_deg, max_supersample, max_blend, resolved)
             for n, v in enumerate(views) if n not in done]
     with executor(workers) as ex:
-        for k, (job, res) in enumerate(zip(jobs, ex.map(_pass1_view, jobs), strict=True)):
+        sampled = progress(ex.map(_pass1_view, jobs), len(jobs), "observation: views sampled",
+                           logger, done=len(done), of=N)
+        for job, res in zip(jobs, sampled, strict=True):
             done[job[1]] = [*res[:3], res[4]]
             (marks / f"view-{job[1]}").write_text(json.dumps(done[job[1]]))
-            if (k + 1) % max(1, len(jobs) // 10) == 0 or k + 1 == len(jobs):
-                logger.info(f"observation: sampled {len(done)}/{N} views")
     per_view = {done[n][0]: done[n][1] for n in range(N)}
     bytes_read = sum(done[n][2] for n in range(N))
     blended = sum(done[n][3] for n in range(N))
@@ -509,12 +509,11 @@ def build_observation_map(
     bands = [(str(scratch), str(final), r0, min(r0 + tile, T), centres, marker, T,
               cap.width_mm, cap.height_mm) for r0 in range(0, T, tile) if r0 not in written]
     with executor(workers) as ex:
-        for k, (job, nv) in enumerate(zip(bands, ex.map(_pass2_band, bands), strict=True)):
+        rows = progress(ex.map(_pass2_band, bands), len(bands), "observation: tile rows written",
+                        logger, done=len(written), of=len(range(0, T, tile)))
+        for job, nv in zip(bands, rows, strict=True):
             written[job[2]] = nv
             (marks / f"band-{job[2]}").write_text(str(nv))
-            if (k + 1) % max(1, len(bands) // 5) == 0 or k + 1 == len(bands):
-                logger.info(f"observation: wrote {len(written)}/{len(range(0, T, tile))} "
-                            "tile rows")
     nvalid = sum(written.values())
     shutil.rmtree(scratch)
     finish_observation_map(final, out)
