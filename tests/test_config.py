@@ -206,3 +206,29 @@ def test_long_steps_say_how_far_they_got(caplog):
     assert list(progress(iter("abc"), 3, "step:", log, stream=term)) == ["a", "b", "c"]
     out = term.getvalue()
     assert out.count("\r") == 3 and out.endswith("3/3\n") and "#" * 30 in out
+
+
+def test_a_map_coarser_than_the_photos_says_so(tiny_processed, tmp_path, caplog):
+    """Issue 47: where the budget caps the auto map, the map records the photos' own
+    resolution and the poses stage warns, naming the setting to raise."""
+    import logging
+    import shutil
+    from types import SimpleNamespace
+
+    from parammap.stages.poses import map_resolution, run_poses
+    from parammap.stores.capture import load_capture
+
+    cap = SimpleNamespace(width_mm=200.0, height_mm=100.0)
+    g = map_resolution(cap, [2.0], 50, "auto", None, 1e-3)
+    assert g["capped_by_budget"] and (g["photos_S"], g["photos_T"]) == (400, 200)
+    assert g["photos_map_gib"] > 1e-3 and g["S"] < 400
+
+    capture, _, processed = tiny_processed
+    work = tmp_path / "proc"
+    shutil.copytree(processed, work)
+    cfg = validate_config({"captures": {"x": "."}, "observation": {"max_map_gib": 1e-6}})
+    with caplog.at_level(logging.INFO, logger="parammap"):
+        m = run_poses(load_capture(capture), work, cfg, workers=1)
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING
+              and "max_map_gib" in r.getMessage()]
+    assert m["map"]["capped_by_budget"] and len(warned) == 1, (m["map"], warned)

@@ -145,13 +145,16 @@ def map_resolution(cap: Capture, ppmm: list[float], n_views: int, texels_x: int 
         med = float(np.median(ppmm)) if len(ppmm) else 1.0
         S = max(8, int(round(cap.width_mm * med)))
         T = int(texels_y) if texels_y else max(8, int(round(S * cap.height_mm / cap.width_mm)))
-        budget = max_gib * 2**30 / (OBS_BYTES_PER_SAMPLE * max(n_views, 1))
+        per_texel = OBS_BYTES_PER_SAMPLE * max(n_views, 1)
+        budget = max_gib * 2**30 / per_texel
+        photos = (S, T)
         capped = S * T > budget
         if capped:
             k = math.sqrt(budget / (S * T))
             S, T = max(8, int(S * k)), max(8, int(T * k))
         out = {"source": "auto", "px_per_mm_median": med, "capped_by_budget": bool(capped),
-               "max_map_gib": max_gib}
+               "max_map_gib": max_gib, "photos_S": photos[0], "photos_T": photos[1],
+               "photos_map_gib": photos[0] * photos[1] * per_texel / 2**30}
     else:
         S = int(texels_x)
         T = int(texels_y) if texels_y else max(1, round(S * cap.height_mm / cap.width_mm))
@@ -227,6 +230,15 @@ def run_poses(cap: Capture, processed: str | Path, config: dict[str, Any], *,
     med = {kind: float(np.median([r["noise_px"] for _, r in posed
                                   if r["solution"] == kind] or [0.0]))
            for kind in {r["solution"] for _, r in posed}}
+    if grid.get("capped_by_budget"):  # never silently coarser than the photos
+        logger.warning(f"poses: the photos resolve {grid['photos_S']}x{grid['photos_T']} "
+                       f"texels ({grid['photos_map_gib']:.1f} GiB of observations); "
+                       f"observation.max_map_gib = {grid['max_map_gib']:g} caps the map at "
+                       f"{grid['S']}x{grid['T']}: raise it to keep the photos' resolution")
+    elif grid["source"] == "auto":
+        logger.info(f"poses: the map follows the photos' resolution "
+                    f"({grid['photos_map_gib']:.2f} GiB of observations, within "
+                    f"observation.max_map_gib = {grid['max_map_gib']:g})")
     logger.info(f"poses: map {grid['S']}x{grid['T']} texels ({grid['texel_mm']:.3f} mm, "
                 f"{grid['source']}); view spacing {spacing:.2f} deg; limits (1 sd) "
                 f"{cfg['max_texel_shift']} texel = {max_shift_mm:.3f} mm, "
