@@ -44,6 +44,8 @@ class FitArray(StrEnum):
     REG = "reg"  # SH prior weight chosen
     GUARD = "guard"  # SH range-guard escalations
     BANDS = "bands"  # SH bands the texel's views resolve
+    ROBUST = "robust"  # SH: share of the robust refit in the fit (stack_smoothers)
+    SHRINK = "shrink"  # SH: share of the fit kept over its DC term (shrink_to_mean)
     LABEL = "label"  # basis material (0: diffuse only)
     WEIGHTS = "weights"  # BIC weight of each candidate material
     CHANGED = "changed"  # repair pass: texels it refitted (not stored)

@@ -440,12 +440,14 @@ def fit_sh_map(obs_path: str | Path, out_path: str | Path, hemisphere: str, n: i
     cap = bool(cfg.get("sampled_cap", default("fit.sh.sampled_cap"))) \
         and hemisphere in SH_CAP_AWARE
     areas = cfg.get("solid_angles", default("fit.sh.solid_angles"))
+    shrink = cap and bool(cfg.get("shrink", default("fit.sh.shrink")))
+    robust = cap and bool(cfg.get("robust", default("fit.sh.robust")))
     res = fit_map(obs_path, out_path,
                   partial(fit_sh_tile, n=n, hemisphere=hemisphere, reg=reg,
-                          sampled_cap=cap, areas=areas),
+                          sampled_cap=cap, areas=areas, shrink=shrink, robust=robust),
                   sh_outputs(n),
                   sh_attrs(hemisphere, n, cap, areas,
-                           reg if hemisphere in ("rlsop", "wls") else None),
+                           reg if hemisphere in ("rlsop", "wls") else None, shrink, robust),
                   scheduler, workers, start_method=start_method)
     extra = {}
     if cap:
@@ -458,6 +460,12 @@ def fit_sh_map(obs_path: str | Path, out_path: str | Path, hemisphere: str, n: i
                  "guard_unresolved_texels": int((esc > GUARD_STEPS).sum()),
                  "bands_median": float(np.median(g[FitArray.BANDS][:][ok]))
                  if ok.any() else None}
+        if robust and ok.any():
+            extra |= {"robust_share_median": float(np.median(g[FitArray.ROBUST][:][ok]))}
+        if shrink and ok.any():
+            a = g[FitArray.SHRINK][:][ok]
+            extra |= {"shrink_median": float(np.median(a)),
+                      "shrunk_to_mean_texels": int((a < 0.5).sum())}
     return fit_summary(out_path, res, f"sh-{hemisphere}-{n * n}", scheduler=scheduler,
                        workers=workers, **extra)
 

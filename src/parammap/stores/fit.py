@@ -59,6 +59,8 @@ FIT_UNITS = {
     FitArray.STATUS: "parammap.conventions.FitStatus code",
     FitArray.REG: "1 (relative prior weight)", FitArray.GUARD: "prior escalations",
     FitArray.BANDS: "SH bands",
+    FitArray.ROBUST: "1 (share of the robust refit)",
+    FitArray.SHRINK: "1 (share of the fit kept over its DC term)",
     FitArray.SD: "standard deviations in the parameters' units, MH lobe direction in "
                  "degrees (conventions.sd_channels)",
 }
@@ -92,12 +94,16 @@ def mh_attrs(K: int | str, K_max: int, **settings: Any) -> dict[str, Any]:
 
 
 def sh_attrs(hemisphere: str, n: int, sampled_cap: bool, solid_angles: str,
-             regularisation: float | str | None) -> dict[str, Any]:
-    """The attributes that describe an SH fit of ``n`` bands."""
+             regularisation: float | str | None, shrink: bool = False,
+             robust: bool = False) -> dict[str, Any]:
+    """The attributes that describe an SH fit of ``n`` bands (``robust``: stacked with a
+    robust refit, ``shrink``: blended with its DC term per texel; see
+    :func:`parammap.models.sh.fit_sh_tile`)."""
     # "bands": the store's n (its array of that name: the bands each texel resolves)
     return {_MODEL: "sh", "model_version": 2, "hemisphere": hemisphere, FitArray.BANDS: n,
             "coefficients": n * n, "sampled_cap": sampled_cap, "solid_angles": solid_angles,
-            "regularisation": regularisation, _LAYOUT: SH_LAYOUT}
+            "regularisation": regularisation, "shrunk_to_mean": shrink, "robust_refit": robust,
+            _LAYOUT: SH_LAYOUT}
 
 
 def grid_attrs(obs: ObservationMap, tile: int, provenance: bool = True) -> dict[str, Any]:
@@ -166,12 +172,25 @@ class FitStore(MapStore):
         return self.group.attrs.get("solid_angles", "spherical")
 
     @property
+    def shrink(self) -> bool:
+        """Whether each texel's SH fit was blended with its DC term (False in stores from
+        before it was recorded)."""
+        return bool(self.group.attrs.get("shrunk_to_mean", False))
+
+    @property
+    def robust(self) -> bool:
+        """Whether each texel's SH fit was stacked with a robust refit (False in stores
+        from before it was recorded)."""
+        return bool(self.group.attrs.get("robust_refit", False))
+
+    @property
     def regularisation(self) -> float | str | None:
         return self.group.attrs.get("regularisation")
 
     def describe(self) -> dict[str, Any]:
         """The model settings a parameter map carries into its EXR header."""
-        keys = ("lobes", "K_max", FitArray.BANDS, "coefficients", "regularisation")
+        keys = ("lobes", "K_max", FitArray.BANDS, "coefficients", "regularisation",
+                "shrunk_to_mean", "robust_refit")
         return {k: self.group.attrs[k] for k in keys if self.group.attrs.get(k) is not None}
 
 

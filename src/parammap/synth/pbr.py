@@ -139,6 +139,9 @@ class PbrPreset:
     read_noise: float = 3e-4
     image_format: str = "png"
     jpeg_quality: int = 95
+    # GGX alpha drawn per patch: rough plastic, rough conductor
+    plastic_alpha: tuple[float, float] = (0.06, 0.3)
+    metal_alpha: tuple[float, float] = (0.1, 0.35)
 
 
 PBR_PRESETS = {
@@ -161,6 +164,16 @@ PBR_PRESETS = {
         lights=(Light("rect", (140.0, 120.0, 480.0), (80.0, 50.0), (26.0, 25.0, 24.0)),
                 Light("disc", (-160.0, -90.0, 430.0), (30.0, 0.0), (14.0, 16.0, 20.0))),
         response=FilmicResponse(a=0.22, d=0.3, white=9.0, gamma=2.4)),
+    # near-mirror plastic and metal (GGX alpha 0.02-0.08) under one small disc light:
+    # highlights a few degrees wide, seen by few views
+    "pbr-mirror": PbrPreset(
+        patches=(4, 2), views=60, max_zenith_deg=70.0, holdout=4, exposures=5, stops=2.0,
+        markers=6, marker_dictionary="DICT_4X4_250", board=(8, 6),
+        board_dictionary="DICT_6X6_100", focal_px=700.0, principal_offset=(-0.01, 0.01),
+        dist=(-0.05, 0.02, 0.0, 0.0, 0.0),
+        lights=(Light("disc", (-90.0, 140.0, 500.0), (14.0, 0.0), (260.0, 250.0, 240.0)),),
+        plastic_alpha=(0.02, 0.08), metal_alpha=(0.02, 0.08),
+        response=FilmicResponse(a=0.18, d=0.25, white=10.0, gamma=2.2)),
 }
 
 MATERIAL_KINDS = ("roughplastic", "roughconductor", "principled", "diffuse")
@@ -236,9 +249,10 @@ def _materials(preset: PbrPreset, rng) -> list[dict]:
     out = []
     for kind in kinds:
         if kind == "roughplastic":
-            out.append({"kind": kind, "alpha": float(rng.uniform(0.06, 0.3)), "int_ior": 1.5})
+            out.append({"kind": kind, "alpha": float(rng.uniform(*preset.plastic_alpha)),
+                        "int_ior": 1.5})
         elif kind == "roughconductor":
-            out.append({"kind": kind, "alpha": float(rng.uniform(0.1, 0.35)),
+            out.append({"kind": kind, "alpha": float(rng.uniform(*preset.metal_alpha)),
                         "material": str(rng.choice(["Au", "Cu", "Al", "Ag"]))})
         elif kind == "principled":
             out.append({"kind": kind, "roughness": float(rng.uniform(0.25, 0.6)),

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import yaml
 
@@ -150,35 +151,18 @@ def holdout_against_truth(capture: str | Path, truth: str | Path, processed: str
     patch named ``<index> <kind> <parameters>`` from ``scene.json``.
     """
     cap = load_capture(capture)
-    proc = Processed(processed)
-    intr = load_intrinsics(proc.intrinsics)
-    recs = read_poses(proc.poses)["views"]
-    maps = {m: read_param_map(proc.params(m)) for m in models}
     out, acc = {}, {}
     if per_patch:
-
-        T, S = next(iter(maps.values())).shape
+        S, T = _map_size(processed, models)
         labels = patch_labels(truth, S, T, cap.width_mm, cap.height_mm)
         scene = json.loads((Path(truth) / "scene.json").read_text())["patches"]
         names = [f"{k} {p['kind']} " + " ".join(
             f"{a}={b:.3g}" for a, b in p.items() if isinstance(b, float) and a != "rect_mm")
             for k, p in enumerate(scene)]
-    for r in recs:
-        if not (r.get("holdout") and r.get("kept")):
-            continue
-        R, t = np.asarray(r["R"], float), np.asarray(r["t"], float)
-        photo, sat, _ = read_hdr(proc.hdr(r["id"]))
-        clean = read_truth_radiance(truth, r["id"], clean=True)
-        P, inside = surface_points(intr, R, t, cap.width_mm, cap.height_mm,
-                                   (photo.shape[1], photo.shape[0]))
-        mask = inside & ~sat & ~marker_pixels(cap, P)
-        ok = mask[..., None] & (clean > 0) & (photo > 0)
-        clean = clean * float(np.median(photo[ok] / clean[ok]))
-        gamma = choose_gamma(photo, mask)
-        size = (photo.shape[1], photo.shape[0])
-        images = {name: render(pm, intr, R, t, size)[0] for name, pm in maps.items()}
-        out[r["id"]] = {name: compare(clean, img, mask, gamma)["mean_diff_8bit"]
-                        for name, img in images.items()}
+    for vid, clean, images, mask, gamma, P, inside in _held_out_renders(
+            cap, truth, processed, models):
+        out[vid] = {name: compare(clean, img, mask, gamma)["mean_diff_8bit"]
+                    for name, img in images.items()}
         if per_patch:
             px = pixel_regions(labels, P, inside, cap.width_mm, cap.height_mm)
             for name, img in images.items():
@@ -189,6 +173,101 @@ def holdout_against_truth(capture: str | Path, truth: str | Path, processed: str
     if not per_patch:
         return out
     return out, {k: {m: v[0] / v[1] for m, v in d.items()} for k, d in sorted(acc.items())}
+
+
+def _map_size(processed: str | Path, models: list[str]) -> tuple[int, int]:
+    """(S, T) of the first of ``models``' parameter maps."""
+    T, S = read_param_map(Processed(processed).params(models[0])).shape
+    return S, T
+
+
+def _held_out_renders(cap, truth: str | Path, processed: str | Path, models: list[str]):
+    """For every kept held-out view of a physically based capture: its id, the clean
+    render on the merged photo's relative scale (median ratio inside the region), each
+    model's render, the mask compared (region, unsaturated, off the markers), the
+    held-out stage's gamma, and the plane point of each pixel with its ``inside`` mask."""
+    proc = Processed(processed)
+    intr = load_intrinsics(proc.intrinsics)
+    maps = {m: read_param_map(proc.params(m)) for m in models}
+    for r in read_poses(proc.poses)["views"]:
+        if not (r.get("holdout") and r.get("kept")):
+            continue
+        R, t = np.asarray(r["R"], float), np.asarray(r["t"], float)
+        photo, sat, _ = read_hdr(proc.hdr(r["id"]))
+        clean = read_truth_radiance(truth, r["id"], clean=True)
+        P, inside = surface_points(intr, R, t, cap.width_mm, cap.height_mm,
+                                   (photo.shape[1], photo.shape[0]))
+        mask = inside & ~sat & ~marker_pixels(cap, P)
+        ok = mask[..., None] & (clean > 0) & (photo > 0)
+        clean = clean * float(np.median(photo[ok] / clean[ok]))
+        size = (photo.shape[1], photo.shape[0])
+        images = {name: render(pm, intr, R, t, size)[0] for name, pm in maps.items()}
+        yield r["id"], clean, images, mask, choose_gamma(photo, mask), P, inside
+
+
+HIGHLIGHT_RANGE_8BIT = 32  # a patch shows a highlight in a view: its clean levels span this
+PATCH_MARGIN_PX = 2  # pixels left out along each patch's edge
+
+
+def _neighbour_variation(img: np.ndarray, region: np.ndarray) -> tuple[float, int]:
+    """Sum of squared differences between horizontally and vertically neighbouring
+    pixels of ``img`` (H, W) both in ``region``, and how many pairs."""
+    h = (img[:, 1:] - img[:, :-1])[region[:, 1:] & region[:, :-1]]
+    v = (img[1:] - img[:-1])[region[1:] & region[:-1]]
+    return float(np.sum(h * h) + np.sum(v * v)), h.size + v.size
+
+
+def highlight_speckle(capture: str | Path, truth: str | Path, processed: str | Path,
+                      models: list[str]) -> dict[str, dict[str, float]]:
+    """Texel-to-texel variation of each model's held-out renders inside the patches'
+    highlights, against the clean render's own (issue 49's speckle check).
+
+    In every kept held-out view, each patch of the truth whose clean 8-bit levels (the
+    held-out comparison's tone map) span at least :data:`HIGHLIGHT_RANGE_8BIT` over its
+    interior (``PATCH_MARGIN_PX`` from its edges) shows a highlight; its highlight
+    pixels are the interior ones in the upper half of that span. The variation of an
+    image there is the RMS 8-bit difference between horizontally and vertically
+    neighbouring pixels, both in the highlight (a pixel is about a texel in these
+    captures). A smooth highlight drawn smooth gives a ratio near 1; salt-and-pepper
+    lobes give more.
+
+    Returns
+    -------
+    ``{model: {"ratio": RMS over every highlight against the truth's, "worst": the
+    largest ratio of one (view, patch)}}`` and ``"highlights"``: how many were seen.
+    """
+    cap = load_capture(capture)
+    S, T = _map_size(processed, models)
+    labels = patch_labels(truth, S, T, cap.width_mm, cap.height_mm)
+    sums = {m: [0.0, 0.0] for m in models}
+    worst = dict.fromkeys(models, 0.0)
+    seen = 0
+    kernel = np.ones((2 * PATCH_MARGIN_PX + 1,) * 2, np.uint8)
+    for _, clean, images, mask, gamma, P, inside in _held_out_renders(
+            cap, truth, processed, models):
+        px = pixel_regions(labels, P, inside, cap.width_mm, cap.height_mm)
+        truth8 = tone_map(clean, gamma).astype(float).mean(-1)
+        for j in np.unique(px[px >= 0]):
+            core = cv2.erode(((px == j) & mask).astype(np.uint8), kernel).astype(bool)
+            if core.sum() < 16:
+                continue
+            lo, hi = np.percentile(truth8[core], [1, 99])
+            if hi - lo < HIGHLIGHT_RANGE_8BIT:
+                continue
+            hl = core & (truth8 >= (lo + hi) / 2)
+            t2, n = _neighbour_variation(truth8, hl)
+            if n < 16 or t2 <= 0:
+                continue
+            seen += 1
+            for m, img in images.items():
+                m2, _ = _neighbour_variation(
+                    tone_map(np.nan_to_num(img), gamma).astype(float).mean(-1), hl)
+                sums[m][0] += m2
+                sums[m][1] += t2
+                worst[m] = max(worst[m], float(np.sqrt(m2 / t2)))
+    out = {m: {"ratio": float(np.sqrt(a / b)) if b > 0 else float("nan"), "worst": worst[m]}
+           for m, (a, b) in sums.items()}
+    return out | {"highlights": seen}
 
 
 def directions_against_truth(truth: str | Path, processed: str | Path, models: list[str],

@@ -50,18 +50,24 @@ from ..weights import noise_weights, reduced_chi2
 from .basis import hemisphere_gram, planar_solid_angles, project, sh_basis, sh_eval, solid_angles
 from .cap import (
     GUARD_STEPS,
+    ROBUST_ROUNDS,
     SampledCap,
     coefficient_sd,
     guarded_project,
     hemisphere_grid,
+    pad_bands,
     project_cap,
+    robust_weights,
+    shrink_to_mean,
     smoother,
+    stack_smoothers,
     smoother_loo,
 )
 
 __all__ = ["GUARD_STEPS", "SampledCap", "coefficient_sd", "fit_sh_tile", "guarded_project",
            "hemisphere_gram", "hemisphere_grid", "parse_sh_model", "planar_solid_angles",
-           "project", "project_cap", "sh_basis", "sh_eval", "sh_outputs", "smoother",
+           "project", "project_cap", "sh_basis", "sh_eval", "sh_outputs", "shrink_to_mean",
+           "smoother",
            "smoother_loo", "solid_angles"]
 
 
@@ -80,6 +86,8 @@ def sh_outputs(n: int) -> dict[str, tuple[tuple[int, ...], str, float]]:
         FitArray.REG: ((), "float32", float("nan")),
         FitArray.GUARD: ((), "int8", 0),
         FitArray.BANDS: ((), "int8", n),
+        FitArray.ROBUST: ((), "float32", float("nan")),
+        FitArray.SHRINK: ((), "float32", float("nan")),
         FitArray.STATUS: ((), "int8", int(FitStatus.NOT_FITTED)),
     }
 
@@ -88,7 +96,8 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
                 hemisphere: str, reg: float | str = "auto", batch: int = 256,
                 min_obs: int | None = None, sampled_cap: bool = default("fit.sh.sampled_cap"),
                 noise: np.ndarray | None = None, areas: str = "spherical",
-                loo: bool = False) -> dict[str, np.ndarray]:
+                loo: bool = False, shrink: bool = default("fit.sh.shrink"),
+                robust: bool = default("fit.sh.robust")) -> dict[str, np.ndarray]:
     """Project every texel of a tile, batched (texels sharing one validity pattern
     share one triangulation and one :class:`SampledCap`). (t, u, N, 3) inputs; outputs
     as :func:`sh_outputs`. ``sampled_cap`` (default) fits lsop, rlsop and wls with
@@ -100,7 +109,12 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
     by cos(theta) (:func:`planar_solid_angles`), for reproducing its artefacts.
     ``loo``: also ``loo`` (t, u, N, 3), each valid view's leave-one-out residual
     (prediction minus observation, :func:`smoother_loo`; inf where the view alone
-    determines the fit), for the projections on the sampled cap (NaN otherwise)."""
+    determines the fit), for the projections on the sampled cap (NaN otherwise).
+    On the sampled cap, ``robust`` (default) stacks each texel's fit with a robust
+    refit (:func:`robust_weights`, ``ROBUST_ROUNDS`` rounds; the robust share in
+    ``robust``) and ``shrink`` (default) then blends the result with its DC term
+    (:func:`shrink_to_mean`; the share kept in ``shrink``), both by leave-one-view-out
+    error; coefficients, ``sd`` and ``loo`` are the final blend's."""
     t, u, N, _ = radiance.shape
     outputs = sh_outputs(n) | ({FitArray.LOO: ((N, 3), "float64", float("nan"))} if loo else {})
     out = {k: np.full((t, u) + shp, fill, dtype) for k, (shp, dtype, fill) in
@@ -138,12 +152,26 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
                     sigma = None if NZ is None else NZ[sel][:, w][..., None] * np.abs(y)
                     Yk = Y[..., : bands * bands]
                     Sm = smoother(M, Yk, om)
+                    e = None
+                    if robust:
+                        Sr = Sm
+                        for _ in range(ROBUST_ROUNDS):
+                            u = robust_weights(y, Yk @ (Sr @ y))
+                            *_, Mr, omr = guarded_project(y, v, omega * u, n, hemisphere,
+                                                          reg, Y, system=True)
+                            Sr = smoother(Mr, Yk, omr)
+                        Sm, a, e = stack_smoothers(y, Yk, Sm, Sr, om)
+                        flat[FitArray.ROBUST][sel] = 1 - a
+                        c = pad_bands(np.swapaxes(Sm @ y, 1, 2), n)
+                    if shrink:
+                        Sm, flat[FitArray.SHRINK][sel], e = shrink_to_mean(y, Yk, Sm, om)
+                        c = pad_bands(np.swapaxes(Sm @ y, 1, 2), n)
                     r = y - np.matmul(Y, c.transpose(0, 2, 1))
                     sd = coefficient_sd(Sm, Yk, r, n, sigma)
                     flat[FitArray.SD][sel] = sd.reshape(len(sel), -1)
-                    if loo:
+                    if loo:  # prediction - observation
                         flat[FitArray.LOO][sel[:, None], np.flatnonzero(w)[None]] = \
-                            smoother_loo(Sm, Yk, -r)  # prediction - observation
+                            e if e is not None else smoother_loo(Sm, Yk, -r)
                 else:
                     c = project(y, v, omega, n, hemisphere,
                                 1e-4 if reg == "auto" else float(reg), basis=Y)

@@ -193,7 +193,8 @@ def project_cap(
 
 
 def resolvable_bands(directions: np.ndarray, n: int) -> int:
-    """The most bands (at most ``n``, at least 2) that view directions (N, 3) resolve.
+    """The most bands (at most ``n``, at least 2 where ``n`` allows) that view directions
+    (N, 3) resolve.
 
     With ``N`` views over the solid angle ``Omega`` their zenith range covers, the
     mean spacing is ``Delta = sqrt(Omega / N)``; degree ``L`` varies over half a
@@ -206,7 +207,7 @@ def resolvable_bands(directions: np.ndarray, n: int) -> int:
     d = np.asarray(directions, float)
     covered = 2 * np.pi * (1 - np.clip(d[:, 2], 0, 1).min())
     delta = math.sqrt(covered / len(d))
-    return int(max(2, min(n, math.floor(math.pi / (2 * delta)) + 1)))
+    return int(min(n, max(2, math.floor(math.pi / (2 * delta)) + 1)))
 
 
 PRIOR_FLOOR = 1e-3  # weakest prior (relative), also the pilot fit's
@@ -274,7 +275,7 @@ def guarded_project(
     Yu = cap.basis_u[cap.zenith_u <= reach]
     omega = weights * cap.fraction
     if not len(Yu):
-        return (_pad_bands(c, full), lam, esc, n) + ((M, omega) if system else ())
+        return (pad_bands(c, full), lam, esc, n) + ((M, omega) if system else ())
     lo, hi = radiance.min(1), radiance.max(1)  # (B, 3)
     tol = GUARD_TOLERANCE * (hi - lo) + 1e-12
     for step in range(GUARD_STEPS + 1):
@@ -290,7 +291,7 @@ def guarded_project(
         c[sel], _, M[sel] = project_cap(radiance[sel], directions[sel], weights[sel], n,
                                         hemisphere, cap, lam[sel], Y[sel],
                                         prior_scale=mu[sel] * 10.0 ** esc[sel], system=True)
-    return (_pad_bands(c, full), lam, esc, n) + ((M, omega) if system else ())
+    return (pad_bands(c, full), lam, esc, n) + ((M, omega) if system else ())
 
 
 def smoother(M: np.ndarray, Y: np.ndarray, omega: np.ndarray) -> np.ndarray:
@@ -307,6 +308,79 @@ def smoother_loo(S: np.ndarray, Y: np.ndarray, r: np.ndarray) -> np.ndarray:
     h = np.einsum("bnk,bkn->bn", Y, S)
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where((h > 1 - 1e-9)[..., None], np.inf, r / (1 - h)[..., None])
+
+
+def shrink_to_mean(y: np.ndarray, Y: np.ndarray, S: np.ndarray, omega: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Stack a texel's SH fit with its DC term alone (the weighted mean level, a
+    diffuse texture), the share chosen by leave-one-view-out error
+    (:func:`stack_smoothers`).
+
+    A highlight narrower than the view spacing, seen by one view, is drawn by the bands
+    as a blob as wide as the spacing, bright where the truth is dark: the views beside
+    it then predict the mean better than the blob and the share falls toward 0. Where
+    the views resolve the highlight, it stays near 1.
+
+    Parameters
+    ----------
+    y : (B, N, 3) observations; Y : (B, N, k^2) basis at the views;
+    S : (B, k^2, N) the fit's smoother (:func:`smoother`); omega : (B, N) its weights.
+
+    Returns
+    -------
+    As :func:`stack_smoothers`.
+    """
+    w = omega / omega.sum(1, keepdims=True)
+    S0 = np.zeros_like(S)
+    S0[:, 0, :] = w / Y[:, :1, 0]
+    return stack_smoothers(y, Y, S, S0, omega)
+
+
+def stack_smoothers(y: np.ndarray, Y: np.ndarray, S: np.ndarray, S0: np.ndarray,
+                    omega: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The blend ``alpha S + (1 - alpha) S0`` of two linear smoothers of a texel's
+    views whose leave-one-view-out error ``sum_i w_i |alpha e_i + (1 - alpha) e0_i|^2``
+    is least (e, e0: the smoothers' exact leave-one-out residuals, w the cell weights
+    ``omega``; a quadratic in alpha in [0, 1], solved in closed form).
+
+    Returns
+    -------
+    (B, k^2, N) the blended smoother, (B,) alpha and (B, N, 3) the blend's
+    leave-one-out residuals (prediction minus observation).
+    """
+    w = omega / omega.sum(1, keepdims=True)
+    e = _loo(S, Y, y)
+    e0 = _loo(S0, Y, y)
+    d = (e0 - e) * w[..., None]
+    num = np.einsum("bnc,bnc->b", d, e0)
+    den = np.einsum("bnc,bnc->b", d, e0 - e)
+    alpha = np.clip(np.divide(num, den, out=np.ones_like(num), where=den > 0), 0.0, 1.0)
+    a = alpha[:, None, None]
+    return a * S + (1 - a) * S0, alpha, a * e + (1 - a) * e0
+
+
+TUKEY_C = 4.685  # biweight cut-off in robust sd: 95 % efficiency on Gaussian noise
+ROBUST_ROUNDS = 3
+
+
+def robust_weights(y: np.ndarray, fitted: np.ndarray) -> np.ndarray:
+    """(B, N) Tukey biweights of a texel's views from their residuals (B, N, 3): the
+    RGB residual's length against ``TUKEY_C`` robust sds (1.4826 times its median over
+    the texel's views). A view the bands cannot follow (a highlight narrower than the
+    view spacing) gets weight 0."""
+    r = np.linalg.norm(y - fitted, axis=-1)
+    s = 1.4826 * np.median(r, axis=1, keepdims=True)
+    x = r / np.maximum(TUKEY_C * s, 1e-30)
+    return np.where(x < 1, (1 - x * x) ** 2, 0.0)
+
+
+def _loo(S: np.ndarray, Y: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """(B, N, 3) leave-one-out prediction minus observation of a linear smoother,
+    ``h_ii`` held below 1 - 1e-3 (a view that alone determines the fit gets a large
+    finite error, as in :func:`_loo_score`)."""
+    h = np.einsum("bnk,bkn->bn", Y, S)
+    r = Y @ (S @ y) - y
+    return r / np.maximum(1 - h, 1e-3)[..., None]
 
 
 def coefficient_sd(S: np.ndarray, Y: np.ndarray, r: np.ndarray, n: int,
@@ -339,10 +413,10 @@ def coefficient_sd(S: np.ndarray, Y: np.ndarray, r: np.ndarray, n: int,
         edf = np.einsum("bnk,bkn->b", Y, S)
         scale = N / np.maximum(N - edf, 1.0)
         var = np.einsum("bkn,bnc->bck", S * S, r * r) * scale[:, None, None]
-    return _pad_bands(np.sqrt(var), n, fill=np.nan)
+    return pad_bands(np.sqrt(var), n, fill=np.nan)
 
 
-def _pad_bands(c: np.ndarray, n: int, fill: float = 0.0) -> np.ndarray:
+def pad_bands(c: np.ndarray, n: int, fill: float = 0.0) -> np.ndarray:
     """(B, 3, k^2) coefficients -> (B, 3, n^2), the bands above k ``fill`` (zero)."""
     out = np.full(c.shape[:2] + (n * n,), fill)
     out[..., : c.shape[-1]] = c
