@@ -60,8 +60,8 @@ from .cap import (
     robust_weights,
     shrink_to_mean,
     smoother,
-    stack_smoothers,
     smoother_loo,
+    stack_smoothers,
 )
 
 __all__ = ["GUARD_STEPS", "SampledCap", "coefficient_sd", "fit_sh_tile", "guarded_project",
