@@ -295,7 +295,7 @@ def _world(scene: Scene, preset: Preset, items: list[dict]) -> _World:
                   marker_black=0.04 * irr)
 
 
-def _view_pose(direction, preset: Preset, K, items, rng):
+def view_pose(direction, preset: Preset, K, items, rng):
     """Camera pose for a view direction at a varying distance, framing all markers."""
     W, H = preset.width_mm, preset.height_mm
     pts = np.array([c for it in items for c in it["corners_mm"]], float)
@@ -477,7 +477,7 @@ def view_rig(dirs: np.ndarray, preset, K: np.ndarray, items: list[dict], rng, se
                              seed=seed + 1)[rng.choice(64, preset.holdout, replace=False)]
     all_dirs = np.concatenate([dirs, hold])
     is_hold = np.r_[np.zeros(len(dirs), bool), np.ones(len(hold), bool)]
-    poses = [_view_pose(d, preset, K, items, rng) for d in all_dirs]
+    poses = [view_pose(d, preset, K, items, rng) for d in all_dirs]
     view_ids = [f"v{k:03d}" for k in range(len(all_dirs))]
     seeds = rng.integers(0, 2**31, len(all_dirs) + n_extra_seeds)
     return all_dirs, is_hold, poses, view_ids, seeds

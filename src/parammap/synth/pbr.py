@@ -47,6 +47,7 @@ from .generate import (
     partial_dirs,
     publish,
     resolve_preset,
+    view_pose,
     view_rig,
     write_capture_yaml,
     write_rig_truth,
@@ -139,6 +140,7 @@ class PbrPreset:
     read_noise: float = 3e-4
     image_format: str = "png"
     jpeg_quality: int = 95
+    holdout_specular: int = 0  # of the held-out views, near the first light's mirror direction
     # GGX alpha drawn per patch: rough plastic, rough conductor
     plastic_alpha: tuple[float, float] = (0.06, 0.3)
     metal_alpha: tuple[float, float] = (0.1, 0.35)
@@ -167,7 +169,8 @@ PBR_PRESETS = {
     # near-mirror plastic and metal (GGX alpha 0.02-0.08) under one small disc light:
     # highlights a few degrees wide, seen by few views
     "pbr-mirror": PbrPreset(
-        patches=(4, 2), views=60, max_zenith_deg=70.0, holdout=4, exposures=5, stops=2.0,
+        patches=(4, 2), views=60, max_zenith_deg=70.0, holdout=6, holdout_specular=3,
+        exposures=5, stops=2.0,
         markers=6, marker_dictionary="DICT_4X4_250", board=(8, 6),
         board_dictionary="DICT_6X6_100", focal_px=700.0, principal_offset=(-0.01, 0.01),
         dist=(-0.05, 0.02, 0.0, 0.0, 0.0),
@@ -326,6 +329,26 @@ def _light(L: Light, target: np.ndarray) -> dict:
         raise InputError(f"unknown light shape {L.shape!r}; rect or disc")
     shape["emitter"] = {"type": "area", "radiance": {"type": "rgb", "value": list(L.radiance)}}
     return shape
+
+
+def _specular_holdout(preset: PbrPreset, all_dirs: np.ndarray, is_hold: np.ndarray,
+                      poses: list, K: np.ndarray, items: list[dict], seed: int) -> None:
+    """Move the last ``preset.holdout_specular`` held-out views (in place) to within
+    about 8 deg of the first light's mirror direction at the surface's centre, so that
+    they see the highlights; drawn with a generator of their own (the other views
+    stay as they were)."""
+    rng = np.random.default_rng(seed + 7)
+    p = np.asarray(preset.lights[0].position_mm, float)
+    mirror = np.array([-p[0], -p[1], p[2]]) / np.linalg.norm(p)
+    zmax = math.radians(preset.max_zenith_deg - 5)
+    for k in np.flatnonzero(is_hold)[-preset.holdout_specular:]:
+        while True:
+            d = mirror + rng.normal(0.0, math.sin(math.radians(8.0)) / 2, 3)
+            d /= np.linalg.norm(d)
+            if d[2] >= math.cos(zmax):
+                break
+        all_dirs[k] = d
+        poses[k] = view_pose(d, preset, K, items, rng)
 
 
 def _surface_scene(mi, preset: PbrPreset, items: list[dict], mats: list[dict],
@@ -493,6 +516,8 @@ def generate_pbr(
     dirs = sample_directions(preset.scheme, preset.max_zenith_deg, **kw)[: preset.views]
     all_dirs, is_hold, poses, view_ids, seeds = view_rig(dirs, preset, K, items, rng, seed,
                                                          preset.calib_images)
+    if preset.holdout_specular:
+        _specular_holdout(preset, all_dirs, is_hold, poses, K, items, seed)
     logger.info(f"synth {name}: {len(dirs)} views + {int(is_hold.sum())} held out, {w}x{h} px, "
                 f"{len(mats)} material patches, {len(items)} {preset.marker_dictionary} markers, "
                 f"{len(preset.lights)} light(s), Mitsuba {mi.__version__} scalar_rgb")

@@ -205,7 +205,7 @@ def _held_out_renders(cap, truth: str | Path, processed: str | Path, models: lis
         yield r["id"], clean, images, mask, choose_gamma(photo, mask), P, inside
 
 
-HIGHLIGHT_RANGE_8BIT = 32  # a patch shows a highlight in a view: its clean levels span this
+HIGHLIGHT_RANGE_8BIT = 32  # a patch shows a highlight: its 99th percentile this above its median
 PATCH_MARGIN_PX = 2  # pixels left out along each patch's edge
 
 
@@ -223,9 +223,11 @@ def highlight_speckle(capture: str | Path, truth: str | Path, processed: str | P
     highlights, against the clean render's own (issue 49's speckle check).
 
     In every kept held-out view, each patch of the truth whose clean 8-bit levels (the
-    held-out comparison's tone map) span at least :data:`HIGHLIGHT_RANGE_8BIT` over its
-    interior (``PATCH_MARGIN_PX`` from its edges) shows a highlight; its highlight
-    pixels are the interior ones in the upper half of that span. The variation of an
+    held-out comparison's tone map) have their 99th percentile at least
+    :data:`HIGHLIGHT_RANGE_8BIT` above their median over its interior
+    (``PATCH_MARGIN_PX`` from its edges; printed detail darkens, a highlight brightens)
+    shows a highlight; its highlight pixels are the interior ones above the midpoint of
+    the two. The variation of an
     image there is the RMS 8-bit difference between horizontally and vertically
     neighbouring pixels, both in the highlight (a pixel is about a texel in these
     captures). A smooth highlight drawn smooth gives a ratio near 1; salt-and-pepper
@@ -251,10 +253,10 @@ def highlight_speckle(capture: str | Path, truth: str | Path, processed: str | P
             core = cv2.erode(((px == j) & mask).astype(np.uint8), kernel).astype(bool)
             if core.sum() < 16:
                 continue
-            lo, hi = np.percentile(truth8[core], [1, 99])
-            if hi - lo < HIGHLIGHT_RANGE_8BIT:
+            med, hi = np.percentile(truth8[core], [50, 99])
+            if hi - med < HIGHLIGHT_RANGE_8BIT:
                 continue
-            hl = core & (truth8 >= (lo + hi) / 2)
+            hl = core & (truth8 >= (med + hi) / 2)
             t2, n = _neighbour_variation(truth8, hl)
             if n < 16 or t2 <= 0:
                 continue
