@@ -766,3 +766,39 @@ def test_neighbourhood_median_in_strips_matches_numpy():
     assert np.isnan(ref).any()
     for strip in (1 << 22, 900, 1):  # one strip, a few rows, one row at a time
         np.testing.assert_array_equal(_neighbourhood_median(e, 4, strip), ref)
+
+
+def test_repair_takes_the_neighbours_lobe_direction_only_where_a_texel_lacks_its_own():
+    """Issue 49: a texel that sees its highlight in one view leaves its lobe direction
+    undetermined and scatters it (salt-and-pepper highlights in renders); it takes the
+    direction its neighbours agree on. A texel whose own views determine another
+    direction keeps it, and the texels whose fits agree with their neighbours stay as
+    they were (moves below what changes a render are not made)."""
+    from parammap.models.mh import repair_mh_tile
+
+    p, rad, dirs, valid = _one_material_tile(noise=0.01)
+    rad, valid = rad.copy(), valid.copy()
+    V = dirs[0, 0].astype(float)
+    other = p.copy()
+    tilt = np.array([0.45, -0.2, 0.87])
+    other[7:10] = tilt / np.linalg.norm(tilt)
+    rad[1, 1] = mh_eval(other, V)  # well observed, another direction
+    fields = fit_mh_tile(rad, dirs, valid, 1)
+    assert np.degrees(np.arccos(min(float(fields["params"][1, 1, 7:10] @ other[7:10]), 1.0))) < 0.5
+    # the centre: a direction 6 deg off with the sd of a lobe one view saw
+    off = p[7:10] + np.array([0.1, 0.0, 0.0])
+    fields["params"][4, 4, 7:10] = off / np.linalg.norm(off)
+    fields["sd"][4, 4, 7] = 8.0
+    before = {k: v.copy() for k, v in fields.items()}
+    out = repair_mh_tile(fields, rad, dirs, valid, (0, 0), K=1)
+    assert out["changed"][4, 4] == 1
+    got = out["params"][4, 4, 7:10].astype(float)
+    assert np.degrees(np.arccos(np.clip(got @ p[7:10], -1, 1))) < 0.5
+    np.testing.assert_array_equal(out["params"][4, 4, :7], before["params"][4, 4, :7])
+    keep = np.ones((9, 9), bool)
+    keep[4, 4] = False
+    np.testing.assert_array_equal(out["params"][keep], before["params"][keep])
+    # without the pooling the texel keeps its direction
+    off_out = repair_mh_tile({k: v.copy() for k, v in before.items()}, rad, dirs, valid,
+                             (0, 0), K=1, lobes=False)
+    assert off_out is None or not off_out["changed"][4, 4]

@@ -402,14 +402,16 @@ def fit_mh_map(obs_path: str | Path, out_path: str | Path, K: int | str, cfg: di
                          f"(one of {', '.join(ALGORITHMS)})")
     K_max = cfg.get("K_max", K_MAX_AUTO) if K == "auto" else K
     pool = bool(cfg.get("pool_shininess", default("fit.mh.pool_shininess")))
-    repair = partial(repair_mh_tile, K=K, cfg=fcfg, pool=pool) \
+    lobes = bool(cfg.get("pool_lobes", default("fit.mh.pool_lobes")))
+    repair = partial(repair_mh_tile, K=K, cfg=fcfg, pool=pool, lobes=lobes) \
         if cfg.get("repair", default("fit.mh.repair")) else None
     res = fit_map(obs_path, out_path, partial(fit_mh_tile, K=K, cfg=fcfg, K_max=K_max),
                   mh_outputs(K_max),
                   mh_attrs(K, K_max,
                            fit={k: getattr(fcfg, k) for k in MhFitConfig.__dataclass_fields__},
                            repair={"factor": REPAIR_FACTOR, "radius": REPAIR_RADIUS,
-                                   "starts": REPAIR_STARTS, "pool_shininess": pool}
+                                   "starts": REPAIR_STARTS, "pool_shininess": pool,
+                                   "pool_lobes": lobes}
                            if repair else None),
                   scheduler, workers, repair_fn=repair, halo=REPAIR_RADIUS,
                   start_method=start_method)
