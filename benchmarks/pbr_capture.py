@@ -1,8 +1,10 @@
 """The whole pipeline on a physically based capture (Mitsuba 3), measured against its
 ground truth: HDR against an oracle merge, intrinsics, views kept and pose accuracy,
-the map resolution chosen, observation directions, and held-out errors of every model
-against the clean renders; with ``--materials``, the basis materials (their adjusted
-Rand index against the true patches) and the best-per-texel map as well.
+the map resolution chosen, observation directions, held-out errors of every model
+against the clean renders and the speckle of their highlights
+(:func:`parammap.synth.testsupport.highlight_speckle`); with ``--materials``, the basis
+materials (their adjusted Rand index against the true patches) and the best-per-texel
+map as well.
 
     python benchmarks/pbr_capture.py --preset pbr-bench --root data/bench [--models ...]
 
@@ -81,8 +83,9 @@ def run(preset: str, root: Path, models: list[str], seed: int, reuse_hdr: bool =
                             g.attrs["height_mm"])
     ang = ev.angle_deg(g["direction"][:], dt)[g["valid"][:]]
     res["directions_deg"] = {"median": float(np.median(ang)), "max": float(ang.max())}
-    res["holdout_vs_clean"] = ev.holdout_against_truth(
-        cap, truth, out, models + extra + (["best"] if materials else []) + ["diffuse"])
+    compared_models = models + extra + (["best"] if materials else []) + ["diffuse"]
+    res["holdout_vs_clean"] = ev.holdout_against_truth(cap, truth, out, compared_models)
+    res["speckle"] = ev.highlight_speckle(cap, truth, out, compared_models)
     if materials:
         from parammap.models.materials import adjusted_rand_index
         from parammap.stores.fit import open_fit
@@ -111,6 +114,10 @@ def _print(res: dict) -> None:
           f"{res['directions_deg']['median']:.4f} deg, max {res['directions_deg']['max']:.4f}")
     for vid, row in res["holdout_vs_clean"].items():
         print(f"  held out {vid}: " + ", ".join(f"{m} {v:.2f}" for m, v in row.items()))
+    sp = dict(res["speckle"])
+    print(f"  highlight speckle over {sp.pop('highlights')} (view, patch) highlights, "
+          "neighbouring-pixel variation against the clean render's: "
+          + ", ".join(f"{m} {v['ratio']:.2f} (worst {v['worst']:.2f})" for m, v in sp.items()))
     if "materials" in res:
         print(f"  basis materials: {res['materials']['count']}, adjusted Rand index against "
               f"the true patches {res['materials']['adjusted_rand_index']:.3f}")
