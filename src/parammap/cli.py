@@ -314,6 +314,15 @@ def _board(a: argparse.Namespace) -> int:
     return _sheet_out(a, "board", sheet, layout, check_board(sheet, layout), write_sheet)
 
 
+@_command("import")
+def _import(a: argparse.Namespace) -> int:
+    from .stages.importer import run_import
+
+    run_import(a.photos, a.out, layout=a.layout, board=a.board, holdout=a.holdout,
+               seed=a.seed, surface_id=a.id)
+    return 0
+
+
 def _sheet_out(a: argparse.Namespace, name: str, sheet, layout: dict, check: dict,
                write) -> int:
     """Write a checked sheet; refuse one whose raster does not show all it should."""
@@ -386,6 +395,16 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--marker-mm", type=float, help="default: 0.72 of the square")
     s.add_argument("--dictionary", default="DICT_5X5_100", help="OpenCV ArUco dictionary")
     s.add_argument("--out", required=True, help="folder for board.pdf/.svg/.png/.yaml")
+
+    s = add("import", help="a capture from a folder of camera files (EXIF brackets)")
+    s.add_argument("photos", help="folder of JPEG/TIFF/PNG photos, searched recursively")
+    s.add_argument("--layout", required=True, help="the markers' layout (parammap markers)")
+    s.add_argument("--board", help="the board's layout (parammap board); its photos are "
+                                   "recognised among the others")
+    s.add_argument("--holdout", type=int, help="views held out (default: about 5 %%)")
+    s.add_argument("--seed", type=int, default=0, help="draws the held-out views")
+    s.add_argument("--id", help="surface id (default: the capture folder's name)")
+    s.add_argument("--out", required=True, help="capture directory to write")
 
     s = add("validate-capture", help="check a capture directory, images included")
     s.add_argument("capture")
