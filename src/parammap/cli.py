@@ -71,11 +71,15 @@ def _synth(a: argparse.Namespace) -> int:
         from .synth.pbr import generate_pbr
 
         generate_pbr(a.out, a.truth, preset=a.preset, seed=a.seed, surface_id=a.id)
-        return 0
-    from .synth.generate import generate
+    else:
+        from .synth.generate import generate
 
-    generate(a.out, a.truth, preset=a.preset, seed=a.seed, workers=a.workers,
-             surface_id=a.id)
+        generate(a.out, a.truth, preset=a.preset, seed=a.seed, workers=a.workers,
+                 surface_id=a.id)
+    if a.camera_folder:
+        from .synth.camera_folder import write_camera_folder
+
+        write_camera_folder(a.out, a.camera_folder, seed=a.seed)
     return 0
 
 
@@ -376,6 +380,8 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--truth", help="ground-truth directory (default <out>.truth)")
     s.add_argument("--workers", type=int, default=1, help="rendering processes")
     s.add_argument("--id", help="surface id (default synth-<preset>)")
+    s.add_argument("--camera-folder", help="also write the photos as a camera leaves them "
+                   "(JPEG with EXIF, no YAML) and the sheets' layouts, for parammap import")
 
     s = add("markers", help="printable ArUco marker sheet around a surface, and its layout")
     s.add_argument("--width-mm", type=float, required=True, help="surface width (mm)")

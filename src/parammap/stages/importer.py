@@ -250,6 +250,16 @@ def run_import(photos: str | Path, out: str | Path, *, layout: str | Path,
     return summary | {"capture": doc}
 
 
+def _camera_settings(metas: list[PhotoMeta]) -> dict[str, Any]:
+    """The camera and the settings every view's photo shares (provenance)."""
+    out: dict[str, Any] = {"model": metas[0].camera} if metas[0].camera else {}
+    for key in ("f_number", "iso", "focal_mm"):
+        vals = {getattr(m, key) for m in metas}
+        if len(vals) == 1 and None not in vals:
+            out[key] = float(vals.pop())
+    return out
+
+
 def _write(root: Path, views: list[list[PhotoMeta]], boards: list[list[PhotoMeta]],
            held: set[int], lay: dict, calib: dict | None, surface_id: str) -> dict:
     """Photos into ``root`` and its ``capture.yaml``; returns the document."""
@@ -274,7 +284,7 @@ def _write(root: Path, views: list[list[PhotoMeta]], boards: list[list[PhotoMeta
             m = sorted(g, key=lambda m: m.exposure_s)[len(g) // 2]
             _place(m.path, root / "calibration" / f"board_{k:03d}{m.path.suffix.lower()}")
         doc["calibration"] = {**calib, "images": "calibration/*", "intrinsics": None}
-    doc["camera"] = {"response": "auto"}
+    doc["camera"] = {"response": "auto", **_camera_settings([m for g in views for m in g])}
     doc["views"] = vlist
     root.mkdir(parents=True, exist_ok=True)
     (root / "capture.yaml").write_text(
