@@ -34,12 +34,9 @@ def tiny_copy(tiny_capture, tmp_path) -> Path:
     return dst
 
 
-@pytest.fixture(scope="session")
-def tiny_processed(tiny_capture, tmp_path_factory):
-    """The tiny capture through response, HDR, poses (true intrinsics: the tiny preset's
-    320x240 board photos are too small to calibrate) and the observation map."""
-    cap, truth = tiny_capture
-    out = tmp_path_factory.mktemp("proc")
+def poses_with_true_intrinsics(cap: Path, truth: Path, out: Path) -> None:
+    """Response, HDR and poses of a capture, with the generator's true intrinsics (the
+    tiny preset's 320x240 board photos are too small to calibrate)."""
     assert main(["response", str(cap), "--out", str(out)]) == 0
     assert main(["hdr", str(cap), "--out", str(out)]) == 0
     cam = yaml.safe_load((truth / "camera.yaml").read_text())
@@ -47,6 +44,15 @@ def tiny_processed(tiny_capture, tmp_path_factory):
                     Intrinsics(np.array(cam["K"]), np.array(cam["dist"]),
                                tuple(cam["image_size"]), 0.0))
     assert main(["poses", str(cap), "--out", str(out)]) == 0
+
+
+@pytest.fixture(scope="session")
+def tiny_processed(tiny_capture, tmp_path_factory):
+    """The tiny capture through response, HDR, poses (true intrinsics: the tiny preset's
+    320x240 board photos are too small to calibrate) and the observation map."""
+    cap, truth = tiny_capture
+    out = tmp_path_factory.mktemp("proc")
+    poses_with_true_intrinsics(cap, truth, out)
     assert main(["observe", str(cap), "--out", str(out), "--set", "observation.texels_x=24",
                  "--set", "observation.tile=8", "--figures", str(out / "fig")]) == 0
     return cap, truth, out

@@ -101,9 +101,9 @@ def test_an_imported_camera_folder_gives_the_generators_poses(camera_folder, tin
     pipeline on the generator's own capture.yaml (JPEG re-encoding adds a little)."""
     import yaml
 
-    from parammap.stages.calibration import Intrinsics
-    from parammap.stores.camera import save_intrinsics
     from parammap.synth import testsupport as ev
+
+    from .conftest import poses_with_true_intrinsics
 
     photos, lay, board, views, boards = camera_folder
     cap_dir, truth, proc = tiny_processed
@@ -114,13 +114,7 @@ def test_an_imported_camera_folder_gives_the_generators_poses(camera_folder, tin
         v["holdout"] = w.holdout  # the generator's held-out views, so both fit the same
     (imported / "capture.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
     out = tmp_path / "proc"
-    assert main(["response", str(imported), "--out", str(out)]) == 0
-    assert main(["hdr", str(imported), "--out", str(out)]) == 0
-    cam = yaml.safe_load((truth / "camera.yaml").read_text())
-    save_intrinsics(out / "camera" / "intrinsics.yaml",
-                    Intrinsics(np.array(cam["K"]), np.array(cam["dist"]),
-                               tuple(cam["image_size"]), 0.0))
-    assert main(["poses", str(imported), "--out", str(out)]) == 0
+    poses_with_true_intrinsics(imported, truth, out)
     ours, theirs = ev.pose_errors(truth, out), ev.pose_errors(truth, proc)
     kept = [k for k in theirs if theirs[k]["kept"]]
     assert all(ours[k]["kept"] for k in kept)
