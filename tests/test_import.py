@@ -52,6 +52,14 @@ def test_import_builds_the_capture_the_generator_described(camera_folder, tmp_pa
     # the same seed draws the same held-out views
     again = run_import(photos, tmp_path / "again", layout=lay, board=board, holdout=2)
     assert [v["holdout"] for v in again["capture"]["views"]] == [v.holdout for v in cap.views]
+    # or the user names them by any of their camera files
+    named = [again["capture"]["views"][k]["source"][-1] for k in (3, 7)]
+    listed = run_import(photos, tmp_path / "listed", layout=lay, board=board,
+                        holdout_photos=named)
+    assert [k for k, v in enumerate(listed["capture"]["views"]) if v["holdout"]] == [3, 7]
+    with pytest.raises(InputError, match="IMG_9998.JPG"):
+        run_import(photos, tmp_path / "bad", layout=lay, board=board,
+                   holdout_photos=["IMG_9998.JPG"])
 
 
 def test_brackets_split_on_a_repeated_time_and_on_a_pause(tmp_path):

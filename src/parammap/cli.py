@@ -323,7 +323,7 @@ def _import(a: argparse.Namespace) -> int:
     from .stages.importer import run_import
 
     run_import(a.photos, a.out, layout=a.layout, board=a.board, holdout=a.holdout,
-               seed=a.seed, surface_id=a.id)
+               seed=a.seed, surface_id=a.id, holdout_photos=a.holdout_photos or ())
     return 0
 
 
@@ -409,6 +409,8 @@ def _parser() -> argparse.ArgumentParser:
                                    "recognised among the others")
     s.add_argument("--holdout", type=int, help="views held out (default: about 5 %%)")
     s.add_argument("--seed", type=int, default=0, help="draws the held-out views")
+    s.add_argument("--holdout-photos", nargs="+", metavar="FILE",
+                   help="hold out the views of these camera files instead")
     s.add_argument("--id", help="surface id (default: the capture folder's name)")
     s.add_argument("--out", required=True, help="capture directory to write")
 

@@ -14,8 +14,9 @@ intervals fall into two groups; the widest break between them, where it is at le
 Each bracket is a view of the surface or a photo of the calibration board, told apart
 by what its best-exposed photo shows: the board's markers (the ids of the board's
 dictionary that a ChArUco board of that size uses) or the surface's (the layout's ids).
-Board photos go to ``calibration/``, views to ``views/``; held-out views are drawn
-reproducibly (``holdout`` of them, spread by a seeded generator). Photos are hard-linked
+Board photos go to ``calibration/``, views to ``views/``; held-out views are those of
+the photos the user names, or drawn reproducibly (``holdout`` of them, by a seeded
+generator). Photos are hard-linked
 into the capture where the file system allows (copied otherwise), the capture written
 under a temporary name, checked by the capture loader, then renamed.
 """
@@ -172,6 +173,16 @@ def _shows_board(group: list[PhotoMeta], markers: dict, calibration: dict | None
     return on_surface == 0  # a chessboard has no markers
 
 
+def _listed(views: list[list[PhotoMeta]], names: Sequence[str]) -> set[int]:
+    """Indices of the views holding the named camera files; an unknown name is an error."""
+    where = {m.path.name: k for k, g in enumerate(views) for m in g}
+    missing = [n for n in names if Path(n).name not in where]
+    if missing:
+        raise CameraFolderError(f"held-out photos not among the views' photos: "
+                                f"{', '.join(missing)}")
+    return {where[Path(n).name] for n in names}
+
+
 def _place(src: Path, dst: Path) -> None:
     """Hard-link a photo into the capture (copy across file systems)."""
     dst.parent.mkdir(parents=True, exist_ok=True)
@@ -183,7 +194,8 @@ def _place(src: Path, dst: Path) -> None:
 
 def run_import(photos: str | Path, out: str | Path, *, layout: str | Path,
                board: str | Path | None = None, holdout: int | None = None, seed: int = 0,
-               surface_id: str | None = None) -> dict[str, Any]:
+               surface_id: str | None = None,
+               holdout_photos: Sequence[str] = ()) -> dict[str, Any]:
     """Build the capture ``out`` from a folder of camera files.
 
     Parameters
@@ -194,6 +206,8 @@ def run_import(photos: str | Path, out: str | Path, *, layout: str | Path,
     board : the board's layout (``parammap board``: the ``calibration`` section); without
         it every bracket is a view and the capture needs saved intrinsics.
     holdout : views held out (default :func:`default_holdout`), drawn with ``seed``.
+    holdout_photos : camera file names (any photo of a bracket) whose views are held
+        out instead of drawn ones.
     surface_id : default the capture folder's name.
 
     Returns
@@ -225,11 +239,17 @@ def run_import(photos: str | Path, out: str | Path, *, layout: str | Path,
     if not views:
         raise CameraFolderError(f"{photos}: no photo shows the surface's markers "
                            f"({lay['markers']['dictionary']})")
-    n_hold = default_holdout(len(views)) if holdout is None else int(holdout)
+    if holdout_photos:
+        held = _listed(views, holdout_photos)
+        n_hold = len(held)
+    else:
+        n_hold = default_holdout(len(views)) if holdout is None else int(holdout)
+        held = set(np.random.default_rng(seed).choice(len(views), max(n_hold, 0),
+                                                      replace=False).tolist()) \
+            if 0 <= n_hold < len(views) else set()
     if not 0 <= n_hold < len(views):
-        raise CameraFolderError(f"--holdout {n_hold}: must leave at least one of the "
-                           f"{len(views)} views to fit")
-    held = set(np.random.default_rng(seed).choice(len(views), n_hold, replace=False).tolist())
+        raise CameraFolderError(f"{n_hold} views held out: must leave at least one of the "
+                                f"{len(views)} views to fit")
     tmp = out.with_name(f".{out.name}.partial")
     shutil.rmtree(tmp, ignore_errors=True)
     try:
