@@ -166,6 +166,16 @@ PBR_PRESETS = {
         lights=(Light("rect", (140.0, 120.0, 480.0), (80.0, 50.0), (26.0, 25.0, 24.0)),
                 Light("disc", (-160.0, -90.0, 430.0), (30.0, 0.0), (14.0, 16.0, 20.0))),
         response=FilmicResponse(a=0.22, d=0.3, white=9.0, gamma=2.4)),
+    # pbr-two-lights' scene seen from 100 views, with a response unlike the others': the
+    # capture issue 49's MH regression was looked for on (benchmarks, --seed 3)
+    "pbr-two-lights-dense": PbrPreset(
+        views=100, max_zenith_deg=72.0, holdout=6, markers=8,
+        marker_dictionary="DICT_4X4_100", marker_frac=0.18, exposures=4, stops=1.7,
+        board=(8, 6), board_dictionary="DICT_4X4_50",
+        lights=(Light("rect", (140.0, 120.0, 480.0), (80.0, 50.0), (26.0, 25.0, 24.0)),
+                Light("disc", (-160.0, -90.0, 430.0), (30.0, 0.0), (14.0, 16.0, 20.0))),
+        response=FilmicResponse(a=0.3, b=0.35, c=0.05, d=0.35, e=0.01, f=0.25, white=6.0,
+                                gamma=1.8)),
     # near-mirror plastic and metal (GGX alpha 0.02-0.08) under one small disc light:
     # highlights a few degrees wide, seen by few views
     "pbr-mirror": PbrPreset(
