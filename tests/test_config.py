@@ -55,12 +55,13 @@ def test_surface_overrides_merge_and_name_bad_keys():
 def test_auto_map_resolution_and_budget():
     from types import SimpleNamespace
 
-    from parammap.stages.poses import OBS_BYTES_PER_SAMPLE, map_resolution
+    from parammap.stages.poses import map_resolution
+    from parammap.stores.observation import BYTES_PER_OBSERVATION
 
     cap = SimpleNamespace(width_mm=200.0, height_mm=100.0)
     g = map_resolution(cap, [1.5, 2.0, 2.5], 50, "auto", None, 4.0)
     assert (g["S"], g["T"], g["source"]) == (400, 200, "auto") and not g["capped_by_budget"]
-    small = 400 * 200 * 50 * OBS_BYTES_PER_SAMPLE / 4 / 2**30
+    small = 400 * 200 * 50 * BYTES_PER_OBSERVATION / 4 / 2**30
     g = map_resolution(cap, [1.5, 2.0, 2.5], 50, "auto", None, small)
     assert g["capped_by_budget"] and abs(g["S"] - 200) <= 1 and abs(g["T"] - 100) <= 1
     g = map_resolution(cap, [2.0], 50, 64, None, 4.0)
@@ -217,6 +218,7 @@ def test_a_map_coarser_than_the_photos_says_so(tiny_processed, tmp_path, caplog)
 
     from parammap.stages.poses import map_resolution, run_poses
     from parammap.stores.capture import load_capture
+    from parammap.stores.common import free_disk_gib
 
     cap = SimpleNamespace(width_mm=200.0, height_mm=100.0)
     g = map_resolution(cap, [2.0], 50, "auto", None, 1e-3)
@@ -232,3 +234,11 @@ def test_a_map_coarser_than_the_photos_says_so(tiny_processed, tmp_path, caplog)
     warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING
               and "max_map_gib" in r.getMessage()]
     assert m["map"]["capped_by_budget"] and len(warned) == 1, (m["map"], warned)
+    # unset, the budget is the disk's: half its free space, said in the log
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="parammap"):
+        m = run_poses(load_capture(capture), work, validate_config({"captures": {"x": "."}}),
+                      workers=1)
+    said = [r.getMessage() for r in caplog.records if "free on" in r.getMessage()]
+    assert len(said) == 1 and not m["map"]["capped_by_budget"], said
+    assert m["map"]["max_map_gib"] == pytest.approx(free_disk_gib(work) / 2, rel=0.05)

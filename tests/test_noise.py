@@ -33,7 +33,7 @@ def test_merge_noise_predicts_the_spread_of_merged_radiance():
     E = np.repeat(levels, 4000)[None, :, None] * np.ones((1, 1, 3))
     stack, g = _bracket(E, times, 1.5, rng)
     rad, sat, dark = merge_bracket(stack, times, g)
-    sd_lv = level_noise(reexposure_error(stack, times, rad, g), len(times))
+    sd_lv = level_noise(reexposure_error(stack, times, rad, g).mean(), len(times))
     assert 1.1 < sd_lv < 2.0, sd_lv  # 1.53 with rounding, from the re-exposure errors
     pred = merge_noise(stack, times, g, sd_lv)
     for k, e in enumerate(levels):

@@ -82,13 +82,96 @@ def test_store_layout_and_metrics(tiny_processed):
     N = len(g.attrs["view_ids"])
     assert g["radiance"].chunks == (8, 8, N, 3) and g["radiance"].dtype == np.float32
     assert g["valid"].chunks == (8, 8, N)
+    # lean on disk: radiance codes, no directions, half-float noise
+    raw = zarr.open_group(out / "observation.zarr", mode="r")
+    assert raw["radiance"].dtype == np.uint16 and "direction" not in raw
+    assert raw["noise"].dtype == np.float16
     held = [v.id for v in load_capture(cap).views if v.holdout]
     assert g.attrs["held_out_view_ids"] == held
     assert not set(held) & set(g.attrs["view_ids"])
     m = yaml.safe_load((out / "metrics" / "observation.json").read_text())
     assert m["texels"] == 576 and m["views"] == N and 0 < m["bytes_on_disk"]
+    assert m["bytes_per_observation"] <= 10, m["bytes_per_observation"]
     assert (out / "fig" / "observation_valid_count.png").is_file()
     assert (out / "fig" / "observation_lobes.png").is_file()
+
+
+def test_directions_follow_from_the_camera_centres(tiny_processed):
+    """The directions a map hands out are the unit vectors from each texel centre to
+    its view's camera centre, as the build stored them before (within 1e-6 rad), by
+    every way of indexing the readers use."""
+    from parammap.geometry import texel_centres, unit
+    from parammap.stores.observation import tile_reader
+
+    _, _, out = tiny_processed
+    g = open_observation_map(out / "observation.zarr")
+    T, S, N = g.shape
+    C = np.asarray(g.attrs["camera_centres_mm"])
+    ref = unit(C[None, None] - texel_centres(S, T, g.width_mm, g.height_mm)[:, :, None])
+    d = g.direction[...]
+    assert d.shape == (T, S, N, 3) and d.dtype == np.float32
+    ang = np.arctan2(np.linalg.norm(np.cross(d, ref), axis=-1), (d * ref).sum(-1))
+    assert ang.max() < 1e-6, ang.max()
+    np.testing.assert_array_equal(g.direction[3:9, 5:7], d[3:9, 5:7])
+    np.testing.assert_array_equal(g.direction[4, 6], d[4, 6])
+    np.testing.assert_array_equal(g.direction[4, 2:5, :, 2], d[4, 2:5, :, 2])
+    rows, cols = np.array([0, 5, 23]), np.array([1, 2])
+    np.testing.assert_array_equal(g.direction.oindex[rows, cols], d[np.ix_(rows, cols)])
+    np.testing.assert_array_equal(tile_reader(str(out / "observation.zarr")).direction[:8, 8:16],
+                                  d[:8, 8:16])
+    with pytest.raises(IndexError):
+        g.direction[rows, cols]  # numpy's pointwise meaning is not what a map means
+
+
+def test_radiance_codes_hold_a_tenth_of_the_noise(tiny_processed):
+    """log2 codes over 48 stops: any radiance in range comes back within 2.6e-4
+    (relative), below a tenth of the smallest noise the tiny capture's merge records;
+    NaN and non-positive values are 'no observation'; out of range is clipped."""
+    from parammap.stores.observation import LOG2_RANGE, decode_radiance, encode_radiance
+
+    rng = np.random.default_rng(0)
+    L = np.exp2(rng.uniform(*LOG2_RANGE, 200_000))
+    rel = np.abs(decode_radiance(encode_radiance(L)) / L - 1)
+    assert rel.max() < 2.6e-4 and 1.3e-4 < np.sqrt(np.mean(rel ** 2)) < 1.6e-4
+    code = encode_radiance(np.array([np.nan, 0.0, -1.0, 2.0 ** 30]))
+    assert list(code[:3]) == [0, 0, 0] and code[3] == 65535
+    assert np.isnan(decode_radiance(code[:3])).all()
+    g = open_observation_map(tiny_processed[2] / "observation.zarr")
+    noise = g.noise[...][g.valid[...]]
+    assert 10 * rel.max() < np.nanmin(noise), np.nanmin(noise)
+
+
+def test_maps_written_before_the_lean_store_read_as_they_did(tmp_path):
+    """A map with float32 radiance and stored directions (before the lean store) and
+    one written from in-memory set-ups read the same through every reader."""
+    from parammap.stores.observation import tile_observations, write_observation_arrays
+
+    rng = np.random.default_rng(1)
+    T, S, N = 4, 5, 6
+    L = rng.uniform(0.1, 3, (T, S, N, 3)).astype(np.float32)
+    D = rng.normal(size=(T, S, N, 3))
+    D = (D / np.linalg.norm(D, axis=-1, keepdims=True)).astype(np.float32)
+    D[..., 2] = np.abs(D[..., 2])
+    W = rng.random((T, S, N)) > 0.2
+    old = zarr.open_group(tmp_path / "old.zarr", mode="w")
+    for name, a in (("radiance", L), ("direction", D), ("valid", W)):
+        old.create_array(name, shape=a.shape, dtype=a.dtype, chunks=(2, 2) + a.shape[2:])[...] = a
+    old.attrs.update({"S": S, "T": T, "tile": 2, "width_mm": 10.0, "height_mm": 8.0,
+                      "view_ids": [f"v{n}" for n in range(N)], COMPLETE_ATTR: True})
+    new = write_observation_arrays(tmp_path / "new.zarr", L, D, W, 10.0, 8.0, tile=2)
+    a, b = open_observation_map(tmp_path / "old.zarr"), open_observation_map(new)
+    assert a.noise is None and b.noise is not None
+    np.testing.assert_array_equal(a["direction"][...], D)
+    np.testing.assert_array_equal(b.direction[1:3, 2:4], D[1:3, 2:4])
+    np.testing.assert_array_equal(a.radiance[...], L)
+    np.testing.assert_allclose(b.radiance[...], L, rtol=2.6e-4)
+    Va, La, Wa, _ = tile_observations(a, slice(0, 2), slice(2, 4))
+    Vb, Lb, Wb, _ = tile_observations(b, slice(0, 2), slice(2, 4))
+    np.testing.assert_array_equal(Va, Vb)
+    np.testing.assert_array_equal(Wa, Wb)
+    np.testing.assert_allclose(La, Lb, rtol=2.6e-4)
+    with pytest.raises(ObservationError, match="camera_centres_mm"):
+        write_observation_arrays(tmp_path / "none.zarr", L, None, W, 10.0, 8.0)
 
 
 def test_incomplete_store_is_refused(tmp_path):

@@ -214,10 +214,14 @@ def normalized_to_plane(xn: np.ndarray, R: np.ndarray, t: np.ndarray,
     return C + s[..., None] * ray, hit
 
 
-def texel_centres(S: int, T: int, width_mm: float, height_mm: float) -> np.ndarray:
-    """Centres of the S x T texel grid in the surface frame, shape (T, S, 3) (mm)."""
-    j = np.arange(S)
-    i = np.arange(T)
+def texel_centres(S: int, T: int, width_mm: float, height_mm: float,
+                  rows: np.ndarray | None = None, cols: np.ndarray | None = None,
+                  ) -> np.ndarray:
+    """Centres of the S x T texel grid in the surface frame, shape (T, S, 3) (mm); of
+    the texel rows ``rows`` and columns ``cols`` only (index arrays), shape (len(rows),
+    len(cols), 3), when given."""
+    j = np.arange(S) if cols is None else np.asarray(cols)
+    i = np.arange(T) if rows is None else np.asarray(rows)
     x = (j + 0.5) * width_mm / S
     y = height_mm - (i + 0.5) * height_mm / T
     X, Y = np.meshgrid(x, y)

@@ -36,9 +36,9 @@ from ..stores.paths import Processed
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["HdrError", "hat_weights", "load_response", "merge_bracket", "merge_view",
-           "recover_response", "reexposure_error", "run_hdr", "run_response", "sample_pixels",
-           "save_response", "solve_debevec"]
+__all__ = ["HdrError", "hat_weights", "load_response", "merge_bracket", "merge_linear",
+           "merge_view", "recover_response", "reexposure_error", "run_hdr", "run_response",
+           "sample_pixels", "save_response", "solve_debevec"]
 
 
 def hat_weights(low: int = default("hdr.low"), high: int = default("hdr.high")) -> np.ndarray:
@@ -308,15 +308,15 @@ def merge_noise(
     return rel.mean(-1).astype(np.float32)
 
 
-def level_noise(err: np.ndarray, exposures: int) -> float:
-    """Level noise (sd, 8-bit levels) of one exposure from the re-exposure errors: the
-    mean absolute error of a Gaussian is 0.80 sd, and the merged prediction contains
-    the photo it predicts (about 1/P of it), which hides a share 1/P of the variance;
-    never below the quantisation sd."""
-    if not err.size:
+def level_noise(mean_error: float | None, exposures: int) -> float:
+    """Level noise (sd, 8-bit levels) of one exposure from the mean absolute re-exposure
+    error (None: no pixel in range): the mean absolute error of a Gaussian is 0.80 sd,
+    and the merged prediction contains the photo it predicts (about 1/P of it), which
+    hides a share 1/P of the variance; never below the quantisation sd."""
+    if mean_error is None:
         return QUANTISATION_SD
     P = max(exposures, 2)
-    sd = math.sqrt(math.pi / 2) * float(np.mean(err)) / math.sqrt(1 - 1 / P)
+    sd = math.sqrt(math.pi / 2) * float(mean_error) / math.sqrt(1 - 1 / P)
     return max(sd, QUANTISATION_SD)
 
 
@@ -375,6 +375,62 @@ def load_bracket(view: View) -> tuple[np.ndarray, np.ndarray]:
     return stack, t
 
 
+def merge_linear(stack: np.ndarray, t: np.ndarray, full: float,
+                 low: int = default("hdr.low"), high: int = default("hdr.high"),
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Merge a linear bracket (P, H, W, 3) of values up to ``full`` (16-bit or RAW):
+    radiance = value / t over the unsaturated exposures (H, W, 3) float32, saturated,
+    dark (H, W) bool and the relative noise (H, W) float32 of quantisation alone (the
+    sensor's shot and read noise are unknown here); ``low`` and ``high`` in 8-bit
+    levels, scaled to ``full``."""
+    stack = np.asarray(stack, np.float32)
+    ok = stack < full * high / 255.0
+    # sum(z) / sum(t) over unsaturated exposures: the longest exposures, with the
+    # least quantisation and relative noise, weigh most.
+    tt = t[:, None, None, None]
+    zsum = np.where(ok, stack, 0).sum(0)
+    rad = zsum / np.maximum(np.where(ok, tt, 0).sum(0), 1e-30)
+    saturated = (~ok).all(axis=0).any(axis=2)
+    rad = np.where(saturated[..., None], stack[np.argmin(t)] / t.min(), rad)
+    dark = (stack <= full * low / 255.0).all(axis=0).any(axis=2)
+    noise = (QUANTISATION_SD * np.sqrt(np.maximum(ok.sum(0), 1))
+             / np.maximum(zsum, 1e-30)).mean(-1)
+    return rad.astype(np.float32), saturated, dark, noise.astype(np.float32)
+
+
+# Pixels merged at once: the merge's float64 temporaries and re-exposure errors take
+# about 100 bytes a pixel, so a strip of 2**21 pixels keeps a 24 MP bracket's merge
+# near 1 GiB (the photos and the merged frame themselves, about 25 bytes a pixel,
+# come on top) where merging it whole took several.
+MERGE_STRIP_PIXELS = 2**21
+
+
+def _strips(H: int, W: int) -> list[slice]:
+    rows = max(1, MERGE_STRIP_PIXELS // max(W, 1))
+    return [slice(r, min(r + rows, H)) for r in range(0, H, rows)]
+
+
+def _merge_in_strips(stack: np.ndarray, t: np.ndarray, g: np.ndarray, low: int, high: int,
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
+    """:func:`merge_bracket`, its re-exposure errors and :func:`merge_noise` over strips
+    of rows: radiance (H, W, 3), saturated, dark, noise (H, W) and the re-exposure
+    summary. The noise's level sd comes from the whole frame's errors (a second pass)."""
+    H, W = stack.shape[1:3]
+    rad = np.empty((H, W, 3), np.float32)
+    saturated, dark = np.empty((H, W), bool), np.empty((H, W), bool)
+    parts = []
+    for rows in _strips(H, W):
+        rad[rows], saturated[rows], dark[rows] = merge_bracket(stack[:, rows], t, g, low, high)
+        parts.append(reexposure_summary(reexposure_error(stack[:, rows], t, rad[rows], g,
+                                                         low, high)))
+    summary = parts[0] if len(parts) == 1 else pool_reexposure(parts)
+    level = level_noise(summary["mean_levels"], len(t))
+    noise = np.empty((H, W), np.float32)
+    for rows in _strips(H, W):
+        noise[rows] = merge_noise(stack[:, rows], t, g, level, low, high)
+    return rad, saturated, dark, noise, summary
+
+
 def merge_view(
     view: View, g: np.ndarray | None, out: str | Path, low: int = default("hdr.low"),
     high: int = default("hdr.high"),
@@ -385,33 +441,24 @@ def merge_view(
     exposures. ``provenance``: extra header attributes (:func:`hdr_provenance`)."""
     if g is None:
         kept, left_out = bracket(view)
-        imgs = [read_image(e.path).astype(np.float32) for e in kept]
-        full = 65535.0 if imgs[0].max() > 255 else 255.0
+        stack = np.stack([read_image(e.path) for e in kept])
+        full = 65535.0 if stack.max() > 255 else 255.0
         t = np.array([e.exposure_s for e in kept])
-        stack = np.stack(imgs)
-        ok = stack < full * high / 255.0
-        # sum(z) / sum(t) over unsaturated exposures: the longest exposures, with the
-        # least quantisation and relative noise, weigh most.
-        tt = t[:, None, None, None]
-        rad = np.where(ok, stack, 0).sum(0) / np.maximum(np.where(ok, tt, 0).sum(0), 1e-30)
-        saturated = (~ok).all(axis=0).any(axis=2)
-        rad = np.where(saturated[..., None], stack[np.argmin(t)] / t.min(), rad)
-        dark = (stack <= full * low / 255.0).all(axis=0).any(axis=2)
-        # quantisation only (the sensor's shot and read noise are unknown here)
-        zsum = np.where(ok, stack, 0).sum(0)
-        noise = (QUANTISATION_SD * np.sqrt(np.maximum(ok.sum(0), 1))
-                 / np.maximum(zsum, 1e-30)).mean(-1).astype(np.float32)
-        rad = rad.astype(np.float32)
+        H, W = stack.shape[1:3]
+        rad = np.empty((H, W, 3), np.float32)
+        saturated, dark = np.empty((H, W), bool), np.empty((H, W), bool)
+        noise = np.empty((H, W), np.float32)
+        for rows in _strips(H, W):
+            rad[rows], saturated[rows], dark[rows], noise[rows] = merge_linear(
+                stack[:, rows], t, full, low, high)
     else:
         stack, t, left_out = load_bracket_checked(view)
-        rad, saturated, dark = merge_bracket(stack, t, g, low, high)
-        err = reexposure_error(stack, t, rad, g, low, high)
-        noise = merge_noise(stack, t, g, level_noise(err, len(t)), low, high)
+        rad, saturated, dark, noise, reexposure = _merge_in_strips(stack, t, g, low, high)
     write_hdr(out, rad, saturated, dark, noise, view.id, provenance)
     stats = {"view": view.id, "saturated_fraction": float(saturated.mean()),
              "dark_fraction": float(dark.mean())}
     if g is not None:
-        stats["reexposure"] = reexposure_summary(err)
+        stats["reexposure"] = reexposure
     if left_out:  # photos that contradict their exposure times: named, not merged
         stats["left_out"] = left_out
         for x in left_out:
@@ -437,18 +484,20 @@ def reexposure_summary(err: np.ndarray) -> dict:
 
 
 def pool_reexposure(summaries: list[dict]) -> dict:
-    """Pooled mean and 95th percentile from per-view :func:`reexposure_summary` dicts
-    (the percentile is exact to one histogram bin)."""
+    """Pooled :func:`reexposure_summary` of several (views, or strips of one frame):
+    the mean exact, the 95th percentile exact to one histogram bin."""
     summaries = [s for s in summaries if s and s["pixels"]]
     if not summaries:
-        return {"mean_levels": None, "p95_levels": None, "pixels": 0}
+        return {"mean_levels": None, "p95_levels": None, "pixels": 0, "sum_levels": 0.0,
+                "histogram": [], "bin_levels": REEXPOSURE_BIN}
     n = sum(s["pixels"] for s in summaries)
-    hist = np.zeros(max(len(s["histogram"]) for s in summaries))
+    hist = np.zeros(max(len(s["histogram"]) for s in summaries), np.int64)
     for s in summaries:
         hist[: len(s["histogram"])] += s["histogram"]
     k = int(np.searchsorted(np.cumsum(hist), 0.95 * n))
-    return {"mean_levels": sum(s["sum_levels"] for s in summaries) / n,
-            "p95_levels": (k + 1) * REEXPOSURE_BIN, "pixels": n}
+    total = sum(s["sum_levels"] for s in summaries)
+    return {"mean_levels": total / n, "p95_levels": (k + 1) * REEXPOSURE_BIN, "pixels": n,
+            "sum_levels": total, "histogram": hist.tolist(), "bin_levels": REEXPOSURE_BIN}
 
 
 def reexposure_error(

@@ -1,8 +1,9 @@
 """The observation map: every texel seen from every kept view, in a zarr v3 store.
 
-Layout (docs/reference/conventions.md): ``radiance`` float32 ``[T, S, N, 3]``, ``direction`` float32
-``[T, S, N, 3]`` (unit vectors toward the camera, surface frame), ``valid`` bool
-``[T, S, N]``, all chunked ``tile x tile x N``. Held-out and dropped views never enter.
+Layout (docs/reference/conventions.md, :mod:`parammap.stores.observation`): ``radiance``
+``[T, S, N, 3]`` (log2-encoded), ``valid`` bool and ``noise`` ``[T, S, N]``, all chunked
+``tile x tile x N``; the view directions (unit vectors toward the camera, surface frame)
+follow from the camera centres. Held-out and dropped views never enter.
 
 Footprint-aware sampling
 ------------------------
@@ -60,7 +61,7 @@ import numpy as np
 
 from .. import __version__
 from ..config import default
-from ..geometry import Intrinsics, sample_image, texel_centres, unit
+from ..geometry import Intrinsics, sample_image, unit
 from ..parallel import executor, progress
 from ..stores.camera import PosesError, kept_poses, load_intrinsics, read_poses
 from ..stores.capture import Capture
@@ -68,6 +69,7 @@ from ..stores.common import COMPLETE_ATTR, mtime_ns, store_bytes
 from ..stores.hdr import read_hdr_noise
 from ..stores.metrics import digest, write_metrics
 from ..stores.observation import (
+    BYTES_PER_OBSERVATION,
     ObservationError,
     create_observation_map,
     create_scratch,
@@ -381,13 +383,10 @@ def _pass1_view(job: tuple) -> tuple[str, float, int, float, int]:
 
 def _pass2_band(job: tuple) -> int:
     """Transpose one band of tile rows from the scratch store into the final store."""
-    scratch, final, r0, r1, centres, marker, T, w_mm, h_mm = job
+    scratch, final, r0, r1, marker = job
     rad, valid, noise = read_scratch_band(scratch, r0, r1)  # (r, S, N, ...)
     valid &= ~marker[r0:r1, :, None]
-    S = rad.shape[1]
-    ctr = texel_centres(S, T, w_mm, h_mm)[r0:r1]
-    d = unit(np.asarray(centres)[None, None] - ctr[:, :, None, :]).astype(np.float32)
-    write_band(final, r0, r1, rad, d, valid, noise)
+    write_band(final, r0, r1, rad, valid, noise)
     return int(valid.sum())
 
 
@@ -503,11 +502,10 @@ def build_observation_map(
                   "texel_px": texel_px, "blend_check": bool(max_blend is not None
                                                             and resolved)},
         marker_texels=int(marker.sum()), surface_id=cap.surface_id, config=config or {})
-    centres = np.array([v.centre for v in views])
     written = {r0: int((marks / f"band-{r0}").read_text()) for r0 in range(0, T, tile)
                if (marks / f"band-{r0}").is_file()}
-    bands = [(str(scratch), str(final), r0, min(r0 + tile, T), centres, marker, T,
-              cap.width_mm, cap.height_mm) for r0 in range(0, T, tile) if r0 not in written]
+    bands = [(str(scratch), str(final), r0, min(r0 + tile, T), marker)
+             for r0 in range(0, T, tile) if r0 not in written]
     with executor(workers) as ex:
         rows = progress(ex.map(_pass2_band, bands), len(bands), "observation: tile rows written",
                         logger, done=len(written), of=len(range(0, T, tile)))
@@ -521,7 +519,7 @@ def build_observation_map(
     shutil.rmtree(marks, ignore_errors=True)
     seconds = time.perf_counter() - t_start
     on_disk = store_bytes(out)
-    uncompressed = T * S * N * (3 * 4 + 3 * 4 + 1)
+    uncompressed = T * S * N * BYTES_PER_OBSERVATION
     return {
         "texels": S * T, "S": S, "T": T, "texel_mm": cap.width_mm / S,
         "resolution": "auto" if texels_x == "auto" else "config",
@@ -532,6 +530,7 @@ def build_observation_map(
         "sample_seconds": t_sample, "hdr_bytes_read": bytes_read,
         "read_mb_per_s": bytes_read / 1e6 / max(t_sample, 1e-9),
         "bytes_on_disk": on_disk, "bytes_uncompressed": uncompressed,
+        "bytes_per_observation": on_disk / (S * T * N),
         "compression_ratio": uncompressed / max(on_disk, 1),
         "valid_fraction_per_view": per_view, "tile": tile,
     }

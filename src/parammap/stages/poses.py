@@ -29,9 +29,11 @@ own noise). Held-out views are never dropped by this policy: a poor one is kept 
 ``warning`` that the held-out comparison reports.
 
 ``observation.texels_x: auto`` picks about one texel per photo pixel at the median view
-(:func:`map_resolution`), capped so the observation map stays within
-``observation.max_map_gib``; the choice is written to ``camera/poses.yaml`` (``map``)
-so the observation stage uses the same map the policy judged.
+(:func:`map_resolution`), capped only where the observation map would not fit its disk
+budget: ``observation.max_map_gib``, or when unset half the free space on the processed
+folder's disk (the build's scratch copy needs the other half); the choice is logged
+either way and written to ``camera/poses.yaml`` (``map``) so the observation stage uses
+the same map the policy judged.
 """
 
 from __future__ import annotations
@@ -46,12 +48,14 @@ import numpy as np
 import yaml
 
 from ..geometry import Intrinsics, unit
-from ..parallel import executor
+from ..parallel import executor, progress
 from ..stores.camera import load_intrinsics
 from ..stores.capture import Capture
+from ..stores.common import free_disk_gib
 from ..stores.exr import ExrError
 from ..stores.hdr import read_hdr
 from ..stores.metrics import write_metrics
+from ..stores.observation import BYTES_PER_OBSERVATION
 from ..stores.paths import Processed
 from ..vision.markers import to_gray8
 from ..vision.pattern import PATTERN_NOISE_FACTOR
@@ -61,11 +65,6 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["corner_gate", "map_resolution", "px_per_mm", "run_poses", "view_spacing_deg",
            "view_uncertainty"]
-
-# bytes per texel and view in the observation map: radiance and direction float32 x 3,
-# valid bool
-OBS_BYTES_PER_SAMPLE = 25
-
 
 PARTIAL_GRID = 17  # points per side where a view's usable part of the region is judged
 
@@ -145,7 +144,7 @@ def map_resolution(cap: Capture, ppmm: list[float], n_views: int, texels_x: int 
         med = float(np.median(ppmm)) if len(ppmm) else 1.0
         S = max(8, int(round(cap.width_mm * med)))
         T = int(texels_y) if texels_y else max(8, int(round(S * cap.height_mm / cap.width_mm)))
-        per_texel = OBS_BYTES_PER_SAMPLE * max(n_views, 1)
+        per_texel = BYTES_PER_OBSERVATION * max(n_views, 1)
         budget = max_gib * 2**30 / per_texel
         photos = (S, T)
         capped = S * T > budget
@@ -205,7 +204,8 @@ def run_poses(cap: Capture, processed: str | Path, config: dict[str, Any], *,
     jobs = [(cap, intr, out.hdr(v.id), cfg) for v in cap.views]
     recs = []
     with executor(max(1, min(workers, len(jobs)))) as ex:
-        for v, rec in zip(cap.views, ex.map(_view_pose, jobs), strict=True):
+        posed_views = progress(ex.map(_view_pose, jobs), len(jobs), "poses: views", logger)
+        for v, rec in zip(cap.views, posed_views, strict=True):
             found = set(rec.get("pattern_markers") or []) - set(rec.get("detected") or [])
             logger.info(f"poses: {v.id} " + (f"{rec.get('solution')} solution, "
                                              f"{len(rec['markers'])} markers"
@@ -219,9 +219,14 @@ def run_poses(cap: Capture, processed: str | Path, config: dict[str, Any], *,
             logger.info(f"poses: {v.id}: {rec['rms_waived']}")
     posed = [(v, r) for v, r in recs if r["ok"]]
     fitted = [(v, r) for v, r in posed if not v.holdout]
+    max_gib = obs_cfg["max_map_gib"]
+    if max_gib is None and obs_cfg["texels_x"] == "auto":
+        free = free_disk_gib(out.root)
+        max_gib = free / 2
+        logger.info(f"poses: observation map budget {max_gib:.1f} GiB, half the {free:.1f} "
+                    f"GiB free on {out.root}'s disk (observation.max_map_gib unset)")
     grid = map_resolution(cap, [px_per_mm(cap, r["R"], r["t"], intr) for _, r in fitted],
-                          len(fitted), obs_cfg["texels_x"], obs_cfg["texels_y"],
-                          obs_cfg["max_map_gib"])
+                          len(fitted), obs_cfg["texels_x"], obs_cfg["texels_y"], max_gib)
     spacing = view_spacing_deg(np.array([r["centre_mm"] for _, r in fitted]), cap)
     max_dir = cfg["max_direction_fraction"] * spacing
     max_shift_mm = cfg["max_texel_shift"] * grid["texel_mm"]
@@ -233,12 +238,13 @@ def run_poses(cap: Capture, processed: str | Path, config: dict[str, Any], *,
     if grid.get("capped_by_budget"):  # never silently coarser than the photos
         logger.warning(f"poses: the photos resolve {grid['photos_S']}x{grid['photos_T']} "
                        f"texels ({grid['photos_map_gib']:.1f} GiB of observations); "
-                       f"observation.max_map_gib = {grid['max_map_gib']:g} caps the map at "
-                       f"{grid['S']}x{grid['T']}: raise it to keep the photos' resolution")
+                       f"the disk budget of {grid['max_map_gib']:.3g} GiB caps the map at "
+                       f"{grid['S']}x{grid['T']}: raise observation.max_map_gib (or free "
+                       "disk space) to keep the photos' resolution")
     elif grid["source"] == "auto":
         logger.info(f"poses: the map follows the photos' resolution "
-                    f"({grid['photos_map_gib']:.2f} GiB of observations, within "
-                    f"observation.max_map_gib = {grid['max_map_gib']:g})")
+                    f"({grid['photos_map_gib']:.2f} GiB of observations, within the "
+                    f"disk budget of {grid['max_map_gib']:.3g} GiB)")
     logger.info(f"poses: map {grid['S']}x{grid['T']} texels ({grid['texel_mm']:.3f} mm, "
                 f"{grid['source']}); view spacing {spacing:.2f} deg; limits (1 sd) "
                 f"{cfg['max_texel_shift']} texel = {max_shift_mm:.3f} mm, "

@@ -3,6 +3,7 @@ finished store, its size on disk and its inputs' modification times."""
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -11,8 +12,8 @@ import zarr
 from .. import __version__
 
 __all__ = ["COMPLETE_ATTR", "HEIGHT_ATTR", "MapStore", "SOFTWARE_ATTR", "S_ATTR", "TILE_ATTR",
-           "T_ATTR", "UNITS_ATTR", "WIDTH_ATTR", "mtime_ns", "open_complete", "software",
-           "store_bytes"]
+           "T_ATTR", "UNITS_ATTR", "WIDTH_ATTR", "free_disk_gib", "mtime_ns", "open_complete",
+           "software", "store_bytes"]
 
 # Set on a store's group only after every chunk is written and just before the rename
 # from its temporary name: a store without it is never accepted.
@@ -39,6 +40,15 @@ def mtime_ns(path: str | Path) -> int:
         return Path(path).stat().st_mtime_ns
     except OSError:
         return 0
+
+
+def free_disk_gib(path: str | Path) -> float:
+    """Free space (GiB) on the disk that holds ``path`` or, where it does not exist yet,
+    its nearest existing parent."""
+    path = Path(path).resolve()
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return shutil.disk_usage(path).free / 2**30
 
 
 def store_bytes(path: str | Path) -> int:
