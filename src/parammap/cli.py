@@ -78,8 +78,10 @@ def _synth(a: argparse.Namespace) -> int:
                  surface_id=a.id)
     if a.camera_folder:
         from .synth.camera_folder import write_camera_folder
+        from .synth.raw import Sensor
 
-        write_camera_folder(a.out, a.camera_folder, seed=a.seed)
+        write_camera_folder(a.out, a.camera_folder, seed=a.seed,
+                            raw=Sensor() if a.raw else None, truth=a.truth)
     return 0
 
 
@@ -383,6 +385,9 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--id", help="surface id (default synth-<preset>)")
     s.add_argument("--camera-folder", help="also write the photos as a camera leaves them "
                    "(JPEG with EXIF, no YAML) and the sheets' layouts, for parammap import")
+    s.add_argument("--raw", action="store_true", help="with --camera-folder: DNG files of a "
+                   "simulated sensor (Bayer mosaic, black and white level, shot and read "
+                   "noise) instead of JPEGs")
 
     s = add("markers", help="printable ArUco marker sheet around a surface, and its layout")
     s.add_argument("--width-mm", type=float, required=True, help="surface width (mm)")

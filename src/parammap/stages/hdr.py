@@ -36,9 +36,9 @@ from ..stores.paths import Processed
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["HdrError", "hat_weights", "load_response", "merge_bracket", "merge_linear",
-           "merge_view", "recover_response", "reexposure_error", "run_hdr", "run_response",
-           "sample_pixels", "save_response", "solve_debevec"]
+__all__ = ["HdrError", "fit_sensor_noise", "hat_weights", "load_response", "merge_bracket",
+           "merge_linear", "merge_view", "recover_response", "reexposure_error", "run_hdr",
+           "run_response", "sample_pixels", "save_response", "solve_debevec"]
 
 
 def hat_weights(low: int = default("hdr.low"), high: int = default("hdr.high")) -> np.ndarray:
@@ -375,27 +375,100 @@ def load_bracket(view: View) -> tuple[np.ndarray, np.ndarray]:
     return stack, t
 
 
+# Bins of level in which the sensor's noise is measured from a bracket's own pairs of
+# exposures, and the pixels (a sample of rows) it is measured on.
+NOISE_BINS, NOISE_SAMPLE_PIXELS = 24, 2**20
+
+
+def fit_sensor_noise(stack: np.ndarray, t: np.ndarray, full: float,
+                     high: int = default("hdr.high")) -> tuple[float, float]:
+    """The sensor's noise in a linear bracket, ``var(v) = a v + b`` (shot and read
+    noise; v the value over ``full``), measured from the bracket itself.
+
+    Each exposure predicts the next shorter one, ``k v_p`` with ``k = t_q / t_p``; the
+    difference ``r = v_q - k v_p`` has variance ``a k (1 + k) v_p + b (1 + k^2)``. Robust
+    variances of r in bins of ``v_p`` (median absolute deviation, so edges and moving
+    pixels do not count) are fitted by non-negative least squares, each bin weighted by
+    its relative precision. A bracket of one exposure, or with too few unsaturated
+    pairs, gives pure shot noise at one level per electron (``a = 1 / full``) and the
+    quantisation of ``full`` levels (``b``).
+
+    Returns
+    -------
+    (a, b) in units of the normalised value (v in [0, 1]).
+    """
+    from scipy.optimize import nnls
+
+    fallback = (1.0 / full, QUANTISATION_SD ** 2 / full ** 2)
+    P, H, W = stack.shape[:3]
+    if P < 2:
+        return fallback
+    step = max(1, int(math.ceil(H * W / NOISE_SAMPLE_PIXELS)))
+    sample = np.asarray(stack[:, ::step], np.float32) / full
+    order = np.argsort(-np.asarray(t, float))
+    sat = full * high / 255.0 / full
+    rows, obs = [], []
+    for p, q in zip(order[:-1], order[1:], strict=True):
+        k = float(t[q] / t[p])
+        vp, vq = sample[p], sample[q]
+        ok = (vp < sat) & (vq < sat) & (vp > 0) & (vq > 0)
+        vp, r = vp[ok], vq[ok] - k * vp[ok]
+        if vp.size < 50 * NOISE_BINS:
+            continue
+        edges = np.unique(np.quantile(vp, np.linspace(0, 1, NOISE_BINS + 1)))
+        which = np.clip(np.searchsorted(edges, vp, side="right") - 1, 0, len(edges) - 2)
+        for b in range(len(edges) - 1):
+            rb = r[which == b]
+            if rb.size < 50:
+                continue
+            var = (1.4826 * np.median(np.abs(rb - np.median(rb)))) ** 2
+            rows.append([k * (1 + k) * float(np.mean(vp[which == b])), 1 + k * k])
+            obs.append(var)
+    if len(obs) < 3:
+        return fallback
+    A, y = np.array(rows), np.array(obs)
+    w = 1 / np.maximum(y, 1e-30)  # relative errors: each bin's variance to a share of it
+    (a, b), _ = nnls(A * w[:, None], y * w)
+    if a <= 0:
+        return fallback
+    return float(a), float(max(b, fallback[1]))
+
+
 def merge_linear(stack: np.ndarray, t: np.ndarray, full: float,
                  low: int = default("hdr.low"), high: int = default("hdr.high"),
+                 noise_model: tuple[float, float] | None = None,
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Merge a linear bracket (P, H, W, 3) of values up to ``full`` (16-bit or RAW):
-    radiance = value / t over the unsaturated exposures (H, W, 3) float32, saturated,
-    dark (H, W) bool and the relative noise (H, W) float32 of quantisation alone (the
-    sensor's shot and read noise are unknown here); ``low`` and ``high`` in 8-bit
-    levels, scaled to ``full``."""
-    stack = np.asarray(stack, np.float32)
-    ok = stack < full * high / 255.0
-    # sum(z) / sum(t) over unsaturated exposures: the longest exposures, with the
-    # least quantisation and relative noise, weigh most.
-    tt = t[:, None, None, None]
-    zsum = np.where(ok, stack, 0).sum(0)
-    rad = zsum / np.maximum(np.where(ok, tt, 0).sum(0), 1e-30)
+    """Merge a linear bracket (P, H, W, 3) of values up to ``full`` (16-bit, or RAW
+    through :func:`parammap.stores.images.read_raw`).
+
+    Each unsaturated exposure's ``v / t`` is weighted by its inverse variance under the
+    sensor's noise model ``var(v) = a v + b`` (``noise_model``, from
+    :func:`fit_sensor_noise` when None), evaluated at the value a first, shot-noise
+    merge (``sum v / sum t``) predicts, so a pixel's own noise does not weight it.
+
+    Returns
+    -------
+    radiance : (H, W, 3) float32, value per second (relative).
+    saturated, dark : (H, W) bool; ``low`` and ``high`` in 8-bit levels, scaled to
+        ``full``.
+    noise : (H, W) float32, the merge's relative sd (mean over channels).
+    """
+    a, b = noise_model if noise_model is not None else fit_sensor_noise(stack, t, full, high)
+    v = np.asarray(stack, np.float32) / np.float32(full)
+    ok = v < high / 255.0
+    tt = np.asarray(t, np.float32)[:, None, None, None]
+    X0 = np.where(ok, v, 0).sum(0) / np.maximum(np.where(ok, tt, 0).sum(0), 1e-30)
+    vhat = np.clip(X0[None] * tt, 0, 1)
+    w = np.where(ok, tt ** 2 / (a * vhat + b), 0)
+    wsum = w.sum(0)
+    rad = (w * v / tt).sum(0) / np.maximum(wsum, 1e-30)
     saturated = (~ok).all(axis=0).any(axis=2)
-    rad = np.where(saturated[..., None], stack[np.argmin(t)] / t.min(), rad)
-    dark = (stack <= full * low / 255.0).all(axis=0).any(axis=2)
-    noise = (QUANTISATION_SD * np.sqrt(np.maximum(ok.sum(0), 1))
-             / np.maximum(zsum, 1e-30)).mean(-1)
-    return rad.astype(np.float32), saturated, dark, noise.astype(np.float32)
+    rad = np.where(saturated[..., None], v[np.argmin(t)] / float(np.min(t)), rad)
+    dark = (v <= low / 255.0).all(axis=0).any(axis=2)
+    rel = np.sqrt(1 / np.maximum(wsum, 1e-30)) / np.maximum(rad, 1e-30)
+    rel = np.where(wsum > 0, rel, np.sqrt(a * v[np.argmin(t)] + b) / np.maximum(
+        v[np.argmin(t)], 1e-30))
+    return (rad * full).astype(np.float32), saturated, dark, rel.mean(-1).astype(np.float32)
 
 
 # Pixels merged at once: the merge's float64 temporaries and re-exposure errors take
@@ -448,9 +521,10 @@ def merge_view(
         rad = np.empty((H, W, 3), np.float32)
         saturated, dark = np.empty((H, W), bool), np.empty((H, W), bool)
         noise = np.empty((H, W), np.float32)
+        model = fit_sensor_noise(stack, t, full, high)
         for rows in _strips(H, W):
             rad[rows], saturated[rows], dark[rows], noise[rows] = merge_linear(
-                stack[:, rows], t, full, low, high)
+                stack[:, rows], t, full, low, high, model)
     else:
         stack, t, left_out = load_bracket_checked(view)
         rad, saturated, dark, noise, reexposure = _merge_in_strips(stack, t, g, low, high)

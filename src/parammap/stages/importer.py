@@ -1,8 +1,10 @@
 """A lab's camera folder becomes a capture: ``parammap import``.
 
 The photos' headers say everything the capture format needs but the layout: exposure
-time, aperture, ISO, focal length and when each was taken (EXIF;
-:func:`parammap.stores.images.photo_meta`). Photos are ordered by the time they were
+time, aperture, ISO, focal length and when each was taken (EXIF, or a RAW's own header;
+:func:`parammap.stores.images.photo_meta`). A folder of RAW files becomes a capture with
+a linear response (``camera.response: linear``); where the camera wrote a JPEG beside
+each RAW, the RAWs are used. Photos are ordered by the time they were
 taken (then by name) and grouped into brackets: a bracket is a run of photos whose
 exposure times are all different; a photo repeating a time already in the run, or
 taken after a pause, starts the next. What a pause is comes from the capture's own
@@ -36,7 +38,14 @@ import yaml
 from ..errors import InputError
 from ..parallel import progress
 from ..stores.capture import load_capture
-from ..stores.images import PHOTO_SUFFIXES, ImageReadError, PhotoMeta, photo_meta, read_image
+from ..stores.images import (
+    PHOTO_SUFFIXES,
+    ImageReadError,
+    PhotoMeta,
+    is_raw,
+    photo_meta,
+    read_image,
+)
 from ..vision.markers import detect_markers, to_gray8
 
 logger = logging.getLogger(__name__)
@@ -58,12 +67,26 @@ def default_holdout(n_views: int) -> int:
 
 
 def _files(photos: Path) -> list[Path]:
+    """The camera files of a folder; where the camera wrote a RAW and a JPEG of each shot,
+    the RAWs (linear, no response to recover). One kind only otherwise."""
     if not photos.is_dir():
         raise CameraFolderError(f"{photos}: not a folder of photos")
     files = sorted(p for p in photos.rglob("*") if p.is_file()
                    and p.suffix.lower() in PHOTO_SUFFIXES)
     if not files:
         raise CameraFolderError(f"{photos}: no photos ({', '.join(PHOTO_SUFFIXES)})")
+    raws = [f for f in files if is_raw(f)]
+    if raws and len(raws) < len(files):
+        stems = {f.with_suffix("") for f in raws}
+        others = [f for f in files if not is_raw(f)]
+        unpaired = [f for f in others if f.with_suffix("") not in stems]
+        if unpaired:
+            raise CameraFolderError(
+                f"mixed RAW and other photos: {raws[0].name} and {unpaired[0].name} (no RAW "
+                "of that shot); import one kind at a time")
+        logger.info(f"import: {len(raws)} RAW files, the {len(others)} JPEG/TIFF files the "
+                    "camera wrote beside them are not used")
+        files = raws
     return files
 
 
@@ -200,7 +223,8 @@ def run_import(photos: str | Path, out: str | Path, *, layout: str | Path,
 
     Parameters
     ----------
-    photos : folder (searched recursively) of JPEG, TIFF or PNG files with EXIF.
+    photos : folder (searched recursively) of JPEG, TIFF or PNG files with EXIF, or of
+        camera RAW files (DNG, CR2, NEF, ARW, ...: a capture with a linear response).
     layout : the markers' layout (``parammap markers`` writes it: ``surface`` and
         ``markers`` in the capture format).
     board : the board's layout (``parammap board``: the ``calibration`` section); without
@@ -304,7 +328,9 @@ def _write(root: Path, views: list[list[PhotoMeta]], boards: list[list[PhotoMeta
             m = sorted(g, key=lambda m: m.exposure_s)[len(g) // 2]
             _place(m.path, root / "calibration" / f"board_{k:03d}{m.path.suffix.lower()}")
         doc["calibration"] = {**calib, "images": "calibration/*", "intrinsics": None}
-    doc["camera"] = {"response": "auto", **_camera_settings([m for g in views for m in g])}
+    # a RAW is linear: nothing to recover
+    response = "linear" if is_raw(views[0][0].path) else "auto"
+    doc["camera"] = {"response": response, **_camera_settings([m for g in views for m in g])}
     doc["views"] = vlist
     root.mkdir(parents=True, exist_ok=True)
     (root / "capture.yaml").write_text(

@@ -18,7 +18,7 @@ import numpy as np
 import yaml
 
 from ..errors import InputError
-from .images import ImageReadError, exif_exposure_time, read_image
+from .images import ImageReadError, exif_exposure_time, image_size
 
 __all__ = [
     "Capture",
@@ -323,24 +323,24 @@ def _check_images(c: _Ctx, cap: Capture, views_raw: list) -> None:
         for e, ex in enumerate(v.exposures):
             key = f"views[{k}].exposures[{e}].file"
             try:
-                img = read_image(ex.path)
+                size = image_size(ex.path)
             except ImageReadError as exc:
                 c.fail(key, str(exc))
             if view_size is None:
-                view_size, first = img.shape[:2], f"{key} ({ex.path.relative_to(c.root)})"
-            elif img.shape[:2] != view_size:
-                c.fail(key, f"{ex.path.relative_to(c.root)}: image size {img.shape[1]}x"
-                            f"{img.shape[0]} differs from {view_size[1]}x{view_size[0]} of "
+                view_size, first = size, f"{key} ({ex.path.relative_to(c.root)})"
+            elif size != view_size:
+                c.fail(key, f"{ex.path.relative_to(c.root)}: image size {size[1]}x"
+                            f"{size[0]} differs from {view_size[1]}x{view_size[0]} of "
                             f"{first}")
     calib_size = None
     for p in cap.calibration_images:
         try:
-            img = read_image(p)
+            size = image_size(p)
         except ImageReadError as exc:
             c.fail("calibration.images", str(exc))
         if calib_size is None:
-            calib_size, first = img.shape[:2], p.name
-        elif img.shape[:2] != calib_size:
+            calib_size, first = size, p.name
+        elif size != calib_size:
             c.fail("calibration.images", f"{p.name}: image size differs from {first}")
 
 

@@ -13,11 +13,22 @@ from PIL import Image
 
 from ..errors import InputError
 
-__all__ = ["PHOTO_SUFFIXES", "ImageReadError", "PhotoMeta", "exif_exposure_time",
-           "photo_meta", "read_image", "write_image_atomic"]
+__all__ = ["PHOTO_SUFFIXES", "RAW_SUFFIXES", "ImageReadError", "PhotoMeta",
+           "exif_exposure_time", "image_size", "is_raw", "photo_meta", "read_image", "read_raw",
+           "write_image_atomic"]
 
-# camera files import reads (RAW formats need a LibRaw binding, not installed)
-PHOTO_SUFFIXES = (".jpg", ".jpeg", ".tif", ".tiff", ".png")
+# camera RAW files, read through LibRaw (rawpy)
+RAW_SUFFIXES = (".dng", ".cr2", ".cr3", ".nef", ".arw", ".orf", ".rw2", ".raf", ".pef",
+                ".srw", ".nrw", ".3fr", ".iiq", ".erf", ".kdc", ".mos", ".rwl")
+# camera files import reads
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".tif", ".tiff", ".png") + RAW_SUFFIXES
+# a RAW's linear values are scaled so that its white level is this (16-bit)
+RAW_FULL = 65535
+
+
+def is_raw(path: str | Path) -> bool:
+    """Whether ``path`` names a camera RAW file (by its suffix)."""
+    return Path(path).suffix.lower() in RAW_SUFFIXES
 
 
 class ImageReadError(InputError):
@@ -25,7 +36,8 @@ class ImageReadError(InputError):
 
 
 def read_image(path: str | Path) -> np.ndarray:
-    """Read a photo as RGB, keeping its bit depth.
+    """Read a photo as RGB, keeping its bit depth; a camera RAW as linear 16-bit RGB
+    (:func:`read_raw`).
 
     Returns
     -------
@@ -37,6 +49,8 @@ def read_image(path: str | Path) -> np.ndarray:
         If the file is missing, truncated or cannot be decoded.
     """
     path = Path(path)
+    if is_raw(path):
+        return read_raw(path)
     try:
         data = path.read_bytes()
     except OSError as exc:
@@ -56,8 +70,94 @@ def read_image(path: str | Path) -> np.ndarray:
     return np.ascontiguousarray(img[..., ::-1])
 
 
+def _open_raw(path: Path):
+    import rawpy  # LibRaw: only RAW input needs it
+
+    try:
+        return rawpy.imread(str(path))
+    except (rawpy.LibRawError, OSError, ValueError) as exc:
+        raise ImageReadError(f"{path}: not a readable camera RAW ({exc})") from None
+
+
+def _demosaic(mosaic: np.ndarray, colors: np.ndarray) -> np.ndarray:
+    """Bilinear demosaicing of any 2 x 2 colour filter array: (H, W) float32 values,
+    (H, W) colour index 0..2 (R, G, B) of each photosite -> (H, W, 3) float32 (each
+    channel the weighted mean of its own photosites in the 3 x 3 neighbourhood)."""
+    k = np.array([[1, 2, 1], [2, 4, 2], [1, 2, 1]], np.float32)
+    out = np.empty(mosaic.shape + (3,), np.float32)
+    for c in range(3):
+        m = (colors == c).astype(np.float32)
+        num = cv2.filter2D(mosaic * m, -1, k, borderType=cv2.BORDER_REFLECT)
+        den = cv2.filter2D(m, -1, k, borderType=cv2.BORDER_REFLECT)
+        out[..., c] = num / np.maximum(den, 1e-6)
+    return out
+
+
+def read_raw(path: str | Path) -> np.ndarray:
+    """A camera RAW (DNG or a proprietary format, through LibRaw) as linear RGB.
+
+    The visible photosites less their black level (per colour filter), over the white
+    level less black, demosaiced bilinearly in the camera's own colour space (no white
+    balance, no colour matrix, no tone curve) and scaled so that the white level is
+    65535. A pixel with a saturated photosite anywhere in its 3 x 3 neighbourhood is
+    65535 in every channel, so a merge sees it as saturated.
+
+    Returns
+    -------
+    (H, W, 3) uint16, linear in the sensor's exposure.
+
+    Raises
+    ------
+    ImageReadError
+        If LibRaw cannot read the file or its filter array is not a 2 x 2 RGB(G) one.
+    """
+    path = Path(path)
+    with _open_raw(path) as raw:
+        mosaic = raw.raw_image_visible.astype(np.float32)
+        cidx = raw.raw_colors_visible
+        desc = raw.color_desc.decode("ascii", "replace")
+        black = np.asarray(raw.black_level_per_channel, np.float32)
+        whites = raw.camera_white_level_per_channel
+        white = float(max(whites) if whites and max(whites) > 0 else raw.white_level)
+        if raw.num_colors not in (3, 4) or any(c not in "RGB" for c in desc[:4]):
+            raise ImageReadError(f"{path}: colour filter array {desc!r} is not RGB")
+    colors = np.array(["RGB".index(c) for c in desc[:4]])[cidx]
+    level = black[cidx]
+    sat_site = mosaic >= white
+    lin = np.clip((mosaic - level) / np.maximum(white - level, 1.0), 0, 1)
+    rgb = _demosaic(lin, colors)
+    sat = cv2.dilate(sat_site.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    rgb[sat] = 1.0
+    return np.round(rgb * RAW_FULL).astype(np.uint16)
+
+
+def image_size(path: str | Path) -> tuple[int, int]:
+    """(H, W) of a photo, its pixels decoded (a corrupt file fails here) but a RAW's not
+    demosaiced.
+
+    Raises
+    ------
+    ImageReadError
+        If the file cannot be decoded.
+    """
+    path = Path(path)
+    if not is_raw(path):
+        return tuple(read_image(path).shape[:2])
+    with _open_raw(path) as raw:
+        try:
+            return tuple(raw.raw_image_visible.shape[:2])
+        except Exception as exc:  # noqa: BLE001 - LibRaw's decode errors vary by format
+            raise ImageReadError(f"{path}: not a readable camera RAW ({exc})") from None
+
+
 def exif_exposure_time(path: str | Path) -> float | None:
-    """The EXIF ``ExposureTime`` of a photo in seconds, or None when absent."""
+    """The EXIF ``ExposureTime`` of a photo (a RAW's own header) in seconds, or None when
+    absent."""
+    if is_raw(path):
+        try:
+            return photo_meta(path).exposure_s
+        except ImageReadError:
+            return None
     try:
         with Image.open(path) as im:
             exif = im.getexif()
@@ -113,6 +213,8 @@ def photo_meta(path: str | Path) -> PhotoMeta:
         If the file cannot be opened as an image.
     """
     path = Path(path)
+    if is_raw(path):
+        return _raw_meta(path)
     try:
         with Image.open(path) as im:
             size = im.size
@@ -140,6 +242,45 @@ def photo_meta(path: str | Path) -> PhotoMeta:
                      _number(tag(0x920A)), taken,
                      int(orientation) if orientation is not None else None, camera,
                      (int(size[0]), int(size[1])))
+
+
+def _raw_meta(path: Path) -> PhotoMeta:
+    """:class:`PhotoMeta` of a camera RAW: exposure, ISO, aperture, focal length and time
+    as LibRaw reads them; make and model from the file's TIFF tags where it is TIFF-based
+    (DNG and most proprietary formats)."""
+    with _open_raw(path) as raw:
+        o, sizes = raw.other, raw.sizes
+    tags = _tiff_tags(path)
+
+    def pos(x, code: int) -> float | None:
+        x = x if x and x > 0 else _number(tags.get(code))
+        return float(x) if x and x > 0 else None
+
+    taken = o.timestamp.timestamp() if o.timestamp and o.timestamp.year > 1970 else None
+    flip = {0: 1, 3: 3, 5: 8, 6: 6}.get(int(sizes.flip), 1)  # LibRaw's flip as EXIF's
+    camera = " ".join(str(tags[k]).strip() for k in (0x010F, 0x0110) if tags.get(k))
+    return PhotoMeta(path, pos(o.shutter_speed, 0x829A), pos(o.aperture, 0x829D),
+                     pos(o.iso_speed, 0x8827), pos(o.focal_length, 0x920A), taken, flip,
+                     camera, (int(sizes.width), int(sizes.height)))
+
+
+def _tiff_tags(path: Path) -> dict[int, object]:
+    """The first IFD's tags and its EXIF IFD's, by code, of a TIFF-based RAW (DNG, CR2,
+    NEF, ARW, ...); empty for other formats (LibRaw's own reading then stands alone)."""
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as tf:
+            tags = {t.code: t.value for t in tf.pages[0].tags.values()}
+    except (tifffile.TiffFileError, OSError, ValueError, IndexError):
+        return {}
+    exif = tags.get(0x8769)  # tifffile hands the EXIF IFD out by tag name
+    if isinstance(exif, dict):
+        for name, value in exif.items():
+            code = tifffile.TIFF.TAGS.get(name)
+            if isinstance(code, int):
+                tags.setdefault(code, value)
+    return tags
 
 
 def write_image_atomic(path: str | Path, rgb: np.ndarray) -> None:

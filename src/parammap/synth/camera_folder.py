@@ -1,7 +1,8 @@
-"""A synthetic capture written as a lab's camera would leave it: JPEG files named in the
-order they were taken, with exposure time, aperture, ISO, focal length, time and camera
-in their EXIF and no YAML, plus the layouts `parammap markers` and `parammap board` would
-have printed. `parammap import` reads it back (issue 45's path with no YAML typed)."""
+"""A synthetic capture written as a lab's camera would leave it: JPEG files (or DNGs of
+a simulated sensor) named in the order they were taken, with exposure time, aperture,
+ISO, focal length, time and camera in their headers and no YAML, plus the layouts
+`parammap markers` and `parammap board` would have printed. `parammap import` reads it
+back (issue 45's path with no YAML typed)."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from PIL import Image, TiffImagePlugin
 
 from ..stores.capture import load_capture
 from ..stores.images import read_image
+from .raw import Sensor, expose_raw, write_dng
 
 __all__ = ["write_camera_folder", "write_jpeg_exif"]
 
@@ -46,12 +48,36 @@ def write_jpeg_exif(path: str | Path, rgb: np.ndarray, exposure_s: float | None,
     im.save(path, quality=quality, exif=exif.tobytes())
 
 
-def write_camera_folder(capture: str | Path, out: str | Path, seed: int = 0
+def _truth_response(truth: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The generator's response: 8-bit levels (256,) and their normalised exposure
+    (256, 3)."""
+    with np.load(truth / "response.npz") as r:
+        return np.asarray(r["levels"], float), np.asarray(r["exposure"], float)
+
+
+def _view_radiance(capture: Path, truth: Path, view_id: str) -> np.ndarray:
+    """The radiance (H, W, 3) a generated view's photos were exposed from."""
+    if (truth / "radiance" / f"{view_id}.exr").is_file():  # the physically based generator
+        from .pbr import read_truth_radiance
+
+        return read_truth_radiance(truth, view_id)
+    from .generate import true_view_radiance
+
+    return true_view_radiance(capture, truth, view_id)
+
+
+def write_camera_folder(capture: str | Path, out: str | Path, seed: int = 0,
+                        raw: Sensor | None = None, truth: str | Path | None = None,
                         ) -> dict[str, Any]:
     """Write ``capture``'s photos into ``out`` as a camera folder (``out/DCIM``: board
     photos first, then each view's bracket in a shuffled order, ``MOVE_S`` between
     poses and ``FRAME_S`` between frames) and its layouts (``out/markers.yaml``,
     ``out/board.yaml``). 16-bit photos are written as 8-bit JPEGs.
+
+    With ``raw`` (a :class:`~parammap.synth.raw.Sensor`) the photos are DNGs that sensor
+    records of each view's radiance (``truth``: the generator's truth folder) exposed
+    for the bracket's times, the white level at the response's level 255; board photos
+    from their 8-bit photos through the generator's response.
 
     Returns
     -------
@@ -64,10 +90,24 @@ def write_camera_folder(capture: str | Path, out: str | Path, seed: int = 0
     dcim.mkdir(parents=True, exist_ok=False)
     rng = np.random.default_rng(seed)
     when, n = START, 0
+    if raw is not None:
+        if truth is None:
+            raise ValueError("a RAW camera folder needs the generator's truth folder")
+        levels, exposure = _truth_response(Path(truth))
+        white = float(exposure[255].mean())
 
-    def shoot(path: Path, exposure_s: float) -> None:
+    def shoot(path: Path, exposure_s: float, radiance: np.ndarray | None = None) -> None:
         nonlocal when, n
         n += 1
+        if raw is not None:
+            if radiance is None:  # a board photo: its exposure from its levels
+                img = read_image(path).astype(float)
+                img = img / 257.0 if img.max() > 255 else img
+                radiance = np.stack([np.interp(img[..., c], levels, exposure[:, c])
+                                     for c in range(3)], -1) / exposure_s
+            write_dng(dcim / f"IMG_{n:04d}.DNG", expose_raw(radiance * exposure_s / white,
+                                                            raw, rng), raw, exposure_s, when)
+            return
         img = read_image(path)
         if img.dtype != np.uint8:
             img = (img >> 8).astype(np.uint8)
@@ -77,8 +117,9 @@ def write_camera_folder(capture: str | Path, out: str | Path, seed: int = 0
         shoot(p, 1 / 60)
         when += timedelta(seconds=MOVE_S)
     for v in cap.views:
+        rad = _view_radiance(cap.root, Path(truth), v.id) if raw is not None else None
         for k in rng.permutation(len(v.exposures)):
-            shoot(v.exposures[k].path, v.exposures[k].exposure_s)
+            shoot(v.exposures[k].path, v.exposures[k].exposure_s, rad)
             when += timedelta(seconds=FRAME_S)
         when += timedelta(seconds=MOVE_S)
     doc = cap.raw
