@@ -110,7 +110,7 @@ def _summary(a: argparse.Namespace) -> int:
 
 
 # stages that read the processed folder, not the capture (their positional argument)
-ON_PROCESSED = ("fit-mh", "fit-sh", "materials", "advise", "best", "export")
+ON_PROCESSED = ("fit-mh", "fit-sh", "materials", "advise", "lights", "best", "export")
 
 
 def _source(a: argparse.Namespace) -> str:
@@ -247,6 +247,14 @@ def _advise(a: argparse.Namespace) -> int:
     from .stages.advisor import run_advisor
 
     run_advisor(_source(a), a.out, _stage_config(a), figures=a.figures)
+    return 0
+
+
+@_command("lights")
+def _lights(a: argparse.Namespace) -> int:
+    from .stages.lights import run_lights
+
+    run_lights(_source(a), _stage_config(a), figures=a.figures)
     return 0
 
 
@@ -435,6 +443,7 @@ def _parser() -> argparse.ArgumentParser:
                            ("fit-sh", "project every texel onto spherical harmonics"),
                            ("materials", "basis materials (003) from an MH fit, as mh-materials"),
                            ("advise", "the next camera directions to shoot (from an MH fit)"),
+                           ("lights", "where the lights are, from an MH fit's lobes"),
                            ("best", "the best model per texel among exported maps"),
                            ("export", "write parameter-map EXRs from fit stores"),
                            ("holdout", "compare renders with the held-out photos")):
@@ -460,7 +469,8 @@ def _parser() -> argparse.ArgumentParser:
         if name == "hdr":
             s.add_argument("--response", help="response CSV (default <out>/camera/response.csv)")
             s.add_argument("--view", action="append", help="only this view (repeatable)")
-        if name in ("poses", "observe", "fit-mh", "fit-sh", "materials", "advise", "best"):
+        if name in ("poses", "observe", "fit-mh", "fit-sh", "materials", "advise", "lights",
+                    "best"):
             s.add_argument("--figures", help="report folder for the figures")
         if name in ("calibrate", "poses", "observe", "fit-mh", "fit-sh"):
             s.add_argument("--workers", type=int, help="processes (default: config workers)")

@@ -239,3 +239,32 @@ def fit_figures(g, obs, out_dir: str | Path, name: str, predict,
     paths.append(plot_lobes(entries, out_dir / f"{name}_lobes.png",
                             f"{name}: measured (dots) and model (crosses)"))
     return paths
+
+
+def plot_light_rays(rays: dict, lights: list[dict], path: str | Path,
+                    max_rays: int = 400) -> Path:
+    """The lobe rays (texel centre toward the light) seen from the side (x-z) and from
+    the front (y-z), each light's rays in its colour, the lights as stars (mm)."""
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.5))
+    p, u = rays["origins"], rays["dirs"]
+    rng = np.random.default_rng(0)
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    top = max([lt["position_mm"][2] for lt in lights] + [float(np.ptp(p[:, :2])) if len(p) else 1])
+    for ax, (i, name) in zip(axes, ((0, "x"), (1, "y")), strict=True):
+        for k, lt in enumerate(lights):
+            idx = np.flatnonzero(lt["inliers"])
+            idx = idx[rng.permutation(len(idx))[:max_rays]]
+            s = (lt["position_mm"][2] - p[idx, 2]) / np.maximum(u[idx, 2], 1e-6)
+            end = p[idx] + s[:, None] * u[idx]
+            ax.plot(np.c_[p[idx, i], end[:, i]].T, np.c_[p[idx, 2], end[:, 2]].T,
+                    color=colours[k % len(colours)], lw=0.3, alpha=0.3)
+            ax.plot(lt["position_mm"][i], lt["position_mm"][2], "*", ms=16, mec="k",
+                    color=colours[k % len(colours)], label=f"light {k + 1}")
+        ax.set_xlabel(f"{name} (mm)")
+        ax.set_ylabel("z (mm)")
+        ax.set_ylim(-0.05 * top, 1.3 * top)
+        ax.set_aspect("equal", adjustable="box")
+    axes[0].legend(loc="upper left", fontsize=8)
+    fig.suptitle(f"{len(lights)} light(s) where the lobes' mirror rays meet "
+                 f"({len(p)} determined lobes)")
+    return save_figure(fig, path)

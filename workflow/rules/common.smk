@@ -89,7 +89,7 @@ def surface_targets(sid):
                                       "observation_lobes")]
     figs += [f"{R}/{m}_{k}.png" for m in models() for k in ("params", "residuals", "lobes")]
     figs += [f"{R}/holdout.csv", f"{R}/holdout_regions.csv", f"{R}/holdout",
-             f"{R}/sizes.csv", f"{R}/viewer", f"{R}/advice.png"]
+             f"{R}/sizes.csv", f"{R}/viewer", f"{R}/advice.png", f"{R}/lights.png"]
     if config["best"]["enabled"]:
         figs.append(f"{R}/best_choice.png")
     data = [f"{PROC}/{sid}/params/{m}.exr" for m in models() + ["diffuse"]]

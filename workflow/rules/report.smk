@@ -215,6 +215,33 @@ rule advise:
         " {params.cfg} --set advisor.source={params.source} 2> {log}"
 
 
+rule lights:
+    input:
+        source=lambda wc: f"{PROC}/{wc.sid}/fit/{mh_source('lights')}.zarr",
+    output:
+        lights=f"{PROC}/{{sid}}/camera/lights.yaml",
+        metrics=f"{PROC}/{{sid}}/metrics/lights.json",
+        figure=report(
+            f"{REPORTS}/{{sid}}/lights.png",
+            caption="../report/lights.rst",
+            category="6 Lights",
+            subcategory="{sid}",
+        ),
+    params:
+        cli=PARAMMAP,
+        cfg=config_arg("lights"),
+        source=lambda wc: mh_source("lights"),
+        out=lambda wc: f"{PROC}/{wc.sid}",
+        figures=lambda wc: f"{REPORTS}/{wc.sid}",
+    log:
+        "logs/figures/{sid}/lights.log",
+    conda:
+        "../envs/parammap.yaml"
+    shell:
+        "{params.cli} lights --out {params.out} --figures {params.figures}"
+        " {params.cfg} --set lights.source={params.source} 2> {log}"
+
+
 rule fig_holdout:
     input:
         capture=capture_dir,

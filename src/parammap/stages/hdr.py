@@ -17,6 +17,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from scipy.optimize import nnls
 
 from ..config import default
 from ..parallel import executor, progress
@@ -397,8 +398,6 @@ def fit_sensor_noise(stack: np.ndarray, t: np.ndarray, full: float,
     -------
     (a, b) in units of the normalised value (v in [0, 1]).
     """
-    from scipy.optimize import nnls
-
     fallback = (1.0 / full, QUANTISATION_SD ** 2 / full ** 2)
     P, H, W = stack.shape[:3]
     if P < 2:

@@ -13,6 +13,7 @@ module                    artifact
 :mod:`.exr`               OpenEXR files (the low-level reader and writer)
 :mod:`.hdr`               merged HDR frames and the camera response
 :mod:`.camera`            intrinsics and per-view poses
+:mod:`.lights`            the lights found from the highlights' lobes
 :mod:`.observation`       the observation map (``observation.zarr``)
 :mod:`.fit`               fit stores (``fit/<model>.zarr``)
 :mod:`.params`            parameter maps (``params/<model>.exr``)

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import rawpy
+import tifffile
 from PIL import Image
 
 from ..errors import InputError
@@ -71,8 +73,6 @@ def read_image(path: str | Path) -> np.ndarray:
 
 
 def _open_raw(path: Path):
-    import rawpy  # LibRaw: only RAW input needs it
-
     try:
         return rawpy.imread(str(path))
     except (rawpy.LibRawError, OSError, ValueError) as exc:
@@ -267,8 +267,6 @@ def _raw_meta(path: Path) -> PhotoMeta:
 def _tiff_tags(path: Path) -> dict[int, object]:
     """The first IFD's tags and its EXIF IFD's, by code, of a TIFF-based RAW (DNG, CR2,
     NEF, ARW, ...); empty for other formats (LibRaw's own reading then stands alone)."""
-    import tifffile
-
     try:
         with tifffile.TiffFile(path) as tf:
             tags = {t.code: t.value for t in tf.pages[0].tags.values()}

@@ -52,6 +52,11 @@ class Processed:
         return self.camera / "intrinsics.yaml"
 
     @property
+    def lights(self) -> Path:
+        """The lights found from the lobes (:mod:`parammap.stores.lights`)."""
+        return self.camera / "lights.yaml"
+
+    @property
     def poses(self) -> Path:
         return self.camera / "poses.yaml"
 

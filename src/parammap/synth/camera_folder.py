@@ -17,6 +17,8 @@ from PIL import Image, TiffImagePlugin
 
 from ..stores.capture import load_capture
 from ..stores.images import read_image
+from .generate import true_view_radiance
+from .pbr import read_truth_radiance
 from .raw import Sensor, expose_raw, write_dng
 
 __all__ = ["write_camera_folder", "write_jpeg_exif"]
@@ -58,11 +60,7 @@ def _truth_response(truth: Path) -> tuple[np.ndarray, np.ndarray]:
 def _view_radiance(capture: Path, truth: Path, view_id: str) -> np.ndarray:
     """The radiance (H, W, 3) a generated view's photos were exposed from."""
     if (truth / "radiance" / f"{view_id}.exr").is_file():  # the physically based generator
-        from .pbr import read_truth_radiance
-
         return read_truth_radiance(truth, view_id)
-    from .generate import true_view_radiance
-
     return true_view_radiance(capture, truth, view_id)
 
 

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import tifffile
 
 __all__ = ["Sensor", "expose_raw", "write_dng"]
 
@@ -75,8 +76,6 @@ def write_dng(path: str | Path, mosaic: np.ndarray, sensor: Sensor, exposure_s: 
     """A DNG of a (H, W) uint16 mosaic: the filter array, black and white level, an
     identity colour matrix and the shot's settings in the main IFD (no ``ExposureTime``
     where ``exposure_s`` is None). Written under a temporary name, then renamed."""
-    import tifffile
-
     cfa = tuple("RGB".index(c) for c in sensor.pattern)
     one = (1, 1)
     tags = [
