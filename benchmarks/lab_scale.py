@@ -108,6 +108,19 @@ def bench_scaling(processed: Path, work: Path, lobes: str, workers: list[int]) -
     return rows
 
 
+def _observe(capture: str, processed: Path, dst: Path, texels: int) -> Path:
+    """A scratch processed folder whose observation map is ``texels`` across."""
+    out = scratch_processed(processed, dst, ("hdr",))
+    r = _watch([sys.executable, "-m", "parammap", "observe", capture, "--out", str(out),
+                "--set", f"observation.texels_x={texels}"], out / "observe.log")
+    if r["rc"]:
+        raise SystemExit(f"observe failed: {(out / 'observe.log').read_text()[-2000:]}")
+    print(f"observation map {texels} across: {r['seconds']:.1f} s, driver "
+          f"{r['driver_peak_mb']:.0f} MB, largest worker {r['worker_peak_mb']:.0f} MB",
+          flush=True)
+    return out
+
+
 def _texels(processed: Path) -> int:
     m = json.loads((processed / "metrics" / "observation.json").read_text())
     return int(m["texels"])
@@ -154,10 +167,17 @@ def main() -> int:
     ap.add_argument("--workdir", default="data/bench/lab")
     ap.add_argument("--lobes", default="1")
     ap.add_argument("--only", choices=["hdr", "scaling", "store"], action="append")
+    ap.add_argument("--capture", help="the capture, to build the maps at --texels")
+    ap.add_argument("--texels", type=int, help="build the observation map this many "
+                    "texels across first (a scratch copy; default: the processed one's)")
     a = ap.parse_args()
     work = Path(a.workdir)
     work.mkdir(parents=True, exist_ok=True)
     proc = Path(a.processed)
+    if a.texels:
+        if not a.capture:
+            raise SystemExit("--texels needs --capture")
+        proc = _observe(a.capture, proc, work / f"obs-{a.texels}", a.texels)
     only = set(a.only or ["hdr", "scaling", "store"])
     res: dict = {"date": time.strftime("%Y-%m-%d %H:%M")}
     if "hdr" in only:

@@ -174,6 +174,27 @@ def test_maps_written_before_the_lean_store_read_as_they_did(tmp_path):
         write_observation_arrays(tmp_path / "none.zarr", L, None, W, 10.0, 8.0)
 
 
+def test_the_transpose_in_column_blocks_writes_the_same_map(tiny_processed, tmp_path):
+    """Issue 47: the build's transpose bounded in memory (blocks of tile columns) writes
+    the map the whole-band transpose writes."""
+    from parammap.stages.observation import band_columns
+
+    assert band_columns(4096, 32, 300, 32, 512) == 2048  # 3 x 32 x 300 x 9 B a column
+    assert band_columns(24, 8, 13, 8, 1e-3) == 8 and band_columns(24, 8, 13, 8, 1e6) == 24
+    cap, _, out = tiny_processed
+    work = tmp_path / "proc"
+    (work / "camera").mkdir(parents=True)
+    (work / "hdr").symlink_to(out / "hdr")
+    for f in (out / "camera").iterdir():
+        (work / "camera" / f.name).write_bytes(f.read_bytes())
+    build_observation_map(load_capture(cap), work, work / "observation.zarr", 24, tile=8,
+                          max_blend=2.0, max_band_mib=1e-3)
+    a = open_observation_map(out / "observation.zarr")
+    b = open_observation_map(work / "observation.zarr")
+    for name in ("radiance", "valid", "noise"):
+        np.testing.assert_array_equal(a[name][...], b[name][...])
+
+
 def test_incomplete_store_is_refused(tmp_path):
     g = zarr.open_group(tmp_path / "half.zarr", mode="w")
     for name in ("radiance", "direction", "valid"):

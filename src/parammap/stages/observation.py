@@ -381,13 +381,28 @@ def _pass1_view(job: tuple) -> tuple[str, float, int, float, int]:
             stats.get("blended", 0))
 
 
+def band_columns(S: int, rows: int, N: int, tile: int, max_mib: float) -> int:
+    """Columns of a band of ``rows`` texel rows transposed at once: a multiple of the
+    tile within ``max_mib`` (the band's arrays take about three copies of
+    ``BYTES_PER_OBSERVATION`` per texel and view: read, moved, written), at least one
+    tile."""
+    per_col = 3 * rows * N * BYTES_PER_OBSERVATION
+    cols = int(max_mib * 2**20 // max(per_col, 1)) // tile * tile
+    return int(min(S, max(tile, cols)))
+
+
 def _pass2_band(job: tuple) -> int:
-    """Transpose one band of tile rows from the scratch store into the final store."""
-    scratch, final, r0, r1, marker = job
-    rad, valid, noise = read_scratch_band(scratch, r0, r1)  # (r, S, N, ...)
-    valid &= ~marker[r0:r1, :, None]
-    write_band(final, r0, r1, rad, valid, noise)
-    return int(valid.sum())
+    """Transpose one band of tile rows from the scratch store into the final store, a
+    block of ``cols`` columns at a time (memory bounded whatever the map's width)."""
+    scratch, final, r0, r1, marker, cols = job
+    S, nvalid = marker.shape[1], 0
+    for c0 in range(0, S, cols):
+        c1 = min(c0 + cols, S)
+        rad, valid, noise = read_scratch_band(scratch, r0, r1, c0, c1)  # (r, c, N, ...)
+        valid &= ~marker[r0:r1, c0:c1, None]
+        write_band(final, r0, r1, rad, valid, noise, c0, c1)
+        nvalid += int(valid.sum())
+    return nvalid
 
 
 def build_observation_map(
@@ -402,6 +417,7 @@ def build_observation_map(
     workers: int = 1,
     config: dict[str, Any] | None = None,
     max_blend: float | None = None,
+    max_band_mib: float = default("observation.max_band_mib"),
 ) -> dict[str, Any]:
     """Build ``observation.zarr`` from a processed capture's poses and HDR frames.
 
@@ -418,6 +434,8 @@ def build_observation_map(
         the view's foreshortening are not valid (:func:`blend_bias`), where the photos
         resolve the map's texels (3 px or more across at the median view,
         :func:`texel_pixels`); None keeps them.
+    max_band_mib : memory (MiB) one process gives a block of the transpose
+        (:func:`band_columns`).
 
     Returns
     -------
@@ -504,7 +522,8 @@ def build_observation_map(
         marker_texels=int(marker.sum()), surface_id=cap.surface_id, config=config or {})
     written = {r0: int((marks / f"band-{r0}").read_text()) for r0 in range(0, T, tile)
                if (marks / f"band-{r0}").is_file()}
-    bands = [(str(scratch), str(final), r0, min(r0 + tile, T), marker)
+    cols = band_columns(S, tile, N, tile, max_band_mib)
+    bands = [(str(scratch), str(final), r0, min(r0 + tile, T), marker, cols)
              for r0 in range(0, T, tile) if r0 not in written]
     with executor(workers) as ex:
         rows = progress(ex.map(_pass2_band, bands), len(bands), "observation: tile rows written",
@@ -546,7 +565,7 @@ def run_observation(cap: Capture, processed: str | Path, config: dict[str, Any],
     m = build_observation_map(
         cap, proc.root, proc.observation, cfg["texels_x"], cfg["texels_y"], cfg["tile"],
         cfg["max_zenith_deg"], cfg["max_supersample"], workers or config["workers"],
-        config=config, max_blend=cfg["max_blend_sd"])
+        config=config, max_blend=cfg["max_blend_sd"], max_band_mib=cfg["max_band_mib"])
     write_metrics(proc.metrics("observation"), m)
     logger.info(f"observation: {m['S']}x{m['T']} texels x {m['views']} views, valid "
                 f"{m['valid_fraction']:.3f} ({m['blended_fraction']:.4f} left out as "

@@ -449,24 +449,28 @@ def open_scratch(scratch: str | Path) -> zarr.Group:
     return zarr.open_group(scratch, mode="r+")
 
 
-def read_scratch_band(scratch: str | Path, r0: int, r1: int,
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Texel rows r0:r1 of every view from the scratch store, views moved last, as
-    stored: radiance codes (r, S, N, 3), valid (r, S, N), noise (r, S, N)."""
+def read_scratch_band(scratch: str | Path, r0: int, r1: int, c0: int = 0,
+                      c1: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Texel rows r0:r1 (columns c0:c1) of every view from the scratch store, views
+    moved last, as stored: radiance codes (r, c, N, 3), valid (r, c, N), noise (r, c,
+    N)."""
     src = zarr.open_group(scratch, mode="r")
-    return (np.moveaxis(src[RADIANCE][:, r0:r1], 0, 2),
-            np.moveaxis(src[VALID][:, r0:r1], 0, 2),
-            np.moveaxis(src[NOISE][:, r0:r1], 0, 2))
+    cols = slice(c0, c1)
+    return (np.moveaxis(src[RADIANCE][:, r0:r1, cols], 0, 2),
+            np.moveaxis(src[VALID][:, r0:r1, cols], 0, 2),
+            np.moveaxis(src[NOISE][:, r0:r1, cols], 0, 2))
 
 
 def write_band(final: str | Path, r0: int, r1: int, radiance: np.ndarray,
-               valid: np.ndarray, noise: np.ndarray) -> None:
-    """Texel rows r0:r1 of every array of the final store, as :func:`read_scratch_band`
-    hands them out (radiance codes)."""
+               valid: np.ndarray, noise: np.ndarray, c0: int = 0,
+               c1: int | None = None) -> None:
+    """Texel rows r0:r1 (columns c0:c1) of every array of the final store, as
+    :func:`read_scratch_band` hands them out (radiance codes)."""
     dst = zarr.open_group(final, mode="r+")
-    dst[RADIANCE][r0:r1] = radiance
-    dst[VALID][r0:r1] = valid
-    dst[NOISE][r0:r1] = noise
+    cols = slice(c0, c1)
+    dst[RADIANCE][r0:r1, cols] = radiance
+    dst[VALID][r0:r1, cols] = valid
+    dst[NOISE][r0:r1, cols] = noise
 
 
 def set_build_attrs(final: str | Path, *, width_mm: float, height_mm: float, S: int, T: int,
