@@ -83,30 +83,32 @@ def test_numbers_given_as_text_are_read_as_numbers():
         validate_config({"captures": {"x": "."}, "observation": {"texels_x": "many"}})
 
 
-@pytest.mark.parametrize("preset", [None, "3"])
-def test_the_command_line_runs_blas_on_one_thread_unless_told(monkeypatch, preset):
+@pytest.mark.parametrize("snakemake, override", [(None, None), ("2", None), ("2", "2")])
+def test_the_command_line_runs_blas_on_one_thread_unless_told(monkeypatch, snakemake,
+                                                               override):
     """The stages are parallel over views and tiles: the command line sets one BLAS
-    thread for itself and its workers, and keeps a thread count the user set."""
+    thread for itself and its workers, also where Snakemake set OMP_NUM_THREADS and its
+    kin to the job's threads (which the stages spend on worker processes); only
+    PARAMMAP_BLAS_THREADS asks for more."""
     import os
 
     from threadpoolctl import threadpool_info, threadpool_limits
 
-    from parammap.cli import BLAS_THREAD_VARIABLES, main
+    from parammap.cli import BLAS_THREAD_VARIABLES, BLAS_THREADS_OVERRIDE, main
 
-    for v in BLAS_THREAD_VARIABLES:
+    for v in (*BLAS_THREAD_VARIABLES, BLAS_THREADS_OVERRIDE):
         monkeypatch.delenv(v, raising=False)
-    if preset:
-        monkeypatch.setenv("OPENBLAS_NUM_THREADS", preset)
-    with threadpool_limits(2, user_api="blas"):
+    for v in BLAS_THREAD_VARIABLES if snakemake else ():
+        monkeypatch.setenv(v, snakemake)
+    if override:
+        monkeypatch.setenv(BLAS_THREADS_OVERRIDE, override)
+    want = int(override or 1)
+    with threadpool_limits(3, user_api="blas"):
         with pytest.raises(SystemExit):
             main(["--version"])
         threads = {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}
-        if preset:
-            assert os.environ["OPENBLAS_NUM_THREADS"] == preset and "MKL_NUM_THREADS" \
-                not in os.environ and threads == {2}
-        else:
-            assert all(os.environ[v] == "1" for v in BLAS_THREAD_VARIABLES)
-            assert threads == {1}
+        assert all(os.environ[v] == str(want) for v in BLAS_THREAD_VARIABLES)
+        assert threads == {want}
 
 
 def _schema_defaults() -> dict[str, list[tuple[str, object]]]:

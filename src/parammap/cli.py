@@ -20,6 +20,8 @@ from .stores.paths import Processed
 __all__ = ["main"]
 
 BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+# the only way to give this package's processes more than one BLAS thread
+BLAS_THREADS_OVERRIDE = "PARAMMAP_BLAS_THREADS"
 
 _COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {}
 
@@ -529,15 +531,16 @@ def main(argv: list[str] | None = None) -> int:
     # One BLAS thread per process: the stages run in parallel over views and texel
     # tiles (worker processes, Snakemake jobs), and a BLAS with a thread per core on
     # top oversubscribes the cores; the fits' many small solves are slower threaded
-    # anyway (the demo's sh-rlsop-36 fit: 38-50 s with the default threads, 6.5 s with
-    # one). Set for the workers to come (spawned ones read the variables) and for the
-    # BLAS already loaded (a call from Python; forked workers inherit it). A thread
-    # count the user set is kept.
-    if not any(v in os.environ for v in BLAS_THREAD_VARIABLES):
-        from threadpoolctl import threadpool_limits
+    # anyway. Snakemake sets OMP_NUM_THREADS and its kin to a job's threads, which the
+    # stages spend on worker processes: kept, they made the demo's sh-rlsop-36 fit 98 s
+    # (193 s of CPU) where one thread takes 12.5 s (21.5 s). Set for the workers to come
+    # (spawned ones read the variables) and for the BLAS already loaded (a call from
+    # Python; forked workers inherit it); PARAMMAP_BLAS_THREADS asks for more.
+    from threadpoolctl import threadpool_limits
 
-        os.environ.update(dict.fromkeys(BLAS_THREAD_VARIABLES, "1"))
-        threadpool_limits(1, user_api="blas")
+    blas = os.environ.get(BLAS_THREADS_OVERRIDE, "1")
+    os.environ.update(dict.fromkeys(BLAS_THREAD_VARIABLES, blas))
+    threadpool_limits(int(blas), user_api="blas")
     import cv2
 
     # OpenCV's parallel reductions (calibration, detection) differ in the last bits from
