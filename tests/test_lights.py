@@ -54,23 +54,33 @@ def test_parallel_rays_determine_no_light():
     assert fit_light(p[:3], u[:3], np.full(3, 0.01)) is None  # too few rays
 
 
-def test_the_lights_of_the_tiny_capture_are_found(tiny_processed, tmp_path):
+def test_the_lights_of_the_tiny_capture_are_found(tiny_processed, tiny_copy, tmp_path):
     """The tiny capture's two point lights from its mh-auto fit (``parammap lights``):
     each within 2 % of its distance to the surface (measured 0.35 and 0.5 %), written
-    to camera/lights.yaml with the figure; a missing fit is one line naming it."""
+    to camera/lights.yaml with the figure, and compared with the lights a capture lists
+    as measured; a missing fit is one line naming it."""
+    import yaml
+
     from parammap.cli import main
     from parammap.stores.lights import read_lights
     from parammap.synth.scene import load_scene
 
     cap, truth, proc = tiny_processed
+    scene = load_scene(truth / "scene.npz")
+    doc = yaml.safe_load((tiny_copy / "capture.yaml").read_text())
+    doc["lights"] = [{"position_mm": [float(x) for x in L], "name": f"lamp {k}"}
+                     for k, L in enumerate(scene.light_pos)]
+    (tiny_copy / "capture.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
     work = tmp_path / "proc"
     shutil.copytree(proc, work)
     assert main(["lights", "--out", str(work), "--set", "lights.source=mh-2"]) == 2
     assert main(["fit-mh", "--out", str(work), "--lobes", "auto"]) == 0
-    assert main(["lights", "--out", str(work), "--figures", str(tmp_path / "fig")]) == 0
+    assert main(["lights", "--out", str(work), "--figures", str(tmp_path / "fig"),
+                 "--capture", str(tiny_copy)]) == 0
     doc = read_lights(work / "camera" / "lights.yaml")
     assert doc["source"] == "mh-auto" and (tmp_path / "fig" / "lights.png").is_file()
-    scene = load_scene(truth / "scene.npz")
+    assert [m["name"] for m in doc["measured"]] == ["lamp 0", "lamp 1"]
+    assert all(m["relative"] < 0.02 for m in doc["measured"]), doc["measured"]
     centre = np.array([scene.width_mm / 2, scene.height_mm / 2, 0.0])
     found = np.array([lt["position_mm"] for lt in doc["lights"]])
     assert len(found) == len(scene.light_pos) == 2

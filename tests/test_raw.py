@@ -125,6 +125,19 @@ def test_raw_folder_faults_name_the_file(tmp_path):
     bad.write_bytes(files[0].read_bytes()[:300])
     with pytest.raises(InputError, match="BAD.DNG"):
         image_size(bad)
+    # through import: one line naming the file, nothing written
+    from parammap.stages.importer import run_import
+
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    for f in [*files, bad]:
+        (folder / f.name).write_bytes(f.read_bytes())
+    layout = tmp_path / "markers.yaml"
+    layout.write_text("surface: {width_mm: 100, height_mm: 80}\n"
+                      "markers: {dictionary: DICT_4X4_50, items: []}\n")
+    with pytest.raises(InputError, match="BAD.DNG"):
+        run_import(folder, tmp_path / "surface", layout=layout)
+    assert not (tmp_path / "surface").exists()
 
 
 def test_a_raw_camera_folder_imports_to_the_generators_poses(tiny_capture, tiny_processed,

@@ -256,7 +256,12 @@ def _advise(a: argparse.Namespace) -> int:
 def _lights(a: argparse.Namespace) -> int:
     from .stages.lights import run_lights
 
-    run_lights(_source(a), _stage_config(a), figures=a.figures)
+    measured = None
+    if a.capture:
+        from .stores.capture import load_capture
+
+        measured = load_capture(a.capture).lights
+    run_lights(_source(a), _stage_config(a), figures=a.figures, measured=measured)
     return 0
 
 
@@ -478,6 +483,9 @@ def _parser() -> argparse.ArgumentParser:
             s.add_argument("--workers", type=int, help="processes (default: config workers)")
         if name == "fit-mh":
             s.add_argument("--lobes", default="1", help="lobes K, or auto (default 1)")
+        if name == "lights":
+            s.add_argument("--capture", help="the capture, whose measured lights (if it "
+                                             "lists any) are compared with those found")
         if name in ("export", "holdout"):
             s.add_argument("--model", action="append", required=True,
                            help="model name (mh-1, sh-lsop-36, diffuse...), repeatable")

@@ -217,6 +217,7 @@ rule advise:
 
 rule lights:
     input:
+        capture=capture_dir,
         source=lambda wc: f"{PROC}/{wc.sid}/fit/{mh_source('lights')}.zarr",
     output:
         lights=f"{PROC}/{{sid}}/camera/lights.yaml",
@@ -239,7 +240,8 @@ rule lights:
         "../envs/parammap.yaml"
     shell:
         "{params.cli} lights --out {params.out} --figures {params.figures}"
-        " {params.cfg} --set lights.source={params.source} 2> {log}"
+        " --capture {input.capture} {params.cfg} --set lights.source={params.source}"
+        " 2> {log}"
 
 
 rule fig_holdout:

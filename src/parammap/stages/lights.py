@@ -150,11 +150,29 @@ def find_lights(rays: dict[str, np.ndarray], max_lights: int, S: int, T: int,
     return out
 
 
+def against_measured(found: list[dict[str, Any]], measured: list[dict[str, Any]],
+                     centre: np.ndarray) -> list[dict[str, Any]]:
+    """Each measured light (the capture's ``lights``) with the nearest light found: the
+    distance (mm) and its share of the measured light's distance from ``centre`` (the
+    surface's centre)."""
+    out = []
+    for m in measured:
+        p = np.asarray(m["position_mm"], float)
+        d = [float(np.linalg.norm(np.asarray(f["position_mm"]) - p)) for f in found]
+        k = int(np.argmin(d)) if d else None
+        out.append({**m, "nearest_found": k, "distance_mm": d[k] if d else None,
+                    "relative": d[k] / float(np.linalg.norm(p - centre)) if d else None})
+    return out
+
+
 def run_lights(processed: str | Path, config: dict[str, Any], *,
-               figures: str | Path | None = None) -> dict[str, Any]:
+               figures: str | Path | None = None,
+               measured: list[dict[str, Any]] | None = None) -> dict[str, Any]:
     """The lights stage: lights from the MH fit ``lights.source`` (at most
     ``lights.max_lights``) into ``camera/lights.yaml`` and ``metrics/lights.json``; a
-    figure of the rays in ``figures`` when given."""
+    figure of the rays in ``figures`` when given. ``measured``: the lights the capture
+    lists (:attr:`parammap.stores.capture.Capture.lights`), recorded beside the found
+    ones with how far each is from the nearest found."""
     proc = Processed(processed)
     cfg = config["lights"]
     src = proc.fit(cfg["source"])
@@ -167,8 +185,16 @@ def run_lights(processed: str | Path, config: dict[str, Any], *,
             logger.info(f"lights: {lt['rays']} lobes meeting at {lt['position_mm']} mm left "
                         f"out (rays' spread {lt['scale']:g} sd, from {lt['coverage']:.0%} of "
                         "the map): not a light over the whole surface")
-    info = {"source": cfg["source"], "lobes": int(len(rays["origins"]))}
+    info: dict[str, Any] = {"source": cfg["source"], "lobes": int(len(rays["origins"]))}
     records = [{k: v for k, v in lt.items() if k not in ("inliers", "kept")} for lt in lights]
+    if measured:
+        centre = np.array([g.width_mm / 2, g.height_mm / 2, 0.0])
+        info["measured"] = against_measured(records, measured, centre)
+        for m in info["measured"]:
+            logger.info(f"lights: measured light at {m['position_mm']} mm: "
+                        + (f"the nearest found {m['distance_mm']:.1f} mm off "
+                           f"({100 * m['relative']:.1f} % of its distance)"
+                           if m["distance_mm"] is not None else "none found"))
     write_lights(proc.lights, records, info)
     for k, lt in enumerate(records):
         logger.info(f"lights: light {k + 1} at {lt['position_mm']} mm (sd {lt['sd_mm']}), "

@@ -66,6 +66,8 @@ class Capture:
     response: str  # "auto", "linear" or a path
     views: list[View]
     raw: dict[str, Any] = field(repr=False, default_factory=dict)
+    # lights the lab measured: each ``position_mm`` (surface frame) and maybe ``size_mm``
+    lights: list[dict[str, Any]] = field(default_factory=list)
 
     def view(self, view_id: str) -> View:
         for v in self.views:
@@ -311,6 +313,7 @@ def load_capture(directory: str | Path, check_images: bool = False) -> Capture:
         marker_dictionary=dict_name, marker_ids=ids,
         marker_corners=corners, calibration=calib, calibration_images=calib_images,
         intrinsics_path=intr_path, response=response, views=_views(c, raw), raw=raw,
+        lights=[dict(lt) for lt in raw.get("lights") or []],
     )
     if check_images:
         _check_images(c, cap, raw["views"])
