@@ -179,6 +179,14 @@ def test_a_raw_camera_folder_imports_to_the_generators_poses(tiny_capture, tiny_
     (imported / "capture.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
     out = tmp_path / "proc"
     poses_with_true_intrinsics(imported, truth, out)
+    # the workflow's response file exists for a linear capture too, and says so
+    from parammap.cli import main
+    from parammap.stores.hdr import is_linear_response
+
+    assert is_linear_response(out / "camera" / "response.csv")
+    assert main(["figures", "response", str(imported), "--out", str(out), "--figures",
+                 str(tmp_path / "fig")]) == 0
+    assert (tmp_path / "fig" / "response.png").is_file()
     rad = read_hdr(out / "hdr" / "v000.exr")[0]
     true = _view_radiance(cap_dir, truth, views[0].id)
     ok = true.mean(-1) > np.percentile(true.mean(-1), 20)

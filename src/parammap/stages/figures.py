@@ -52,7 +52,7 @@ from ..stores.camera import read_poses
 from ..stores.capture import load_capture
 from ..stores.common import store_bytes
 from ..stores.fit import open_fit
-from ..stores.hdr import load_reference_response, load_response
+from ..stores.hdr import is_linear_response, load_reference_response, load_response
 from ..stores.images import read_image
 from ..stores.metrics import read_metrics
 from ..stores.observation import open_observation_map
@@ -228,7 +228,7 @@ def make_figures(kind: str, capture_dir: str | Path, processed: str | Path,
     cap = load_capture(capture_dir)
     if kind == "response":
 
-        if not (proc.response_csv).is_file():
+        if not proc.response_csv.is_file() or is_linear_response(proc.response_csv):
             import matplotlib.pyplot as plt
 
             fig, ax = plt.subplots(figsize=(5, 1))

@@ -28,6 +28,7 @@ from ..stores.hdr import (
     hdr_provenance,
     load_reference_response,
     load_response,
+    save_linear_response,
     save_response,
     write_hdr,
 )
@@ -626,15 +627,15 @@ def run_response(cap: Capture, processed: str | Path, config: dict[str, Any], *,
                  figure: str | Path | None = None, reference: str | Path | None = None,
                  reference_label: str = "reference") -> dict:
     """The response stage: recover (or read) the capture's response into
-    ``camera/response.csv`` (``camera/response.txt`` for linear input), with an
-    optional figure of the curve beside a reference. ``config``: the validated workflow
-    config (section ``hdr``)."""
+    ``camera/response.csv`` (for linear input a file that says so,
+    :func:`parammap.stores.hdr.save_linear_response`), with an optional figure of the
+    curve beside a reference. ``config``: the validated workflow config (section
+    ``hdr``)."""
     cfg = config["hdr"]
     out = Processed(processed)
     g, meta = response_for_capture(cap, cfg)
     if g is None:
-        out.camera.mkdir(parents=True, exist_ok=True)
-        out.response_note.write_text("linear input: no response curve\n")
+        save_linear_response(out.response_csv, meta)
     else:
         save_response(out.response_csv, g, meta)
         if figure:

@@ -17,9 +17,10 @@ from ..errors import InputError
 from .common import SOFTWARE_ATTR, UNITS_ATTR, software
 from .exr import read_exr, write_exr
 
-__all__ = ["HDR_CHANNELS", "NOISE_CHANNEL", "HdrError", "load_reference_response",
-           "load_response", "read_hdr", "read_hdr_noise", "read_rgb", "save_response",
-           "hdr_provenance", "write_hdr", "write_rgb"]
+__all__ = ["HDR_CHANNELS", "NOISE_CHANNEL", "HdrError", "is_linear_response",
+           "load_reference_response", "load_response", "read_hdr", "read_hdr_noise",
+           "read_rgb", "save_linear_response", "save_response", "hdr_provenance",
+           "write_hdr", "write_rgb"]
 
 #: Channels of a merged HDR frame (``hdr/<view>.exr``): radiance, the masks, and the
 #: relative noise sd per pixel that the fits weigh observations by.
@@ -94,9 +95,36 @@ def save_response(path: str | Path, g: np.ndarray, meta: dict | None = None) -> 
     return path
 
 
+# the first line of the response file of a linear capture (no curve)
+_LINEAR_HEAD = "# parammap camera response: linear input, no curve"
+
+
+def save_linear_response(path: str | Path, meta: dict | None = None) -> Path:
+    """Write the response file of a linear capture (16-bit or RAW): a header saying so,
+    no curve. The workflow's later stages find the file either way."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(_LINEAR_HEAD + "\n" + ("# " + json.dumps(meta) + "\n" if meta else ""))
+    tmp.replace(path)
+    return path
+
+
+def is_linear_response(path: str | Path) -> bool:
+    """Whether ``path`` is the response file of a linear capture
+    (:func:`save_linear_response`)."""
+    try:
+        with Path(path).open() as f:
+            return f.readline().rstrip("\n") == _LINEAR_HEAD
+    except OSError:
+        return False
+
+
 def load_response(path: str | Path) -> np.ndarray:
     """Read a response CSV written by :func:`save_response`; (256, 3)."""
     path = Path(path)
+    if is_linear_response(path):
+        raise HdrError(f"{path}: the response of a linear capture (no curve to read)")
     try:
         lines = [ln for ln in path.read_text().splitlines()
                  if ln.strip() and not ln.startswith("#")]

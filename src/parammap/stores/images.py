@@ -80,9 +80,10 @@ def _open_raw(path: Path):
 
 
 def _demosaic(mosaic: np.ndarray, colors: np.ndarray) -> np.ndarray:
-    """Bilinear demosaicing of any 2 x 2 colour filter array: (H, W) float32 values,
-    (H, W) colour index 0..2 (R, G, B) of each photosite -> (H, W, 3) float32 (each
-    channel the weighted mean of its own photosites in the 3 x 3 neighbourhood)."""
+    """Bilinear demosaicing of a colour filter array whose every 3 x 3 neighbourhood
+    holds each colour (any Bayer order, X-Trans): (H, W) float32 values, (H, W) colour
+    index 0..2 (R, G, B) of each photosite -> (H, W, 3) float32 (each channel the
+    weighted mean of its own photosites in the 3 x 3 neighbourhood)."""
     k = np.array([[1, 2, 1], [2, 4, 2], [1, 2, 1]], np.float32)
     out = np.empty(mosaic.shape + (3,), np.float32)
     for c in range(3):
@@ -97,10 +98,10 @@ def read_raw(path: str | Path) -> np.ndarray:
     """A camera RAW (DNG or a proprietary format, through LibRaw) as linear RGB.
 
     The visible photosites less their black level (per colour filter), over the white
-    level less black, demosaiced bilinearly in the camera's own colour space (no white
-    balance, no colour matrix, no tone curve) and scaled so that the white level is
-    65535. A pixel with a saturated photosite anywhere in its 3 x 3 neighbourhood is
-    65535 in every channel, so a merge sees it as saturated.
+    level less black, demosaiced bilinearly (:func:`_demosaic`) in the camera's own
+    colour space (no white balance, no colour matrix, no tone curve) and scaled so that
+    the white level is 65535. A pixel with a saturated photosite anywhere in its 3 x 3
+    neighbourhood is 65535 in every channel, so a merge sees it as saturated.
 
     Returns
     -------
@@ -109,7 +110,7 @@ def read_raw(path: str | Path) -> np.ndarray:
     Raises
     ------
     ImageReadError
-        If LibRaw cannot read the file or its filter array is not a 2 x 2 RGB(G) one.
+        If LibRaw cannot read the file or its filter array is not an RGB one.
     """
     path = Path(path)
     with _open_raw(path) as raw:

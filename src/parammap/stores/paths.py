@@ -39,13 +39,9 @@ class Processed:
 
     @property
     def response_csv(self) -> Path:
-        """Recovered response, ``ln X`` per 8-bit level and channel."""
+        """Recovered response, ``ln X`` per 8-bit level and channel (for linear input a
+        file that says so)."""
         return self.camera / "response.csv"
-
-    @property
-    def response_note(self) -> Path:
-        """Written instead of a curve when the input was linear."""
-        return self.camera / "response.txt"
 
     @property
     def intrinsics(self) -> Path:
