@@ -244,3 +244,25 @@ def test_a_map_coarser_than_the_photos_says_so(tiny_processed, tmp_path, caplog)
     said = [r.getMessage() for r in caplog.records if "free on" in r.getMessage()]
     assert len(said) == 1 and not m["map"]["capped_by_budget"], said
     assert m["map"]["max_map_gib"] == pytest.approx(free_disk_gib(work) / 2, rel=0.05)
+
+
+def test_captures_named_on_the_command_line_are_the_runs_only_ones(tiny_capture, tmp_path):
+    """``snakemake --config 'captures={...}'`` (the README's command) runs those surfaces
+    alone: Snakemake merges the mapping into the config file's, which added the
+    built-in demo (and its generation) to every lab's run."""
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    cap, _ = tiny_capture
+    (tmp_path / "config").mkdir()
+    shutil.copy(root / "config" / "config.yaml", tmp_path / "config" / "config.yaml")
+    r = subprocess.run(
+        [sys.executable, "-m", "snakemake", "-s", str(root / "Snakefile"), "--directory",
+         str(tmp_path), "--cores", "1", "--dry-run", "--printshellcmds", "--config",
+         f'captures={{"lab1": "{cap}"}}'], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "synth" not in r.stdout and "demo" not in r.stdout, r.stdout[-3000:]
+    assert f"validate-capture {cap}" in r.stdout

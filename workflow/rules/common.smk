@@ -6,6 +6,12 @@ import sys
 
 from parammap.config import surface_config, validate_config
 
+# Surfaces named on the command line (--config 'captures={...}') are the run's only
+# ones: Snakemake merges a mapping given there into the config file's, which would add
+# the built-in demo (and generate it) to every lab's run.
+_given = workflow.config_settings.overwrite_config or {}
+if "captures" in _given:
+    config["captures"] = dict(_given["captures"])
 # Stops the run naming the bad key before any job starts.
 config = validate_config(config)
 
