@@ -101,9 +101,13 @@ def run(preset: str, root: Path, models: list[str], seed: int, reuse_hdr: bool =
 
 def _print(res: dict) -> None:
     h, i, p = res["hdr"], res["intrinsics"], res["poses"]
-    print(f"{res['preset']}: HDR median {100 * h['median']:.2f} % (oracle "
-          f"{100 * h['oracle_median']:.2f}), p95 {100 * h['p95']:.2f} % (oracle "
-          f"{100 * h['oracle_p95']:.2f})")
+    if h["oracle_median"] is None:  # a linear (RAW) capture
+        print(f"{res['preset']}: HDR median {100 * h['median']:.2f} %, p95 "
+              f"{100 * h['p95']:.2f} % (linear capture)")
+    else:
+        print(f"{res['preset']}: HDR median {100 * h['median']:.2f} % (oracle "
+              f"{100 * h['oracle_median']:.2f}), p95 {100 * h['p95']:.2f} % (oracle "
+              f"{100 * h['oracle_p95']:.2f})")
     print(f"  intrinsics fx {100 * i['fx_rel']:+.3f} %, fy {100 * i['fy_rel']:+.3f} %, "
           f"principal point {i['principal_px']:.2f} px")
     print(f"  views kept {p['kept']}/{p['views']} (held out {p['held_out_kept']}/"

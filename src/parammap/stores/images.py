@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from datetime import datetime
 from fractions import Fraction
@@ -74,7 +75,14 @@ def read_image(path: str | Path) -> np.ndarray:
 
 def _open_raw(path: Path):
     try:
-        return rawpy.imread(str(path))
+        with warnings.catch_warnings():
+            # rawpy warns in every worker forked from a pool: the deadlock it means needs
+            # LibRaw's OpenMP code run in the parent before the fork and again in the
+            # child, and no stage does both (HDR reads RAWs in its workers only,
+            # calibration in its parent only)
+            warnings.filterwarnings("ignore", category=RuntimeWarning,
+                                    message="rawpy is being used in a process created")
+            return rawpy.imread(str(path))
     except (rawpy.LibRawError, OSError, ValueError) as exc:
         raise ImageReadError(f"{path}: not a readable camera RAW ({exc})") from None
 

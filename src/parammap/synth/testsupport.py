@@ -50,7 +50,8 @@ def hdr_errors(capture: str | Path, truth: str | Path, processed: str | Path,
     Returns
     -------
     dict with ``median``, ``p95`` (ours) and ``oracle_median``, ``oracle_p95``, as
-    fractions, and ``pixels``.
+    fractions (the oracle's None for a linear capture: no response to know), and
+    ``pixels``.
     """
     cap = load_capture(capture)
     exposure = np.load(Path(truth) / "response.npz")["exposure"]
@@ -65,6 +66,10 @@ def hdr_errors(capture: str | Path, truth: str | Path, processed: str | Path,
 
             true = true_view_radiance(capture, truth, vid)
         rad, sat, dark = read_hdr(Processed(processed).hdr(vid))
+        if cap.response == "linear":  # a RAW capture: no response, no oracle merge of it
+            ok = ~(sat | dark) & (true.min(-1) > 0)
+            ours.append((rad[ok], true[ok]))
+            continue
         stack, t = load_bracket(cap.view(vid))
         orc, osat, odark = merge_bracket(stack, t, g_true, low, high)
         ok = ~(sat | dark | osat | odark) & (true.min(-1) > 0)
@@ -72,6 +77,9 @@ def hdr_errors(capture: str | Path, truth: str | Path, processed: str | Path,
         oracle.append((orc[ok], true[ok]))
     out = {}
     for name, pairs in (("", ours), ("oracle_", oracle)):
+        if not pairs:
+            out[f"{name}median"] = out[f"{name}p95"] = None
+            continue
         est = np.concatenate([p[0] for p in pairs])
         ref = np.concatenate([p[1] for p in pairs])
         rel = np.abs(est * _scale(ref, est) - ref) / ref
