@@ -150,3 +150,32 @@ def test_models_beat_diffuse_on_every_held_out_view(pbr):
                    for v in h["views"].values()), m
     assert h["regions"] and all(set(v["regions"]) == set(h["models"]) for v in
                                 h["views"].values())
+
+
+def test_svbrdf_relit_from_its_lights(pbr, tmp_path):
+    """The microfacet SVBRDF on a capture whose materials are microfacet ones: the light
+    (an area light 90 x 60 mm) placed within 2 % of its distance (measured 0.4 %), the
+    held-out views against the clean renders closer than MH-1's on every view (measured
+    5.7 / 5.8 / 5.0 against 6.5 / 11.3 / 8.3) and its highlights no more speckled than
+    1.5x the truth's."""
+    import shutil
+
+    from parammap.synth.testsupport import highlight_speckle, holdout_against_truth
+
+    cap, truth, out = pbr
+    work = tmp_path / "proc"
+    shutil.copytree(out, work)
+    assert main(["lights", "--out", str(work), "--set", "lights.source=mh-1"]) == 0
+    assert main(["fit-svbrdf", "--out", str(work)]) == 0
+    assert main(["export", "--out", str(work), "--model", "svbrdf-ggx"]) == 0
+    m = json.loads((work / "metrics" / "fit-svbrdf-ggx.json").read_text())
+    scene = json.loads((truth / "scene.json").read_text())
+    c = yaml.safe_load((cap / "capture.yaml").read_text())["surface"]
+    centre = np.array([c["width_mm"] / 2, c["height_mm"] / 2, 0.0])
+    light = centre + np.array(scene["lights"][0]["position_mm"])
+    found = np.array(m["light_positions"]["refined_mm"][0])
+    assert np.linalg.norm(found - light) < 0.02 * np.linalg.norm(light - centre), found
+    res = holdout_against_truth(cap, truth, work, ["svbrdf-ggx", "mh-1", "diffuse"])
+    assert all(r["svbrdf-ggx"] < r["mh-1"] for r in res.values()), res
+    sp = highlight_speckle(cap, truth, work, ["svbrdf-ggx"])
+    assert sp["svbrdf-ggx"]["ratio"] < 1.5, sp

@@ -112,7 +112,7 @@ def _summary(a: argparse.Namespace) -> int:
 
 
 # stages that read the processed folder, not the capture (their positional argument)
-ON_PROCESSED = ("fit-mh", "fit-sh", "materials", "advise", "lights", "best", "export")
+ON_PROCESSED = ("fit-mh", "fit-sh", "fit-svbrdf", "materials", "advise", "lights", "best", "export")
 
 
 def _source(a: argparse.Namespace) -> str:
@@ -194,11 +194,13 @@ def _model_figures(a: argparse.Namespace, model: str,
     """A fitted model's map figures, from its fit store, into the report folder."""
     if not a.figures:
         return
-    from .stages.figures import mh_figures, sh_figures
+    from .conventions import SVBRDF_MODEL
+    from .stages.figures import mh_figures, sh_figures, svbrdf_figures
 
     proc = Processed(a.out)
-    (mh_figures if model.startswith("mh-") else sh_figures)(
-        proc.fit(model), proc.observation, a.figures, model, texels)
+    fn = mh_figures if model.startswith("mh-") else \
+        svbrdf_figures if model == SVBRDF_MODEL else sh_figures
+    fn(proc.fit(model), proc.observation, a.figures, model, texels)
 
 
 @_command("observe")
@@ -231,6 +233,17 @@ def _fit_sh(a: argparse.Namespace) -> int:
 
     full = _stage_config(a)
     m = run_fit(_source(a), a.out, full, model=a.model, workers=a.workers)
+    _model_figures(a, m["model"], _lobe_texels(full))
+    return 0
+
+
+@_command("fit-svbrdf")
+def _fit_svbrdf(a: argparse.Namespace) -> int:
+    from .conventions import SVBRDF_MODEL
+    from .stages.fit import run_fit
+
+    full = _stage_config(a)
+    m = run_fit(_source(a), a.out, full, model=SVBRDF_MODEL, workers=a.workers)
     _model_figures(a, m["model"], _lobe_texels(full))
     return 0
 
@@ -448,6 +461,7 @@ def _parser() -> argparse.ArgumentParser:
                            ("observe", "build the observation map (zarr)"),
                            ("fit-mh", "fit the Multiple Highlight model to every texel"),
                            ("fit-sh", "project every texel onto spherical harmonics"),
+                           ("fit-svbrdf", "fit a GGX microfacet SVBRDF under the found lights"),
                            ("materials", "basis materials (003) from an MH fit, as mh-materials"),
                            ("advise", "the next camera directions to shoot (from an MH fit)"),
                            ("lights", "where the lights are, from an MH fit's lobes"),
@@ -476,10 +490,10 @@ def _parser() -> argparse.ArgumentParser:
         if name == "hdr":
             s.add_argument("--response", help="response CSV (default <out>/camera/response.csv)")
             s.add_argument("--view", action="append", help="only this view (repeatable)")
-        if name in ("poses", "observe", "fit-mh", "fit-sh", "materials", "advise", "lights",
-                    "best"):
+        if name in ("poses", "observe", "fit-mh", "fit-sh", "fit-svbrdf", "materials", "advise",
+                    "lights", "best"):
             s.add_argument("--figures", help="report folder for the figures")
-        if name in ("calibrate", "poses", "observe", "fit-mh", "fit-sh"):
+        if name in ("calibrate", "poses", "observe", "fit-mh", "fit-sh", "fit-svbrdf"):
             s.add_argument("--workers", type=int, help="processes (default: config workers)")
         if name == "fit-mh":
             s.add_argument("--lobes", default="1", help="lobes K, or auto (default 1)")

@@ -16,6 +16,7 @@ __all__ = [
     "BEST_CHANNELS", "DIFFUSE_CHANNELS", "LUMINANCE", "MHX_KD", "MHX_LNM",
     "MHX_LOBE", "MH_HEAD",
     "MH_KD", "MH_LOBE", "MH_M", "MH_SD_LOBE", "SH_CAP_AWARE", "SH_HEMISPHERES",
+    "SVBRDF_CHANNELS", "SVBRDF_MODEL", "SV_ALPHA", "SV_KD", "SV_KS", "SV_SIZE",
     "FitArray", "FitStatus", "mh_channels", "mh_dir", "mh_dir_z", "mh_ks", "mh_lobe", "mh_lobes",
     "mh_sd_channels", "mh_sd_dir", "mh_sd_size", "mh_size", "mhx_ks", "mhx_lobes", "mhx_phi",
     "mhx_size", "mhx_theta", "sd_channels", "sh_bands", "sh_channels", "sh_degree_order",
@@ -175,6 +176,17 @@ def mhx_phi(k: int) -> int:
     return MH_HEAD + MHX_LOBE * k + 4
 
 
+# --- Microfacet SVBRDF (svbrdf-ggx; parammap.models.svbrdf) ---
+#: ``Kd.R Kd.G Kd.B Ks.R Ks.G Ks.B alpha``: diffuse and specular amplitudes per unit
+#: irradiance factor of the first light, GGX roughness alpha (= perceptual roughness^2).
+SV_KD = slice(0, 3)
+SV_KS = slice(3, 6)
+SV_ALPHA = 6
+SV_SIZE = 7
+SVBRDF_CHANNELS = ("Kd.R", "Kd.G", "Kd.B", "Ks.R", "Ks.G", "Ks.B", "alpha")
+#: The svbrdf model's name in the workflow (outputs.md), its map's model ``svbrdf``.
+SVBRDF_MODEL = "svbrdf-ggx"
+
 #: A diffuse-only map (the baseline): Kd alone.
 DIFFUSE_CHANNELS = ("Kd.R", "Kd.G", "Kd.B")
 # the best-model-per-texel map (parammap.stages.best): the indices of each texel's two models in
@@ -232,6 +244,8 @@ def sd_channels(model: str, n_params: int) -> list[str]:
         return mh_sd_channels(mh_lobes(n_params))
     if model == "sh":
         return [f"sd.{c}" for c in sh_channels(sh_bands(n_params // 3))]
+    if model == "svbrdf":
+        return [f"sd.{c}" for c in SVBRDF_CHANNELS]
     raise ValueError(f"{model} maps carry no standard deviations")
 
 

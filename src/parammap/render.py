@@ -27,6 +27,7 @@ from .geometry import (
 from .models.display import tone_map
 from .models.mh import mh_eval
 from .models.sh.basis import sh_eval
+from .models.svbrdf import svbrdf_eval
 from .stores.params import ParamMap, best_shares
 
 __all__ = ["bilinear_corners", "evaluate", "evaluate_bilinear", "lookup_bilinear", "render",
@@ -57,7 +58,8 @@ def lookup_bilinear(params: np.ndarray, row: np.ndarray, col: np.ndarray) -> np.
 
 
 def evaluate_bilinear(model: str, params: np.ndarray, row: np.ndarray, col: np.ndarray,
-                      directions: np.ndarray) -> np.ndarray:
+                      directions: np.ndarray, points: np.ndarray | None = None,
+                      lights: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Radiance (M, 3) between texel centres, seen from directions (M, 3).
 
     SH and diffuse maps are linear in their parameters, so their parameters are
@@ -69,14 +71,18 @@ def evaluate_bilinear(model: str, params: np.ndarray, row: np.ndarray, col: np.n
     interpolated; the viewer does the same.
     """
     if model != "mh":
-        return evaluate(model, lookup_bilinear(params, row, col), directions)
+        return evaluate(model, lookup_bilinear(params, row, col), directions, points, lights)
     idx, wts = bilinear_corners(params.shape[:2], row, col)
     return sum(w[:, None] * evaluate(model, params[r, c], directions)
                for (r, c), w in zip(idx, wts, strict=True))
 
 
-def evaluate(model: str, params: np.ndarray, directions: np.ndarray) -> np.ndarray:
-    """Radiance (M, 3) of per-point parameter vectors (M, P) seen from directions (M, 3)."""
+def evaluate(model: str, params: np.ndarray, directions: np.ndarray,
+             points: np.ndarray | None = None,
+             lights: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Radiance (M, 3) of per-point parameter vectors (M, P) seen from directions (M, 3).
+    An svbrdf map also needs the surface points (M, 3) mm and its lights (positions and
+    relative intensities, :attr:`parammap.stores.params.ParamMap.lights`)."""
     if model == "diffuse":
         return params[:, MH_KD].astype(float)
     if model == "mh":
@@ -92,6 +98,10 @@ def evaluate(model: str, params: np.ndarray, directions: np.ndarray) -> np.ndarr
 
         nc = params.shape[1] // 3
         return sh_eval(params.astype(float).reshape(-1, 3, nc), directions[:, None, :])[:, 0]
+    if model == "svbrdf":
+        if points is None or lights is None:
+            raise InputError("an svbrdf map is evaluated at surface points under its lights")
+        return svbrdf_eval(params, points, directions, *lights)
     raise InputError(f"unknown model {model!r}")
 
 
@@ -133,18 +143,18 @@ def render(pm: ParamMap, intr: Intrinsics, R: np.ndarray, t: np.ndarray,
     row, col = plane_to_texel(Pi[:, 0], Pi[:, 1], S, T, pm.width_mm, pm.height_mm)
     d = unit(camera_centre(R, t)[None] - Pi)
     if pm.model == "best":
-        out[inside] = _render_best(pm, row, col, d, interpolation)
+        out[inside] = _render_best(pm, row, col, d, interpolation, Pi)
         return out, inside
     if interpolation == "nearest":
         prm = pm.params[np.clip(row.astype(int), 0, T - 1), np.clip(col.astype(int), 0, S - 1)]
-        out[inside] = evaluate(pm.model, prm, d)
+        out[inside] = evaluate(pm.model, prm, d, Pi, pm.lights)
     else:
-        out[inside] = evaluate_bilinear(pm.model, pm.params, row, col, d)
+        out[inside] = evaluate_bilinear(pm.model, pm.params, row, col, d, Pi, pm.lights)
     return out, inside
 
 
 def _render_best(pm: ParamMap, row: np.ndarray, col: np.ndarray, d: np.ndarray,
-                 interpolation: str) -> np.ndarray:
+                 interpolation: str, points: np.ndarray) -> np.ndarray:
     """Radiance (M, 3) of a best map at continuous texel coordinates, seen from
     directions d (M, 3): each texel's radiance is the mean of its (one or two)
     candidates' radiance at that texel, and the texels' radiance is interpolated as for
@@ -166,7 +176,8 @@ def _render_best(pm: ParamMap, row: np.ndarray, col: np.ndarray, d: np.ndarray,
             on = wj > 0
             if on.any():
                 acc[on] += wj[on, None] * np.nan_to_num(
-                    evaluate(part.model, part.params[r[on], c[on]], d[on]))
+                    evaluate(part.model, part.params[r[on], c[on]], d[on], points[on],
+                             part.lights))
     return acc
 
 

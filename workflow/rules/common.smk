@@ -60,8 +60,9 @@ def mh_models():
 
 def models():
     """Every fitted model name (outputs.md): mh-<K>, sh-<hemisphere>-<n^2> and, where
-    enabled, the basis materials mh-materials."""
+    enabled, the basis materials mh-materials and the microfacet SVBRDF svbrdf-ggx."""
     extra = ["mh-materials"] if config["materials"]["enabled"] else []
+    extra += ["svbrdf-ggx"] if config["fit"]["svbrdf"]["enabled"] else []
     return mh_models() + list(config["fit"]["sh"]["models"]) + extra
 
 

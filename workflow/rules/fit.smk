@@ -1,7 +1,8 @@
 # Model fits: one job per model writes fit/<model>.zarr (dask over texel tiles inside
 # the job; scheduler from config.fit.scheduler) and its metrics; then the parameter-map
 # EXR. Model names follow outputs.md: mh-<K> and sh-<hemisphere>-<coefficients>; the
-# basis materials (003) are the MH map mh-materials, refitted from another MH fit.
+# basis materials (003) are the MH map mh-materials, refitted from another MH fit;
+# svbrdf-ggx is fitted under the lights the lights rule found (report.smk).
 
 
 rule fit_mh:
@@ -53,6 +54,28 @@ rule fit_sh:
         " --model sh-{wildcards.hemi}-{wildcards.nc} {params.cfg} --workers {threads} 2> {log}"
 
 
+rule fit_svbrdf:
+    input:
+        obs=f"{PROC}/{{sid}}/observation.zarr",
+        lights=f"{PROC}/{{sid}}/camera/lights.yaml",
+    output:
+        store=directory(f"{PROC}/{{sid}}/fit/svbrdf-ggx.zarr"),
+        metrics=f"{PROC}/{{sid}}/metrics/fit-svbrdf-ggx.json",
+    params:
+        cli=PARAMMAP,
+        cfg=config_arg("fit"),
+        out=lambda wc: f"{PROC}/{wc.sid}",
+    threads: WORKERS
+    log:
+        "logs/fit/{sid}/svbrdf-ggx.log",
+    benchmark:
+        "logs/benchmarks/{sid}/fit-svbrdf-ggx.tsv"
+    conda:
+        "../envs/parammap.yaml"
+    shell:
+        "{params.cli} fit-svbrdf --out {params.out} {params.cfg} --workers {threads} 2> {log}"
+
+
 rule materials:
     input:
         obs=f"{PROC}/{{sid}}/observation.zarr",
@@ -85,7 +108,7 @@ rule export_params:
         cli=PARAMMAP,
         out=lambda wc: f"{PROC}/{wc.sid}",
     wildcard_constraints:
-        model="(mh|sh)-[a-z0-9-]+",
+        model="(mh|sh|svbrdf)-[a-z0-9-]+",
     log:
         "logs/export/{sid}/{model}.log",
     conda:

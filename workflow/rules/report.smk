@@ -177,7 +177,7 @@ rule fig_model:
         out=lambda wc: f"{PROC}/{wc.sid}",
         figures=lambda wc: f"{REPORTS}/{wc.sid}",
     wildcard_constraints:
-        model="(mh|sh)-[a-z0-9-]+",
+        model="(mh|sh|svbrdf)-[a-z0-9-]+",
     log:
         "logs/figures/{sid}/{model}.log",
     conda:

@@ -19,13 +19,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..conventions import MH_KD, mh_ks, mh_lobes, mhx_phi, mhx_theta
+from ..conventions import MH_KD, SV_ALPHA, SV_KD, SV_KS, mh_ks, mh_lobes, mhx_phi, mhx_theta
 from .mh.model import mh_eval
 from .mh.uncertainty import jacobian_x
 from .sh.basis import sh_basis, sh_eval
+from .svbrdf import light_terms, specular_basis, svbrdf_eval
 
 __all__ = ["INFLUENCE", "display_error", "influential", "loo_amplitudes", "loo_diffuse",
-           "loo_linear", "loo_sh", "predict", "press", "press_linear", "view_errors"]
+           "loo_linear", "loo_sh", "loo_svbrdf", "predict", "press", "press_linear",
+           "view_errors"]
 
 #: a view whose left-out residual exceeds its in-sample residual this many times
 #: (leverage above one half for a linear smoother, ``e = r / (1 - h)``) carries more of
@@ -162,15 +164,48 @@ def loo_sh(C: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
     return np.where(W[..., None], loo, 0.0), bad.any(1)
 
 
-def predict(model: str, P: np.ndarray, V: np.ndarray) -> np.ndarray:
+def predict(model: str, P: np.ndarray, V: np.ndarray, points: np.ndarray | None = None,
+            lights: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """(n, N, 3) radiance of parameter rows P (n, p) of ``model`` (``mh``, ``sh``,
-    ``diffuse``; docs/reference/conventions.md layouts) seen from directions V (n, N, 3)."""
+    ``svbrdf``, ``diffuse``; docs/reference/conventions.md layouts) seen from directions
+    V (n, N, 3); an svbrdf map at its texels' centres ``points`` (n, 3) under its
+    ``lights``."""
     P = np.nan_to_num(np.asarray(P, float))
     if model == "diffuse":
         return np.broadcast_to(P[:, None, MH_KD], V.shape)
     if model == "sh":
         return sh_eval(P.reshape(len(P), 3, -1), V)
+    if model == "svbrdf":
+        n, N, _ = V.shape
+        return svbrdf_eval(np.repeat(P, N, 0), np.repeat(points, N, 0), V.reshape(-1, 3),
+                           *lights).reshape(n, N, 3)
     return mh_eval(P, V)
+
+
+def loo_svbrdf(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray, w: np.ndarray,
+               points: np.ndarray, lights: tuple[np.ndarray, np.ndarray],
+               rel_step: float = 1e-3) -> Loo:
+    """Leave-one-out residuals of an svbrdf map (:mod:`parammap.models.svbrdf`): Kd, Ks
+    and ln alpha refitted without the view, linearised at the fit."""
+    P = np.nan_to_num(np.asarray(P, float))
+    n, N, _ = V.shape
+    pos, wl = lights
+    l, e = light_terms(points, pos)
+    alpha = np.clip(P[:, SV_ALPHA], 1e-6, None)
+
+    def spec(a):
+        return specular_basis(l, e, V, a.reshape(-1, 1, 1)) @ wl  # (n, N, 3)
+
+    S = spec(alpha)
+    dS = (spec(alpha * np.exp(rel_step)) - spec(alpha * np.exp(-rel_step))) / (2 * rel_step)
+    J = np.zeros((n, N, 3, 7))
+    eye = np.eye(3)
+    J[..., :3] = (e @ wl)[:, None, :, None] * eye
+    J[..., 3:6] = S[..., None] * eye
+    J[..., 6] = dS * P[:, None, SV_KS]
+    r = np.where(W[..., None], (e @ wl)[:, None] * P[:, None, SV_KD] + S * P[:, None, SV_KS]
+                 - L, 0.0)
+    return loo_linear(J, r, w, W)
 
 
 def influential(e: np.ndarray, r: np.ndarray, W: np.ndarray,

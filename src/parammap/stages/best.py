@@ -74,12 +74,14 @@ from scipy.stats import norm
 from ..config import default
 from ..conventions import FitArray, FitStatus, mh_ks, mh_lobes
 from ..errors import InputError
+from ..geometry import texel_centres
 from ..models.mh.uncertainty import loo_residuals
 from ..models.selection import (
     influential,
     loo_amplitudes,
     loo_diffuse,
     loo_sh,
+    loo_svbrdf,
     predict,
     view_errors,
 )
@@ -105,11 +107,16 @@ ONE_SE_TAIL = float(norm.sf(1.0))
 
 
 def loo(name: str, model: str, p: np.ndarray, V: np.ndarray, L: np.ndarray,
-        W: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        W: np.ndarray, w: np.ndarray, points: np.ndarray | None = None,
+        lights: tuple[np.ndarray, np.ndarray] | None = None,
+        ) -> tuple[np.ndarray, np.ndarray]:
     """Leave-one-view-out residuals (n, N, 3) of candidate ``name`` (``model``) with
     parameter rows p at texels with observations V, L, W, weights w, and (n,) bool
-    where they are undefined (a view alone determines a parameter, or not fitted)."""
-    if model == "diffuse":
+    where they are undefined (a view alone determines a parameter, or not fitted); an
+    svbrdf map at its texels' centres ``points`` (n, 3) under its ``lights``."""
+    if model == "svbrdf":
+        e, bad = loo_svbrdf(p, V, L, W, w, points, lights)
+    elif model == "diffuse":
         e, bad = loo_diffuse(np.nan_to_num(p[:, :3]), V, L, W, w)
     elif model == "sh":
         e, bad = loo_sh(p, V, L, W, w)
@@ -224,14 +231,16 @@ def tile_errors(proc: Processed, maps: dict[str, ParamMap], obs, criterion: str,
     for rows, cols in tiles or _tiles(T, S, obs.tile):
         flat = flat_of[rows, cols].ravel()
         V, L, W, w = tile_observations(obs, rows, cols)
+        pts = texel_centres(S, T, obs.width_mm, obs.height_mm, np.arange(T)[rows],
+                            np.arange(S)[cols]).reshape(-1, 3)
         res = []
         swayed = np.zeros(W.shape, bool)
         for name, pm in maps.items():
             p = pm.params.reshape(T * S, -1)[flat].astype(float)
             e = _sh_loo(stores[name], obs, rows, cols) if stores.get(name) else None
             if e is None:
-                e = loo(name, pm.model, p, V, L, W, w)
-            r = np.where(W[..., None], predict(pm.model, p, V) - L, 0.0)
+                e = loo(name, pm.model, p, V, L, W, w, pts, pm.lights)
+            r = np.where(W[..., None], predict(pm.model, p, V, pts, pm.lights) - L, 0.0)
             swayed |= influential(e[0], r, W) & ~e[1][:, None]
             res.append(e)
         # every candidate is judged on the same views: those no fit leans on (module

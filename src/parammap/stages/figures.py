@@ -26,6 +26,10 @@ from ..conventions import (
     LUMINANCE,
     MH_KD,
     MH_M,
+    SV_ALPHA,
+    SV_KD,
+    SV_KS,
+    SVBRDF_MODEL,
     FitArray,
     mh_dir_z,
     mh_ks,
@@ -34,8 +38,10 @@ from ..conventions import (
     sh_degree_order,
 )
 from ..errors import InputError
+from ..geometry import texel_centres
 from ..models.mh import mh_eval
 from ..models.sh.basis import sh_eval
+from ..models.svbrdf import svbrdf_eval
 from ..plots import (
     default_lobe_texels,
     fit_figures,
@@ -256,6 +262,8 @@ def make_figures(kind: str, capture_dir: str | Path, processed: str | Path,
         fit = proc.fit(model)
         if model.startswith("mh-"):
             return mh_figures(fit, proc.observation, out, model, lobe_texels)
+        if model == SVBRDF_MODEL:
+            return svbrdf_figures(fit, proc.observation, out, model, lobe_texels)
         return sh_figures(fit, proc.observation, out, model, lobe_texels)
     if kind == "holdout":
         return _holdout(proc, out)
@@ -315,6 +323,32 @@ def sh_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path, 
         extra["sd of y[1,0] (luminance)"] = sd[..., 2]
     return paths + fit_figures(g, obs, out_dir, name,
                                lambda r, col, d: sh_eval(c[r, col], d), texels, extra)
+
+
+def svbrdf_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path,
+                   name: str, texels: list[tuple[int, int]] | None = None) -> list[Path]:
+    """Parameter maps (Kd, Ks, GGX alpha and its relative sd), residual maps and lobe
+    plots of an svbrdf fit store."""
+    g = open_fit(fit_path)
+    obs = open_observation_map(obs_path)
+    out_dir = Path(out_dir)
+    p = g[FitArray.PARAMS][:].astype(float)
+    sd = g[FitArray.SD][:].astype(float)
+    lights = g.group.attrs["lights"]
+    pos, w = np.asarray(lights["position_mm"], float), np.asarray(lights["weights"], float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        maps = {"Kd (luminance)": p[..., SV_KD] @ LUMINANCE,
+                "Ks (luminance)": p[..., SV_KS] @ LUMINANCE,
+                "GGX alpha": p[..., SV_ALPHA],
+                "sd of alpha / alpha": sd[..., SV_ALPHA] / p[..., SV_ALPHA]}
+    paths = [plot_maps(maps, out_dir / f"{name}_params.png", f"{name}: parameter maps")]
+
+    def predict(r, c, d):
+        pt = texel_centres(g.S, g.T, g.width_mm, g.height_mm, [r], [c]).reshape(1, 3)
+        return svbrdf_eval(np.repeat(p[r, c][None], len(d), 0), np.repeat(pt, len(d), 0),
+                           d, pos, w)
+
+    return paths + fit_figures(g, obs, out_dir, name, predict, texels)
 
 
 def _robust_outliers(values: np.ndarray, k: float = 3.0) -> np.ndarray:

@@ -19,6 +19,7 @@ finished store is identical to an uninterrupted run's.
 from __future__ import annotations
 
 import contextlib
+import inspect
 import logging
 import math
 import multiprocessing
@@ -38,8 +39,9 @@ import numpy as np
 
 from .. import __version__
 from ..config import default
-from ..conventions import SH_CAP_AWARE, FitArray, FitStatus
+from ..conventions import SH_CAP_AWARE, SV_ALPHA, SVBRDF_MODEL, FitArray, FitStatus
 from ..errors import InputError
+from ..geometry import texel_centres
 from ..models.mh import (
     ALGORITHMS,
     K_MAX_AUTO,
@@ -55,6 +57,16 @@ from ..models.mh import (
 )
 from ..models.sh import fit_sh_tile, parse_sh_model, sh_outputs
 from ..models.sh.cap import GUARD_STEPS
+from ..models.svbrdf import MIN_OBS as SVBRDF_MIN_OBS
+from ..models.svbrdf import (
+    POOL_RADIUS,
+    fit_svbrdf_batch,
+    fit_svbrdf_tile,
+    pool_svbrdf_tile,
+    refine_lights,
+    svbrdf_outputs,
+)
+from ..models.svbrdf import light_weights as svbrdf_weights
 from ..parallel import worker_initializer
 from ..stores.common import mtime_ns
 from ..stores.fit import (
@@ -66,16 +78,18 @@ from ..stores.fit import (
     open_fit,
     partial_key,
     sh_attrs,
+    svbrdf_attrs,
     tile_arrays,
 )
+from ..stores.lights import read_lights
 from ..stores.metrics import digest, write_metrics
-from ..stores.observation import open_observation_map, tile_reader
+from ..stores.observation import open_observation_map, tile_observations, tile_reader
 from ..stores.paths import Processed
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["RepairFn", "fit_map", "fit_mh_map", "fit_sh_map",
-           "fit_summary", "run_fit"]
+__all__ = ["RepairFn", "fit_map", "fit_mh_map", "fit_sh_map", "fit_summary",
+           "fit_svbrdf_map", "run_fit", "svbrdf_lights"]
 
 
 # (radiance, direction, valid of a tile; keyword noise: its relative sd per observation)
@@ -104,6 +118,8 @@ def _fit_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path: s
     dirs = g.direction[r0:r1, c0:c1]
     # observation maps built before the merge recorded noise have none
     kw = {"noise": g.noise[r0:r1, c0:c1]} if g.noise is not None else {}
+    if _wants_origin(tile_fn):  # a model that needs its texels' positions
+        kw["origin"] = (r0, c0)
     res = tile_fn(rad, dirs, np.asarray(valid), **kw)
     for name, arr in res.items():
         out[name][r0:r1, c0:c1] = arr
@@ -117,6 +133,13 @@ def _fit_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path: s
         tmp.replace(snap)
     marker.touch()  # only once every array of the tile is written
     return np.asarray(res[FitArray.STATUS], np.int8)
+
+
+def _wants_origin(fn: Callable) -> bool:
+    try:
+        return "origin" in inspect.signature(fn).parameters
+    except (TypeError, ValueError):
+        return False
 
 
 def _snapshot(done_dir: str, rows: tuple[int, int], cols: tuple[int, int], tile: int,
@@ -156,6 +179,8 @@ def _repair_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path
     fields = _snapshot(done_dir, (R0, R1), (C0, C1), tile)
     g = tile_reader(obs_path)
     kw = {"noise": g.noise[r0:r1, c0:c1]} if g.noise is not None else {}
+    if _wants_origin(repair_fn):
+        kw["origin"] = (r0, c0)
     res = repair_fn(fields, g.radiance[r0:r1, c0:c1], g.direction[r0:r1, c0:c1],
                     np.asarray(valid), (r0 - R0, c0 - C0), **kw)
     changed = np.zeros((r1 - r0, c1 - c0), np.int8)
@@ -472,9 +497,97 @@ def fit_sh_map(obs_path: str | Path, out_path: str | Path, hemisphere: str, n: i
                        workers=workers, **extra)
 
 
+REFINE_TEXELS = 1024  # of the pilot's, drawn at random: the texels that place the lights
+REFINE_OBSERVATIONS = 50_000  # and at most this many texel views (the refinement's cost)
+PILOT_TILES = 128  # tiles the pilot's texels come from
+
+
+def svbrdf_lights(obs_path: str | Path, lights_mm: np.ndarray,
+                  texels: int = default("fit.svbrdf.pilot_texels"), refine: bool = True,
+                  seed: int = 0) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """The lights an svbrdf fit is made under, from a pilot of up to ``texels`` texels
+    from tiles across the map: their positions refined from the found ones
+    (:func:`parammap.models.svbrdf.refine_lights`, with ``refine``) and their (J, 3)
+    relative intensities (the first's 1), each texel given a specular amplitude per
+    light and their ratios pooled (:func:`parammap.models.svbrdf.light_weights`).
+    Returns positions (J, 3) mm, intensities and a record for the metrics."""
+    obs = open_observation_map(obs_path)
+    rng = np.random.default_rng(seed)
+    # texels from many tiles, a few from each: the highlights' positions over the whole
+    # map place the lights
+    tiles = obs.sample_tiles(PILOT_TILES, seed)
+    each = max(1, math.ceil(texels / len(tiles)))
+    parts = []
+    for rows, cols in tiles:
+        V, L, W, w = tile_observations(obs, rows, cols)
+        pts = texel_centres(obs.S, obs.T, obs.width_mm, obs.height_mm,
+                            np.arange(rows.start, rows.stop),
+                            np.arange(cols.start, cols.stop)).reshape(-1, 3)
+        keep = np.flatnonzero(W.sum(1) >= SVBRDF_MIN_OBS)
+        keep = rng.permutation(keep)[:each]
+        parts.append((V[keep], L[keep], w[keep], pts[keep]))
+    V, L, w, pts = (np.concatenate(a)[:texels] for a in zip(*parts, strict=True))
+    record: dict[str, Any] = {"found_mm": np.round(lights_mm, 3).tolist(), "pilot_texels": len(V)}
+    if refine:
+        t0 = time.perf_counter()
+        views = float((w > 0).sum(1).mean())
+        top = rng.permutation(len(L))[:max(64, min(REFINE_TEXELS,
+                                                   int(REFINE_OBSERVATIONS / views)))]
+        lights_mm, rec = refine_lights(L[top], V[top], w[top], pts[top], lights_mm)
+        record |= {"refined_mm": np.round(lights_mm, 3).tolist(), **rec,
+                   "refine_texels": len(top), "views_per_texel": views,
+                   "seconds": time.perf_counter() - t0}
+        logger.info(f"fit: lights refined to {np.round(lights_mm, 1).tolist()} mm "
+                    f"(pilot residual {rec['start']:.4g} -> {rec['final']:.4g}, "
+                    f"{rec['evals']} evaluations)")
+    weights = np.ones((len(lights_mm), 3))
+    if len(lights_mm) > 1:
+        r = fit_svbrdf_batch(L, V, w, pts, lights_mm, None)
+        weights = svbrdf_weights(r["ks"], r["sd_ks"])
+    return lights_mm, weights, record
+
+
+def fit_svbrdf_map(obs_path: str | Path, out_path: str | Path, lights_path: str | Path,
+                   cfg: dict, scheduler: str = default("fit.scheduler"),
+                   workers: int = default("workers"),
+                   start_method: str = default("fit.start_method")) -> dict:
+    """Fit the microfacet SVBRDF (:mod:`parammap.models.svbrdf`) to every texel of an
+    observation map under the lights of ``lights_path`` (``camera/lights.yaml``) into
+    ``fit/svbrdf-ggx.zarr``; returns the figures for its metrics file."""
+    doc = read_lights(lights_path)
+    if not doc["lights"]:
+        raise FitError(f"{lights_path}: no light was found, so {SVBRDF_MODEL} has none to "
+                       "be fitted under (see metrics/lights.json)")
+    lights_mm = np.array([lt["position_mm"] for lt in doc["lights"]], float)
+    lights_mm, weights, record = svbrdf_lights(
+        obs_path, lights_mm, cfg.get("pilot_texels", default("fit.svbrdf.pilot_texels")),
+        cfg.get("refine_lights", default("fit.svbrdf.refine_lights")))
+    obs = open_observation_map(obs_path)
+    logger.info(f"fit: {SVBRDF_MODEL} under {len(lights_mm)} light(s) at "
+                f"{np.round(lights_mm, 1).tolist()} mm, relative intensities "
+                f"{np.round(weights, 3).tolist()}")
+    geom = {"grid": (obs.S, obs.T, obs.width_mm, obs.height_mm), "lights_mm": lights_mm,
+            "weights": weights}
+    pool = bool(cfg.get("pool_neighbours", default("fit.svbrdf.pool_neighbours")))
+    res = fit_map(obs_path, out_path, partial(fit_svbrdf_tile, **geom), svbrdf_outputs(),
+                  svbrdf_attrs(lights_mm, weights, lights_source=doc.get("source"),
+                               pool_radius=POOL_RADIUS if pool else 0),
+                  scheduler, workers, start_method=start_method,
+                  repair_fn=partial(pool_svbrdf_tile, **geom) if pool else None,
+                  halo=POOL_RADIUS)
+    g = open_fit(out_path)
+    ok = g[FitArray.STATUS][:] == FitStatus.OK
+    alpha = g[FitArray.PARAMS][:][ok][:, SV_ALPHA]
+    return fit_summary(out_path, res, SVBRDF_MODEL, scheduler=scheduler, workers=workers,
+                       lights=len(lights_mm), light_weights=np.round(weights, 4).tolist(),
+                       light_positions=record, pooled_texels=int(res.get("repaired", 0)),
+                       alpha_median=float(np.median(alpha)) if alpha.size else None)
+
+
 def run_fit(source: str | Path, processed: str | Path, config: dict[str, Any], *,
             model: str, workers: int | None = None) -> dict[str, Any]:
-    """The fit stage of one model (``mh-<K>``, ``mh-auto`` or ``sh-<hemisphere>-<n^2>``):
+    """The fit stage of one model (``mh-<K>``, ``mh-auto``, ``sh-<hemisphere>-<n^2>`` or
+    ``svbrdf-ggx``, which needs the lights stage's ``camera/lights.yaml``):
     ``fit/<model>.zarr`` from the observation map with the whole (validated) ``config``
     (section ``fit``) and ``metrics/fit-<model>.json``. Returns the metrics; its
     figures come from :mod:`parammap.stages.figures`."""
@@ -484,6 +597,8 @@ def run_fit(source: str | Path, processed: str | Path, config: dict[str, Any], *
     if model.startswith("mh-"):
         K = parse_lobes(model[3:])
         name, fit, args, family = f"mh-{K}", fit_mh_map, (K,), "mh"
+    elif model == SVBRDF_MODEL:
+        name, fit, args, family = model, fit_svbrdf_map, (proc.lights,), "svbrdf"
     else:
         hemi, n = parse_sh_model(model)
         name, fit, args, family = f"sh-{hemi}-{n * n}", fit_sh_map, (hemi, n), "sh"

@@ -10,6 +10,7 @@ that was killed keeps its partial store with the key of the fit that wrote it.
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 from typing import Any
@@ -37,7 +38,7 @@ from .paths import Processed
 
 __all__ = ["FIT_UNITS", "MATERIALS_MODEL", "MH_LAYOUT", "SH_LAYOUT", "FitError", "FitStore",
            "TileArrays", "create_partial", "finish", "grid_attrs", "mh_attrs",
-           "open_fit", "open_mh_source", "partial_key", "sh_attrs", "tile_arrays",
+           "open_fit", "open_mh_source", "partial_key", "sh_attrs", "svbrdf_attrs", "tile_arrays",
            "write_fit_store"]
 
 # the model name of the materials stage's map (docs/reference/outputs.md)
@@ -51,7 +52,7 @@ SH_LAYOUT = "sh.R.00 .. sh.R.(n^2-1), then G, then B; index l(l+1)+m"
 # units of the fit stores' arrays (zarr attribute "units", read by xarray)
 FIT_UNITS = {
     FitArray.PARAMS: "as the layout attribute: Kd, Ks in the observation map's radiance "
-                     "units, m 1, d unit vector (surface frame)",
+                     "units, m 1, d unit vector (surface frame); svbrdf alpha 1",
     FitArray.COEFFS: "the observation map's radiance units (orthonormal SH basis)",
     FitArray.RMSE: "the observation map's radiance units", FitArray.MPR: "percent",
     FitArray.CHI2: "1 (reduced chi-square)", FitArray.K_USED: "lobes",
@@ -106,6 +107,19 @@ def sh_attrs(hemisphere: str, n: int, sampled_cap: bool, solid_angles: str,
             _LAYOUT: SH_LAYOUT}
 
 
+SVBRDF_LAYOUT = "Kd.R Kd.G Kd.B Ks.R Ks.G Ks.B alpha"
+
+
+def svbrdf_attrs(lights_mm: np.ndarray, weights: np.ndarray, **settings: Any) -> dict[str, Any]:
+    """The attributes that describe an svbrdf fit: the lights it was fitted under
+    (``lights``: ``position_mm`` (J, 3), ``weights`` (J, 3) relative RGB intensities)
+    and ``settings`` (where the lights came from)."""
+    return {_MODEL: "svbrdf", "model_version": 1, _LAYOUT: SVBRDF_LAYOUT,
+            "lights": {"position_mm": np.round(np.asarray(lights_mm, float), 4).tolist(),
+                       "weights": np.round(np.asarray(weights, float), 6).tolist()},
+            **settings}
+
+
 def grid_attrs(obs: ObservationMap, tile: int, provenance: bool = True) -> dict[str, Any]:
     """The map's grid, copied from the observation map the fit read, its tile and (with
     ``provenance``) the version that wrote the store."""
@@ -133,7 +147,7 @@ class FitStore(MapStore):
 
     @property
     def model(self) -> str:
-        """``mh`` or ``sh``."""
+        """``mh``, ``sh`` or ``svbrdf``."""
         return self.group.attrs[_MODEL]
 
     @property
@@ -191,7 +205,10 @@ class FitStore(MapStore):
         """The model settings a parameter map carries into its EXR header."""
         keys = ("lobes", "K_max", FitArray.BANDS, "coefficients", "regularisation",
                 "shrunk_to_mean", "robust_refit")
-        return {k: self.group.attrs[k] for k in keys if self.group.attrs.get(k) is not None}
+        out = {k: self.group.attrs[k] for k in keys if self.group.attrs.get(k) is not None}
+        if "lights" in self.group.attrs:  # an EXR header holds strings, not mappings
+            out["lights"] = json.dumps(self.group.attrs["lights"])
+        return out
 
 
 def open_fit(path: str | Path) -> FitStore:

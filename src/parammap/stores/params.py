@@ -5,10 +5,12 @@ Channel names and header attributes follow docs/reference/conventions.md:
 - MH (K lobes): ``Kd.R Kd.G Kd.B m`` then for each lobe k = 1..K
   ``lobek.Ks.R lobek.Ks.G lobek.Ks.B lobek.d.X lobek.d.Y lobek.d.Z``;
 - SH (n bands): ``sh.R.00 ... sh.R.(n^2-1)``, then G, then B (two digits at least);
+- a microfacet SVBRDF (``svbrdf-ggx``): ``Kd.R Kd.G Kd.B Ks.R Ks.G Ks.B alpha``, its
+  lights in the header (``parammap_lights``, JSON: ``position_mm`` and ``weights``);
 - a diffuse-only map (the baseline): ``Kd.R Kd.G Kd.B``.
 
 Rows as in the texel convention (row 0 at the top edge), float32 by default (half on
-request), ZIP compression. Header: ``parammap_model`` (mh, sh or diffuse),
+request), ZIP compression. Header: ``parammap_model`` (mh, sh, svbrdf or diffuse),
 ``parammap_model_version``, ``parammap_layout`` (the channel names, space separated),
 ``parammap_hemisphere`` (SH), ``parammap_radiance_scale`` (a normalisation already
 undone: 1), ``width_mm``, ``height_mm``, ``S``, ``T`` and ``software``. An MH or SH map
@@ -19,6 +21,7 @@ may carry the per-texel standard deviations of its fit as extra channels (MH ``s
 
 from __future__ import annotations
 
+import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,6 +32,7 @@ import numpy as np
 from ..conventions import (
     BEST_CHANNELS,
     DIFFUSE_CHANNELS,
+    SVBRDF_CHANNELS,
     FitArray,
     mh_channels,
     mh_lobes,
@@ -46,7 +50,7 @@ __all__ = ["MODELS", "ParamMap", "best_shares", "channel_names", "param_map_from
 
 logger = logging.getLogger(__name__)
 
-MODELS = {"mh": 1, "sh": 1, "diffuse": 1, "best": 2}
+MODELS = {"mh": 1, "sh": 1, "svbrdf": 1, "diffuse": 1, "best": 2}
 
 
 class ParamMapError(ExrError):
@@ -72,6 +76,11 @@ def channel_names(model: str, n_params: int) -> list[str]:
         if K < 1:
             raise ParamMapError(f"MH maps have at least one lobe (got {n_params} values)")
         return mh_channels(K)
+    if model == "svbrdf":
+        if n_params != len(SVBRDF_CHANNELS):
+            raise ParamMapError(f"svbrdf maps have {len(SVBRDF_CHANNELS)} parameters "
+                                f"(got {n_params})")
+        return list(SVBRDF_CHANNELS)
     if model == "sh":
         try:
             n = sh_bands(n_params // 3 if n_params % 3 == 0 else 0)
@@ -98,6 +107,17 @@ class ParamMap:
     @property
     def shape(self) -> tuple[int, int]:
         return self.params.shape[:2]
+
+    @property
+    def lights(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """An svbrdf map's lights: positions (J, 3) mm and relative RGB intensities
+        (J, 3), from its header (``parammap_lights``); None for other maps."""
+        doc = self.attrs.get("lights")
+        if doc is None:
+            return None
+        doc = json.loads(doc) if isinstance(doc, str) else doc
+        return (np.asarray(doc["position_mm"], float).reshape(-1, 3),
+                np.asarray(doc["weights"], float).reshape(-1, 3))
 
 
 def write_param_map(path: str | Path, pm: ParamMap, half: bool = False) -> Path:
@@ -143,7 +163,8 @@ def read_param_map(path: str | Path) -> ParamMap:
     except ParamMapError as exc:
         raise ParamMapError(f"{path}: {exc}") from None
     sd_layout = str(h.get("parammap_sd_layout", "")).split()
-    if sd_layout and (model not in ("mh", "sh") or sd_layout != sd_channels(model, len(layout))):
+    if sd_layout and (model not in ("mh", "sh", "svbrdf")
+                      or sd_layout != sd_channels(model, len(layout))):
         raise ParamMapError(f"{path}: standard deviations do not follow the {model} layout")
     if layout != expected or set(chans) != set(layout) | set(sd_layout):
         raise ParamMapError(f"{path}: channels do not follow the {model} layout "
@@ -177,7 +198,7 @@ def best_shares(params: np.ndarray, n_candidates: int) -> np.ndarray:
 def param_map_from_fit(fit_path: str | Path) -> ParamMap:
     """The parameter map of a finished fit store (``fit/<model>.zarr``)."""
     g = open_fit(fit_path)
-    key = FitArray.PARAMS if g.model == "mh" else FitArray.COEFFS
+    key = FitArray.COEFFS if g.model == "sh" else FitArray.PARAMS
     sd = g.get(FitArray.SD)
     return ParamMap(g.model, g[key][:], g.width_mm, g.height_mm, g.hemisphere, g.describe(),
                     sd[:] if sd is not None else None)

@@ -328,7 +328,8 @@ def directions_against_truth(truth: str | Path, processed: str | Path, models: l
             return sum(share[:, j:j + 1] * predict(part) for j, part in enumerate(parts)
                        if share[:, j].any())
         return np.nan_to_num(evaluate(pm.model, np.repeat(pm.params.reshape(T * S, -1), Q,
-                                                          axis=0), d))
+                                                          axis=0), d,
+                                      np.repeat(ctr, Q, axis=0), pm.lights))
 
     for name, pm in maps.items():
         out[name] = float(np.abs(tone_map(predict(pm), gamma).astype(float) - ref).mean())

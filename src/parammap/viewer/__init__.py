@@ -46,6 +46,7 @@ import numpy as np
 
 from ..conventions import sh_norms
 from ..geometry import Intrinsics, undistort_normalized
+from ..models.svbrdf import ALPHA_RANGE
 from ..stores.camera import load_intrinsics, read_poses
 from ..stores.capture import Capture
 from ..stores.metrics import read_metrics
@@ -54,7 +55,7 @@ from ..stores.params import ParamMap, read_param_map
 from ..stores.paths import Processed
 from .compact import FLOAT_LAYER_BUDGET_MB, TILE, encode_map, quantisation_error
 from .inspect import inspector_payload
-from .layers import MH_LAYERS_PER_LOBE, MH_MAX_LOBES, SH_MAX_BANDS, layer_info
+from .layers import MH_LAYERS_PER_LOBE, MH_MAX_LOBES, SH_MAX_BANDS, SV_MAX_LIGHTS, layer_info
 
 __all__ = ["glsl_constants", "layer_info", "payload_script", "read_payload_script",
            "undistortion_grid", "write_surface_viewer", "write_viewer"]
@@ -108,6 +109,8 @@ def glsl_constants() -> str:
         f"const float KLM[{SH_MAX_BANDS ** 2}] = float[{SH_MAX_BANDS ** 2}]({klm});",
         f"const int MH_MAX_LOBES = {MH_MAX_LOBES};",
         f"const int MH_LAYERS_PER_LOBE = {MH_LAYERS_PER_LOBE};",
+        f"const int SV_MAX_LIGHTS = {SV_MAX_LIGHTS};",
+        f"const float SV_ALPHA_MIN = {ALPHA_RANGE[0]!r};",
     ])
 
 

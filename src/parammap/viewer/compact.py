@@ -7,7 +7,8 @@ minimum and maximum after a transfer that spreads the levels where they matter:
 
 - ``sqrt`` for radiance-like planes (Kd, Ks: the display's tone curve is steep near
   black, so levels go there, as a display gamma does),
-- ``log`` for the MH shininess (its effect on a lobe is relative),
+- ``log`` for the MH shininess and the SVBRDF's GGX alpha (their effect on a lobe is
+  relative),
 - ``linear`` for the MH lobe direction in hemi-octahedral coordinates (two planes:
   the unit upper hemisphere mapped onto a square with bounded distortion, so a level
   moves a direction by about the same angle at the pole and at the horizon; z is
@@ -301,12 +302,14 @@ def encode_layers(layers: np.ndarray, info: dict[str, Any], gamma: float = 1.0,
     planes, data = [], []
     x = np.asarray(layers, np.float64)
     mh = info["model"] == "mh"
+    sv = info["model"] == "svbrdf"
     for layer in range(L):
         if mh and _mh_role(layer, 0) == "dir":
             x[layer, ..., :2] = _hemioct(x[layer, ..., :3])
         for ch in range(4):
             y = x[layer, ..., ch]
-            role = _mh_role(layer, ch) if mh else "kd"
+            role = _mh_role(layer, ch) if mh else \
+                ("m" if sv and (layer, ch) == (0, 3) else "kd")
             spec: dict[str, Any] = {"layer": layer, "channel": ch}
             if mh and role == "dir" and ch == 2:
                 planes.append({**spec, "derived": "hemioct"})
@@ -530,6 +533,8 @@ def layers_to_params(layers: np.ndarray, info: dict[str, Any]) -> np.ndarray:
         return layers[..., :3].transpose(1, 2, 3, 0).reshape(T, S, 3 * L)
     if info["model"] == "best":  # candidate indices
         return np.rint(layers[0, ..., :2])
+    if info["model"] == "svbrdf":  # (Kd, alpha), (Ks, 0)
+        return np.concatenate([layers[0, ..., :3], layers[1, ..., :3], layers[0, ..., 3:]], -1)
     return layers[0, ..., :3].copy()
 
 

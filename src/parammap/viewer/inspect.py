@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from ..conventions import LUMINANCE
+from ..geometry import texel_centres
 from ..render import evaluate
 from ..stores.params import ParamMap, best_shares, channel_names
 
@@ -72,6 +73,8 @@ def inspector_payload(maps: dict[str, ParamMap], radiance: np.ndarray, direction
     models = []
     t, s = len(rows), len(cols)
     dd = np.where(ok[..., None], d, [0.0, 0.0, 1.0]).reshape(-1, 3)
+    first = next(iter(maps.values()))
+    pts = texel_centres(S, T, first.width_mm, first.height_mm, rows, cols).reshape(-1, 3)
 
     def predict(pm) -> np.ndarray:
         P = np.nan_to_num(np.asarray(pm.params[sel], float))  # (t, s, P)
@@ -80,7 +83,8 @@ def inspector_payload(maps: dict[str, ParamMap], radiance: np.ndarray, direction
             shares = best_shares(P, len(parts)).reshape(-1, len(parts))
             return sum(np.repeat(shares[:, j:j + 1], N, axis=0) * predict(part)
                        for j, part in enumerate(parts))
-        return evaluate(pm.model, np.repeat(P.reshape(t * s, -1), N, axis=0), dd)
+        return evaluate(pm.model, np.repeat(P.reshape(t * s, -1), N, axis=0), dd,
+                        np.repeat(pts, N, axis=0), pm.lights)
 
     for name, pm in maps.items():
         P = np.nan_to_num(np.asarray(pm.params[sel], float))  # (t, s, P)

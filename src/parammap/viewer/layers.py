@@ -5,12 +5,22 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..conventions import MH_HEAD, MH_KD, mh_dir, mh_ks, mh_lobes, sh_bands
+from ..conventions import (
+    MH_HEAD,
+    MH_KD,
+    SV_ALPHA,
+    SV_KD,
+    SV_KS,
+    mh_dir,
+    mh_ks,
+    mh_lobes,
+    sh_bands,
+)
 from ..errors import InputError
 from ..stores.params import ParamMap
 
-__all__ = ["MH_LAYERS_PER_LOBE", "MH_MAX_LOBES", "SH_MAX_BANDS", "layer_info",
-           "viewer_layers"]
+__all__ = ["MH_LAYERS_PER_LOBE", "MH_MAX_LOBES", "SH_MAX_BANDS", "SV_MAX_LIGHTS",
+           "layer_info", "viewer_layers"]
 
 
 MH_LAYERS_PER_LOBE = 2  # texture layers per lobe: (Ks, 0) then (d, 0)
@@ -33,6 +43,12 @@ def layer_info(pm: ParamMap) -> tuple[dict, int]:
         return {"model": "sh", "bands": n}, P // 3
     if pm.model == "diffuse":
         return {"model": "diffuse"}, 1
+    if pm.model == "svbrdf":  # (Kd, alpha), (Ks, 0); its lights for the shader
+        pos, w = pm.lights
+        if len(pos) > SV_MAX_LIGHTS:
+            raise InputError(f"the viewer evaluates up to {SV_MAX_LIGHTS} lights")
+        return {"model": "svbrdf", "lights": np.round(pos, 4).tolist(),
+                "light_weights": np.round(w, 6).tolist()}, 2
     if pm.model == "best":  # a choice map: its candidates are models of the page too
         return {"model": "best", "parts": list(pm.parts or {})}, 1
     raise InputError(f"unknown model {pm.model!r}")
@@ -55,6 +71,9 @@ def viewer_layers(pm: ParamMap) -> tuple[np.ndarray, dict]:
         layers = list(np.concatenate([c, np.zeros((nc, T, S, 1), np.float32)], -1))
     elif pm.model == "best":
         layers = [np.concatenate([p[..., :2], np.zeros((T, S, 2), np.float32)], -1)]
+    elif pm.model == "svbrdf":
+        layers = [np.concatenate([p[..., SV_KD], p[..., SV_ALPHA:SV_ALPHA + 1]], -1),
+                  np.concatenate([p[..., SV_KS], np.zeros((T, S, 1), np.float32)], -1)]
     else:
         layers = [np.concatenate([p[..., MH_KD], np.zeros((T, S, 1), np.float32)], -1)]
     return np.stack(layers).astype("<f4"), info
@@ -64,3 +83,5 @@ SH_MAX_BANDS = 10  # the shader's loops are unrolled up to this many bands
 
 
 MH_MAX_LOBES = 8
+
+SV_MAX_LIGHTS = 4  # the shader's lights

@@ -1,0 +1,607 @@
+"""A microfacet SVBRDF per texel under the capture's lights (model ``svbrdf-ggx``,
+issue 48 item 2).
+
+Each texel of the flat surface (normal +z) reflects each light ``j`` (a point at
+``p_j``, surface frame, mm; relative RGB intensity ``w_j``) as
+
+    L(v) = sum_j w_j e_j [Kd + Ks D(h_j) Vis(l_j, v)],   e_j = (z_j / r_j)^3
+
+with ``l_j`` the unit vector to the light, ``r_j`` its distance, ``z_j`` its height
+over the plane (``e_j`` is the irradiance relative to the point right under the light:
+``cos theta_l / r^2`` times ``z_j^2``), ``h_j`` the half vector of ``l_j`` and the view
+``v``, ``D`` the GGX (Trowbridge-Reitz) distribution of roughness ``alpha`` and ``Vis``
+Smith's height-correlated visibility ``G2 / (4 n.l n.v)`` (Heitz 2014). ``Kd`` (RGB) is
+the diffuse radiance per unit ``e`` (albedo / pi times the intensity), ``Ks`` (RGB) the
+specular amplitude (Fresnel F0 times the intensity, its rise toward grazing not modelled:
+the views rarely see a highlight beyond 60 deg of incidence, where Schlick's factor
+stays within 10 % of F0 for a dielectric). Radiance is in the observation map's units.
+
+For a given ``alpha`` the radiance is linear in ``Kd`` and ``Ks``, so a texel's fit is a
+one-dimensional search over ``alpha`` (a grid in log alpha, then a parabola through the
+best three) with the two amplitudes per channel solved exactly and non-negative at each
+step (variable projection): no start to choose and no local minimum in the amplitudes,
+vectorised over thousands of texels.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import warnings
+
+import nlopt
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+from ..conventions import LUMINANCE, SV_ALPHA, SV_KD, SV_KS, SV_SIZE, FitArray, FitStatus
+from ..geometry import texel_centres
+from .residuals import mean_percentage_residual
+from .weights import noise_weights, reduced_chi2
+
+__all__ = ["ALPHA_RANGE", "MIN_OBS", "alpha_grid", "fit_svbrdf_batch", "fit_svbrdf_tile",
+           "ggx_vis", "light_terms", "light_weights", "neighbour_priors", "pool_svbrdf_tile",
+           "refine_lights", "specular_basis", "svbrdf_eval", "svbrdf_outputs"]
+
+#: GGX alpha searched: from a near-mirror (a lobe about 0.3 deg wide) to fully rough.
+ALPHA_RANGE = (0.005, 1.0)
+GRID_STEPS = 48
+REFINE_GRID_STEPS = 24  # half the fit's: the objective needs each texel's best alpha roughly
+MIN_OBS = SV_SIZE + 1  # observations a texel needs (per channel: Kd, Ks, alpha shared)
+
+
+def alpha_grid(steps: int = GRID_STEPS) -> np.ndarray:
+    """(steps,) alphas evenly spaced in log over :data:`ALPHA_RANGE`."""
+    return np.geomspace(*ALPHA_RANGE, steps)
+
+
+def light_terms(points: np.ndarray, lights_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit vectors to the lights and their irradiance factors.
+
+    Parameters
+    ----------
+    points : (..., 3) surface points (mm, z = 0); lights_mm : (J, 3) light positions.
+
+    Returns
+    -------
+    l : (..., J, 3) unit vectors toward each light; e : (..., J) ``(z_j / r_j)^3``
+    (0 for a light below the plane).
+    """
+    p = np.asarray(lights_mm, float)
+    d = p - np.asarray(points, float)[..., None, :]
+    r = np.linalg.norm(d, axis=-1)
+    l = d / np.maximum(r, 1e-12)[..., None]
+    e = np.where(d[..., 2] > 0, (d[..., 2] / np.maximum(r, 1e-12)) ** 3, 0.0)
+    return l, e
+
+
+def ggx_vis(n_h: np.ndarray, n_v: np.ndarray, n_l: np.ndarray, alpha) -> np.ndarray:
+    """``D(h) Vis(l, v)`` of GGX with Smith's height-correlated masking-shadowing, for
+    the cosines of the half vector, view and light with the normal (any broadcastable
+    shapes). 0 where the light or the view is below the surface."""
+    a2 = np.asarray(alpha, float) ** 2
+    ch2 = np.clip(n_h, 0, 1) ** 2
+    D = a2 / (math.pi * (ch2 * (a2 - 1) + 1) ** 2)
+    nv, nl = np.clip(n_v, 1e-6, 1), np.clip(n_l, 1e-6, 1)
+    vis = 0.5 / (nl * np.sqrt(nv * nv * (1 - a2) + a2) + nv * np.sqrt(nl * nl * (1 - a2) + a2))
+    return np.where((n_v > 0) & (n_l > 0), D * vis, 0.0)
+
+
+def specular_basis(l: np.ndarray, e: np.ndarray, views: np.ndarray, alpha) -> np.ndarray:
+    """Per light, ``e_j D(h_j) Vis(l_j, v)``: l (..., J, 3) and e (..., J) of
+    :func:`light_terms`, views (..., N, 3) unit; alpha broadcastable to (..., 1, 1).
+    Returns (..., N, J)."""
+    v = views[..., :, None, :]
+    L = l[..., None, :, :]
+    h = v + L
+    h = h / np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-12)
+    return e[..., None, :] * ggx_vis(h[..., 2], v[..., 2], L[..., 2], alpha)
+
+
+def svbrdf_eval(params: np.ndarray, points: np.ndarray, views: np.ndarray,
+                lights_mm: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Radiance (M, 3) of parameter vectors (M, ``SV_SIZE``) at surface points (M, 3)
+    seen from unit directions (M, 3), under lights (J, 3) mm of relative RGB
+    intensities ``weights`` (J, 3)."""
+    p = np.asarray(params, float)
+    l, e = light_terms(points, lights_mm)  # (M, J, 3), (M, J)
+    alpha = np.clip(p[:, SV_ALPHA], *ALPHA_RANGE)[:, None, None]
+    s = specular_basis(l, e, np.asarray(views, float)[:, None, :], alpha)[:, 0]  # (M, J)
+    w = np.asarray(weights, float)
+    return p[:, SV_KD] * (e @ w) + p[:, SV_KS] * (s @ w)
+
+
+def _nnls_small(G: np.ndarray, r: np.ndarray, yy: np.ndarray) -> tuple[np.ndarray,
+                                                                           np.ndarray]:
+    """Non-negative least squares of many small problems from their normal equations:
+    G (B, P, P), r (B, P), yy (B,) the weighted sum of squares of the data. Where the
+    unconstrained solution is non-negative it is the answer; elsewhere every support
+    set is solved and the feasible one of least residual kept (exact: the solution is
+    the unconstrained one on its support). Returns (B, P) and (B,) RSS."""
+    B, P = r.shape
+    ridge = 1e-12 * np.maximum(np.trace(G, axis1=1, axis2=2), 1e-300)
+    Gr = G + ridge[:, None, None] * np.eye(P)
+    best = np.linalg.solve(Gr, r[..., None])[..., 0]
+    best_rss = yy - np.einsum("bk,bk->b", best, r)  # at the optimum, c.G.c = c.r
+    rest = np.flatnonzero(~(best >= 0).all(1))
+    if len(rest):
+        Gq, rq, yq = Gr[rest], r[rest], yy[rest]
+        cb, rb = np.zeros((len(rest), P)), yq.copy()
+        for k in range(1, P):
+            for sub in itertools.combinations(range(P), k):
+                s = list(sub)
+                Gs = Gq[:, s][:, :, s]
+                c = np.linalg.solve(Gs, rq[:, s][..., None])[..., 0]
+                rss = yq - np.einsum("bk,bk->b", c, rq[:, s])
+                ok = (c >= 0).all(1) & (rss < rb)
+                rb[ok] = rss[ok]
+                full = np.zeros((int(ok.sum()), P))
+                full[:, s] = c[ok]
+                cb[ok] = full
+        best[rest], best_rss[rest] = cb, rb
+    return best, np.maximum(best_rss, 0.0)
+
+
+def _amplitudes(y: np.ndarray, omega: np.ndarray, e_w: np.ndarray, S: np.ndarray,
+                prior: tuple[np.ndarray, np.ndarray] | None = None,
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per channel non-negative ``Kd`` and specular amplitudes of a batch at one alpha.
+
+    y (B, N, 3) radiance, omega (B, N) weights (0: not observed); e_w (B, 3) the
+    diffuse basis (constant over the views); S (B, N, Q, 3) the Q specular bases;
+    prior: a Gaussian prior on the (one, Q = 1) specular amplitude per channel, its
+    mean (B, 3) and its precision (B, 3) in units of the weighted residuals (0: none),
+    whose penalty the RSS then includes.
+    Returns coefficients (B, 1 + Q, 3), RSS (B, 3) and the normal matrices
+    (B, 3, 1 + Q, 1 + Q) (without the prior)."""
+    B, N, Q, _ = S.shape
+    # the diffuse column is constant over the views: its sums need no pass over them
+    Sw = S * omega[:, :, None, None]
+    sw = omega.sum(1)  # (B,)
+    G = np.empty((B, 3, 1 + Q, 1 + Q))
+    G[:, :, 0, 0] = (e_w * e_w) * sw[:, None]
+    G[:, :, 0, 1:] = (e_w[:, None, :] * Sw.sum(1)).swapaxes(1, 2)
+    G[:, :, 1:, 0] = G[:, :, 0, 1:]
+    r = np.empty((B, 3, 1 + Q))
+    r[:, :, 0] = e_w * np.einsum("bn,bnc->bc", omega, y)
+    for p in range(Q):  # Q is the number of lights at most: plain sums beat einsum
+        r[:, :, 1 + p] = (Sw[:, :, p] * y).sum(1)
+        for q in range(p, Q):
+            G[:, :, 1 + p, 1 + q] = G[:, :, 1 + q, 1 + p] = (Sw[:, :, p] * S[:, :, q]).sum(1)
+    yy = np.einsum("bn,bnc->bc", omega, y * y)
+    if prior is not None:
+        mu, lam = prior
+        G = G.copy()
+        G[:, :, 1, 1] += lam
+        r = r.copy()
+        r[:, :, 1] += lam * mu
+        yy = yy + lam * mu * mu
+    c, rss = _nnls_small(G.reshape(B * 3, 1 + Q, 1 + Q), r.reshape(B * 3, 1 + Q),
+                         yy.reshape(B * 3))
+    return (np.swapaxes(c.reshape(B, 3, 1 + Q), 1, 2), rss.reshape(B, 3), G)
+
+
+def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
+                     points: np.ndarray, lights_mm: np.ndarray, weights: np.ndarray | None,
+                     grid: np.ndarray | None = None, sd: bool = True,
+                     prior: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+    """Fit a batch of texels.
+
+    Parameters
+    ----------
+    y : (B, N, 3) radiance; views : (B, N, 3) unit directions to the cameras;
+    omega : (B, N) observation weights (0 where not observed);
+    points : (B, 3) texel centres (mm); lights_mm : (J, 3);
+    weights : (J, 3) relative intensities of the lights, or None: one specular
+        amplitude per light and channel is fitted instead of a shared ``Ks`` (the pilot
+        fit of :func:`light_weights`).
+    grid : the alphas searched (:func:`alpha_grid`); sd : False: only ``alpha``,
+        ``coeffs`` (B, 1 + Q, 3) and ``rss``.
+    prior : Gaussian priors per texel (shared ``Ks`` only): ``u_mean``, ``u_var`` (B,)
+        on ln alpha, ``ks_mean``, ``ks_var`` (B, 3) on Ks (:func:`neighbour_priors`);
+        the data's residuals are scaled by each channel's residual variance of the
+        texel's own fit, so both terms are in units of their own sd. The sds returned
+        are the posterior's (data and prior combined).
+
+    Returns
+    -------
+    dict: ``params`` (B, ``SV_SIZE``) (with ``weights`` None, ``Ks`` of the first light),
+    ``ks`` (B, J, 3) the specular amplitude per light (``Ks w_j``), ``sd`` (B,
+    ``SV_SIZE``) standard deviations (alpha's from the curvature of the profile), ``rss``
+    (B,) the weighted residual sum, ``dof`` (B,) degrees of freedom.
+    """
+    grid = alpha_grid() if grid is None else np.asarray(grid, float)
+    y = np.asarray(y, float)
+    B, N, _ = y.shape
+    l, e = light_terms(points, lights_mm)  # (B, J, 3), (B, J)
+    J = e.shape[1]
+    shared = weights is not None
+    w = np.asarray(weights, float) if shared else np.ones((J, 3))
+    e_w = e @ w  # (B, 3)
+
+    # the half vectors do not depend on alpha: their cosines once for every alpha tried
+    v = np.asarray(views, float)[:, :, None, :]
+    h = v + l[:, None]
+    n_h = h[..., 2] / np.maximum(np.linalg.norm(h, axis=-1), 1e-12)  # (B, N, J)
+    n_v = np.broadcast_to(v[..., 2], n_h.shape)
+    n_l = np.broadcast_to(l[:, None, :, 2], n_h.shape)
+
+    def bases(alpha, sel=slice(None)):
+        a = np.asarray(alpha, float).reshape(-1, 1, 1)
+        s = e[sel][:, None, :] * ggx_vis(n_h[sel], n_v[sel], n_l[sel], a)  # (B, N, J)
+        if shared:
+            return (s @ w)[:, :, None, :]  # (B, N, 1, 3)
+        return np.broadcast_to(s[..., None], s.shape + (3,))
+
+    prof = np.empty((B, len(grid)))
+    for g, a in enumerate(grid):
+        prof[:, g] = _amplitudes(y, omega, e_w, bases(np.full(B, a)))[1].sum(1)
+    u = np.log(grid)
+    amp_prior = None
+    if prior is not None:
+        if not shared:
+            raise ValueError("priors need the lights' intensities (a shared Ks)")
+        # each channel's residual variance of the texel's own best fit
+        own = grid[np.argmin(prof, 1)]
+        rss_own = _amplitudes(y, omega, e_w, bases(own))[1]
+        nobs = np.maximum((omega > 0).sum(1) - 2, 1)[:, None]
+        scale = np.einsum("bn,bnc->bc", omega, y * y) / np.maximum((omega > 0).sum(1), 1)[:, None]
+        sig2 = np.maximum(rss_own / nobs, 1e-8 * scale + 1e-30)  # (B, 3)
+        amp_prior = (np.nan_to_num(prior["ks_mean"]),
+                     np.where(np.isfinite(prior["ks_mean"]), sig2 / prior["ks_var"], 0.0))
+        upen = np.where(np.isfinite(prior["u_mean"])[:, None],
+                        (u[None] - np.nan_to_num(prior["u_mean"])[:, None]) ** 2
+                        / prior["u_var"][:, None], 0.0)
+        for g, a in enumerate(grid):
+            rss_g = _amplitudes(y, omega, e_w, bases(np.full(B, a)), amp_prior)[1]
+            prof[:, g] = (rss_g / sig2).sum(1) + upen[:, g]
+    # a parabola in log alpha through the best grid point and its neighbours
+    k = np.clip(np.argmin(prof, 1), 1, len(grid) - 2)
+    f0, f1, f2 = (prof[np.arange(B), k + d] for d in (-1, 0, 1))
+    h = u[1] - u[0]
+    curv = (f0 - 2 * f1 + f2) / (h * h)  # second derivative
+    slope = (f2 - f0) / (2 * h)
+    step = np.where(curv > 0, -slope / np.where(curv > 0, curv, 1), 0.0)
+    u_best = u[k] + np.clip(step, -h, h)
+    at_edge = np.argmin(prof, 1)
+    u_best = np.where((at_edge == 0) | (at_edge == len(grid) - 1), u[at_edge], u_best)
+    alpha = np.exp(u_best)
+
+    def objective(alpha, sel=slice(None)):
+        ap = None if amp_prior is None else (amp_prior[0][sel], amp_prior[1][sel])
+        c, rss, G = _amplitudes(y[sel], omega[sel], e_w[sel], bases(alpha, sel), ap)
+        if amp_prior is None:
+            return c, rss, G, rss.sum(1)
+        pen = (rss / sig2[sel]).sum(1)
+        pen += np.where(np.isfinite(prior["u_mean"][sel]),
+                        (np.log(alpha) - np.nan_to_num(prior["u_mean"][sel])) ** 2
+                        / prior["u_var"][sel], 0.0)
+        return c, rss, G, pen
+
+    c, rss, G, obj = objective(alpha)
+    worse = obj > prof.min(1)  # the parabola missed: keep the grid's best
+    if worse.any():
+        alpha[worse] = grid[np.argmin(prof[worse], 1)]
+        c[worse], rss[worse], G[worse], _ = objective(alpha[worse], worse)
+    if not sd:
+        return {"alpha": alpha, "coeffs": c, "rss": rss.sum(1)}
+    nobs = (omega > 0).sum(1)
+    Q = c.shape[1] - 1
+    dof = np.maximum(3 * nobs - (3 * (1 + Q) + 1), 1)
+    sd_all = _sandwich_sd(y, omega, e_w, c, lambda a: bases(a), alpha)
+    sd_c = sd_all[:, :-1].reshape(B, 3, 1 + Q)  # per channel: Kd, amplitudes
+    sd_u = sd_all[:, -1]
+    if prior is not None:  # the posterior's: data and prior combined
+        with np.errstate(divide="ignore"):
+            has = np.isfinite(prior["u_mean"])
+            sd_u = np.where(has, 1 / np.sqrt(1 / sd_u ** 2 + 1 / prior["u_var"]), sd_u)
+            hk = np.isfinite(prior["ks_mean"])
+            sd_c[:, :, 1] = np.where(hk, 1 / np.sqrt(1 / sd_c[:, :, 1] ** 2
+                                                     + 1 / prior["ks_var"]), sd_c[:, :, 1])
+    params = np.empty((B, SV_SIZE))
+    params[:, SV_KD] = c[:, 0]
+    params[:, SV_KS] = c[:, 1]
+    params[:, SV_ALPHA] = alpha
+    sd = np.empty((B, SV_SIZE))
+    sd[:, SV_KD] = sd_c[:, :, 0]
+    sd[:, SV_KS] = sd_c[:, :, 1]
+    sd[:, SV_ALPHA] = alpha * sd_u
+    ks = (c[:, 1:2] * w[None]) if shared else c[:, 1:]
+    return {"params": params, "ks": ks, "sd": sd, "sd_ks": sd_c[:, :, 1:].swapaxes(1, 2),
+            "rss": rss.sum(1), "dof": dof}
+
+
+def _sandwich_sd(y, omega, e_w, c, bases, alpha, rel_step: float = 1e-3) -> np.ndarray:
+    """(B, 3 (1 + Q) + 1) standard deviations of each channel's amplitudes (Kd, then the
+    Q specular ones) and of ln alpha: the sandwich ``A^-1 (J^T W diag(r^2) W J) A^-1``,
+    ``A = J^T W J``, robust to noise that grows with the radiance (a highlight's views
+    are noisier than the rest), with MacKinnon and White's HC3 leverage correction
+    ``r_i / (1 - h_ii)``."""
+    B, N, _ = y.shape
+    Q = c.shape[1] - 1
+    S = bases(alpha)  # (B, N, Q, 3)
+    dS = (bases(alpha * math.exp(rel_step)) - bases(alpha * math.exp(-rel_step))) \
+        / (2 * rel_step)
+    P = 3 * (1 + Q) + 1
+    Jm = np.zeros((B, N, 3, P))
+    for ch in range(3):
+        Jm[:, :, ch, ch * (1 + Q)] = e_w[:, None, ch]
+        Jm[:, :, ch, ch * (1 + Q) + 1: (ch + 1) * (1 + Q)] = S[..., ch]
+        Jm[:, :, ch, -1] = np.einsum("bnq,bq->bn", dS[..., ch], c[:, 1:, ch])
+    r = y - (c[:, 0] * e_w)[:, None, :] - np.einsum("bnqc,bqc->bnc", S, c[:, 1:])
+    Jm = Jm.reshape(B, N * 3, P)
+    wv = np.repeat(omega, 3, axis=1)  # (B, 3N)
+    rv = r.reshape(B, N * 3)
+    A = np.einsum("bkp,bk,bkq->bpq", Jm, wv, Jm)
+    ridge = 1e-12 * np.maximum(np.trace(A, axis1=1, axis2=2), 1e-300)[:, None, None]
+    Ai = np.linalg.pinv(A + ridge * np.eye(P))
+    # HC3: each residual over its leverage's complement, so that a view that alone
+    # draws the highlight (leverage near 1) says how little the rest pin it down
+    h = np.clip(np.einsum("bkp,bpq,bkq->bk", Jm, Ai, Jm) * wv, 0.0, 0.99)
+    M = np.einsum("bkp,bk,bkq->bpq", Jm, wv * wv * (rv / (1 - h)) ** 2, Jm)
+    cov = Ai @ M @ Ai
+    return np.sqrt(np.clip(np.diagonal(cov, axis1=1, axis2=2), 0, None))
+
+
+def _profile_objective(y, views, omega, points, lights_mm, grid) -> float:
+    """Sum over texels of each one's least weighted residual (each light its own
+    specular amplitude) relative to its weighted sum of squares: scale-free, so that
+    a bright texel does not outweigh a dark one."""
+    r = fit_svbrdf_batch(y, views, omega, points, lights_mm, None, grid=grid, sd=False)
+    ss = np.einsum("bn,bnc->b", omega, y * y)
+    return float(np.sum(r["rss"] / np.maximum(ss, 1e-30)))
+
+
+def refine_lights(y: np.ndarray, views: np.ndarray, omega: np.ndarray, points: np.ndarray,
+                  lights_mm: np.ndarray, reach: float = 0.5, max_evals: int = 200,
+                  ) -> tuple[np.ndarray, dict]:
+    """The light positions (J, 3) that let the SVBRDF explain a sample of texels best.
+
+    A light found from Phong lobes is biased (a Phong lobe fitted to a microfacet
+    highlight leans toward grazing, so its mirror ray falls short of the light); with
+    the microfacet model the highlights' positions across the map say where the light
+    is. Minimises :func:`_profile_objective` over the positions with nlopt's BOBYQA
+    (bounded, derivative-free), each coordinate within ``reach`` times the light's
+    distance from the sample's centre of its start.
+
+    Parameters
+    ----------
+    y, views : (B, N, 3); omega : (B, N); points : (B, 3) mm; lights_mm : (J, 3) start.
+
+    Returns
+    -------
+    (J, 3) positions and a record: ``start`` and ``final`` objective, ``evals``.
+    """
+    x0 = np.asarray(lights_mm, float).ravel()
+    centre = np.asarray(points, float).mean(0)
+    dist = np.repeat(np.linalg.norm(np.asarray(lights_mm, float) - centre, axis=1), 3)
+    lo, hi = x0 - reach * dist, x0 + reach * dist
+    lo[2::3] = np.maximum(lo[2::3], 1e-3 * dist[2::3])  # above the surface
+    grid = alpha_grid(REFINE_GRID_STEPS)
+
+    def f(x, grad):
+        return _profile_objective(y, views, omega, points, x.reshape(-1, 3), grid)
+
+    opt = nlopt.opt(nlopt.LN_BOBYQA, len(x0))
+    opt.set_lower_bounds(lo)
+    opt.set_upper_bounds(hi)
+    opt.set_min_objective(f)
+    opt.set_initial_step(0.05 * dist)
+    opt.set_xtol_abs(5e-4 * dist)  # a tenth of the 0.5 % a light is placed to at best
+    opt.set_maxeval(max_evals)
+    start = f(x0, np.empty(0))
+    try:
+        x = opt.optimize(x0)
+    except (nlopt.RoundoffLimited, RuntimeError):
+        x = x0
+    final = f(x, np.empty(0))
+    if final > start:
+        x, final = x0, start
+    return x.reshape(-1, 3), {"start": start, "final": final,
+                              "evals": int(opt.get_numevals())}
+
+
+def light_weights(ks: np.ndarray, sd_ks: np.ndarray, min_z: float = 3.0) -> np.ndarray:
+    """(J, 3) relative intensities of the lights (the first's 1) from a pilot fit's
+    per-light specular amplitudes ``ks`` (B, J, 3) and their sds: per channel, the
+    median over the texels where both amplitudes stand ``min_z`` sds above zero of
+    ``ks_j / ks_1`` (each texel's Fresnel and albedo cancel in the ratio). 1 where too
+    few texels say."""
+    ks, sd = np.asarray(ks, float), np.asarray(sd_ks, float)
+    J = ks.shape[1]
+    w = np.ones((J, 3))
+    sig = ks > min_z * np.nan_to_num(sd, nan=np.inf)
+    for j in range(1, J):
+        for c in range(3):
+            on = sig[:, 0, c] & sig[:, j, c]
+            if on.sum() >= 16:
+                w[j, c] = float(np.median(ks[on, j, c] / ks[on, 0, c]))
+    return w
+
+
+def svbrdf_outputs() -> dict[str, tuple[tuple[int, ...], str, float]]:
+    """Arrays of an svbrdf fit store: name -> (trailing shape, dtype, fill value)."""
+    return {
+        FitArray.PARAMS: ((SV_SIZE,), "float32", float("nan")),
+        FitArray.SD: ((SV_SIZE,), "float32", float("nan")),
+        FitArray.RMSE: ((3,), "float32", float("nan")),
+        FitArray.MPR: ((3,), "float32", float("nan")),
+        FitArray.CHI2: ((), "float32", float("nan")),
+        FitArray.STATUS: ((), "int8", int(FitStatus.NOT_FITTED)),
+    }
+
+
+def fit_svbrdf_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, *,
+                    origin: tuple[int, int], grid: tuple[int, int, float, float],
+                    lights_mm: np.ndarray, weights: np.ndarray,
+                    noise: np.ndarray | None = None, batch: int = 1024,
+                    prior: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+    """Fit every texel of a tile (:func:`fit_svbrdf_batch`).
+
+    Parameters
+    ----------
+    radiance, direction : (t, u, N, 3); valid : (t, u, N) bool.
+    origin : the tile's first row and column in the map; grid : the map's ``(S, T,
+        width_mm, height_mm)`` (texel centres, :func:`parammap.geometry.texel_centres`).
+    lights_mm : (J, 3); weights : (J, 3) relative intensities (:func:`light_weights`).
+    noise : (t, u, N) relative sd per observation (weights, chi-square), or None.
+    prior : per texel (t u, ...) priors of :func:`fit_svbrdf_batch`, or None.
+
+    Returns
+    -------
+    dict of (t, u, ...) arrays as :func:`svbrdf_outputs`.
+    """
+    t, u, N, _ = radiance.shape
+    out = {k: np.full((t, u) + shp, fill, dtype)
+           for k, (shp, dtype, fill) in svbrdf_outputs().items()}
+    flat = {k: v.reshape((t * u,) + v.shape[2:]) for k, v in out.items()}
+    S, T, width, height = grid
+    r0, c0 = origin
+    pts = texel_centres(S, T, width, height, np.arange(r0, r0 + t),
+                        np.arange(c0, c0 + u)).reshape(-1, 3)
+    L = np.asarray(radiance, float).reshape(t * u, N, 3)
+    V = np.asarray(direction, float).reshape(t * u, N, 3)
+    W = np.asarray(valid, bool).reshape(t * u, N) & np.isfinite(L).all(-1) \
+        & np.isfinite(V).all(-1) & (V[..., 2] > 0)
+    NZ = None if noise is None else np.asarray(noise, float).reshape(t * u, N)
+    omega = noise_weights(NZ, W)
+    L = np.where(W[..., None], L, 0.0)
+    V = np.where(W[..., None], V, np.array([0.0, 0.0, 1.0]))
+    nobs = W.sum(1)
+    flat[FitArray.STATUS][nobs < MIN_OBS] = FitStatus.TOO_FEW
+    todo = np.flatnonzero(nobs >= MIN_OBS)
+    for s0 in range(0, len(todo), batch):
+        sel = todo[s0:s0 + batch]
+        try:
+            pr = None if prior is None else {k: v[sel] for k, v in prior.items()}
+            r = fit_svbrdf_batch(L[sel], V[sel], omega[sel], pts[sel], lights_mm, weights,
+                                 prior=pr)
+        except (np.linalg.LinAlgError, FloatingPointError):
+            flat[FitArray.STATUS][sel] = FitStatus.FAILED
+            continue
+        P = r["params"]
+        fitted = svbrdf_eval(np.repeat(P, N, 0), np.repeat(pts[sel], N, 0),
+                             V[sel].reshape(-1, 3), lights_mm, weights).reshape(len(sel), N, 3)
+        flat[FitArray.PARAMS][sel] = P
+        flat[FitArray.SD][sel] = r["sd"]
+        res = np.where(W[sel][..., None], fitted - L[sel], 0.0)
+        flat[FitArray.RMSE][sel] = np.sqrt((res ** 2).sum(1) / nobs[sel][:, None])
+        flat[FitArray.MPR][sel] = mean_percentage_residual(L[sel], fitted, W[sel])
+        if NZ is not None:
+            flat[FitArray.CHI2][sel] = reduced_chi2(L[sel], fitted, NZ[sel], W[sel], SV_SIZE)
+        flat[FitArray.STATUS][sel] = np.where(np.isfinite(P).all(1), FitStatus.OK,
+                                              FitStatus.FAILED)
+    return out
+
+
+# ---------------------------------------------------------------------------------
+# Neighbours: a texel whose own views leave alpha or Ks undetermined takes its region's
+
+POOL_RADIUS = 4  # texels: the (2 r + 1)^2 window the neighbours' values come from
+POOL_MIN = 5  # determined neighbours needed
+WALD_Z = 2.576  # two-sided 99 %: a texel's own value this far from the neighbours' stays
+KS_MIN_Z = 3.0  # a determined highlight: Ks (luminance) this many sds above zero
+
+
+def _windows(a: np.ndarray, r: int) -> np.ndarray:
+    """(T, S, ...) -> (T - 2r, S - 2r, (2r + 1)^2, ...) neighbourhoods."""
+    w = sliding_window_view(a, (2 * r + 1, 2 * r + 1), axis=(0, 1))
+    w = np.moveaxis(w, (-2, -1), (2, 3))
+    return w.reshape(w.shape[:2] + (-1,) + a.shape[2:])
+
+
+def neighbour_priors(P: np.ndarray, SD: np.ndarray, ok: np.ndarray, r: int = POOL_RADIUS,
+                     ) -> dict[str, np.ndarray]:
+    """Empirical-Bayes priors on ln alpha and Ks from each texel's neighbours.
+
+    Among the texels of its (2 r + 1)^2 window (itself left out) whose own fit
+    determined a highlight (Ks at least ``KS_MIN_Z`` sds above zero, alpha's sd
+    known), the median is the prior's mean and its variance the spread between them
+    (the robust variance less their own sampling variance) plus the median's own,
+    ``pi / 2 s^2 / n``: within a uniform patch the prior is as tight as the patch is
+    uniform; across a material's edge it widens.
+
+    Parameters
+    ----------
+    P, SD : (T, S, SV_SIZE) parameters and sds (NaN where not fitted); ok : (T, S).
+
+    Returns
+    -------
+    ``u_mean``, ``u_var`` (T - 2r, S - 2r) for ln alpha, ``ks_mean``, ``ks_var``
+    (T - 2r, S - 2r, 3), ``n`` the determined neighbours (the windows' centres are
+    the texels r from the edges of the arrays given).
+    """
+    lum = LUMINANCE
+    ks, sks = P[..., SV_KS], SD[..., SV_KS]
+    det = ok & np.isfinite(SD[..., SV_ALPHA]) & (ks @ lum > KS_MIN_Z * np.sqrt(
+        np.nan_to_num(sks, nan=np.inf) ** 2 @ lum ** 2))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.where(det, np.log(P[..., SV_ALPHA]), np.nan)
+        su = np.where(det, SD[..., SV_ALPHA] / P[..., SV_ALPHA], np.nan)
+    ksd = np.where(det[..., None], ks, np.nan)
+    sksd = np.where(det[..., None], sks, np.nan)
+    centre = (2 * r + 1) ** 2 // 2
+    keep = np.ones((2 * r + 1) ** 2, bool)
+    keep[centre] = False
+    out = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows
+        for name, v, sv in (("u", u, su), ("ks", ksd, sksd)):
+            W = _windows(v, r)[:, :, keep]
+            SW = _windows(sv, r)[:, :, keep]
+            med = np.nanmedian(W, axis=2)
+            mad = 1.4826 * np.nanmedian(np.abs(W - med[:, :, None]), axis=2)
+            own = np.nanmedian(SW ** 2, axis=2)
+            n = np.isfinite(W).sum(2)
+            tau2 = np.maximum(mad ** 2 - own, 0.0)
+            out[f"{name}_mean"] = med
+            out[f"{name}_var"] = tau2 + np.pi / 2 * mad ** 2 / np.maximum(n, 1) + 1e-12
+        out["n"] = np.isfinite(_windows(u, r)[:, :, keep]).sum(2)
+    return out
+
+
+def pool_svbrdf_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
+                     direction: np.ndarray, valid: np.ndarray, offset: tuple[int, int], *,
+                     origin: tuple[int, int], grid: tuple[int, int, float, float],
+                     lights_mm: np.ndarray, weights: np.ndarray,
+                     noise: np.ndarray | None = None) -> dict[str, np.ndarray] | None:
+    """The repair pass of an svbrdf fit (:func:`parammap.stages.fit.fit_map`): every
+    texel of a tile refitted with its neighbours' priors on ln alpha and Ks
+    (:func:`neighbour_priors`, from the tile pass's results over the tile and its halo
+    ``fields``), unless its own values reject them (a two-sided 99 % Wald test on ln
+    alpha or on Ks's luminance: a texel at a material's edge, or a scratch, keeps its
+    own). A texel that saw its highlight in one view, or in none, takes its region's
+    roughness and specular amplitude: the highlight is drawn as smooth as the region.
+
+    Returns the tile's arrays as :func:`fit_svbrdf_tile` plus ``changed``, or None."""
+    r = POOL_RADIUS
+    P, SD = fields[FitArray.PARAMS].astype(float), fields[FitArray.SD].astype(float)
+    ok = fields[FitArray.STATUS] == FitStatus.OK
+    t, u = radiance.shape[:2]
+    i0, j0 = offset
+    pad = ((r, r), (r, r), (0, 0))
+    pri = neighbour_priors(np.pad(P, pad, constant_values=np.nan),
+                           np.pad(SD, pad, constant_values=np.nan),
+                           np.pad(ok, pad[:2], constant_values=False), r)
+    pri = {k: v[i0:i0 + t, j0:j0 + u].reshape((t * u,) + v.shape[2:]) for k, v in pri.items()}
+    own = P[i0:i0 + t, j0:j0 + u].reshape(t * u, -1)
+    sd_own = SD[i0:i0 + t, j0:j0 + u].reshape(t * u, -1)
+    lum = LUMINANCE
+    with np.errstate(divide="ignore", invalid="ignore"):
+        su = sd_own[:, SV_ALPHA] / own[:, SV_ALPHA]
+        du = np.abs(np.log(own[:, SV_ALPHA]) - pri["u_mean"])
+        rej_u = du > WALD_Z * np.sqrt(su ** 2 + pri["u_var"])
+        dk = np.abs((own[:, SV_KS] - pri["ks_mean"]) @ lum)
+        rej_k = dk > WALD_Z * np.sqrt((sd_own[:, SV_KS] ** 2 + pri["ks_var"]) @ lum ** 2)
+    take = ok[i0:i0 + t, j0:j0 + u].ravel() & (pri["n"] >= POOL_MIN) \
+        & np.isfinite(pri["u_mean"]) & ~(rej_u & np.isfinite(su)) & ~(rej_k & np.isfinite(dk))
+    if not take.any():
+        return None
+    base = {k: fields[k][i0:i0 + t, j0:j0 + u].copy() for k in svbrdf_outputs()}
+    out = fit_svbrdf_tile(radiance, direction, valid & take.reshape(t, u, 1), origin=origin,
+                          grid=grid, lights_mm=lights_mm, weights=weights, noise=noise,
+                          prior={k: v for k, v in pri.items() if k != "n"})
+    sel = take.reshape(t, u) & (out[FitArray.STATUS] == FitStatus.OK)
+    for k in base:
+        base[k][sel] = out[k][sel]
+    base[FitArray.CHANGED] = sel.astype(np.int8)
+    return base

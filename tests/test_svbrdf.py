@@ -1,0 +1,177 @@
+"""The microfacet SVBRDF (``svbrdf-ggx``, issue 48 item 2): the per-texel fit against
+known parameters, its uncertainties, the lights' positions refined and their relative
+intensities, the parameter map's round trip and the stage on the tiny capture."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from parammap.conventions import SV_ALPHA, SV_KD, SV_KS, SV_SIZE
+from parammap.models.svbrdf import (
+    fit_svbrdf_batch,
+    light_terms,
+    light_weights,
+    refine_lights,
+    svbrdf_eval,
+)
+
+
+def _rig(rng, B: int, N: int, max_zenith_deg: float, width: float = 200.0):
+    """B texels over a width x 0.75 width surface, each seen from the same N
+    directions spread over a cap (a jittered spiral)."""
+    k = np.arange(N) + 0.5
+    z = 1 - (1 - np.cos(np.radians(max_zenith_deg))) * k / N
+    phi = k * np.pi * (3 - np.sqrt(5)) + rng.uniform(0, 0.2, N)
+    r = np.sqrt(1 - z * z)
+    v = np.stack([r * np.cos(phi), r * np.sin(phi), z], -1)
+    pts = np.c_[rng.uniform(0, width, B), rng.uniform(0, 0.75 * width, B), np.zeros(B)]
+    return np.broadcast_to(v, (B, N, 3)).copy(), pts
+
+
+def _render(P, pts, V, lights, w):
+    B, N, _ = V.shape
+    return svbrdf_eval(np.repeat(P, N, 0), np.repeat(pts, N, 0), V.reshape(-1, 3), lights,
+                       w).reshape(B, N, 3)
+
+
+@pytest.mark.parametrize(("lights", "N", "zenith"), [
+    ([[-100.0, 200.0, 400.0]], 80, 70.0),
+    ([[300.0, -50.0, 350.0], [-80.0, 160.0, 500.0]], 50, 60.0),
+])
+def test_parameters_recovered_with_honest_sds(lights, N, zenith):
+    """Texels rendered by the model itself, 2 % multiplicative noise: GGX alpha (0.03 to
+    0.5), Kd and Ks within a few percent at the median, and the sandwich sds
+    calibrated (the spread of the errors over their sd between 0.6 and 2)."""
+    rng = np.random.default_rng(1)
+    B = 400
+    V, pts = _rig(rng, B, N, zenith)
+    lights = np.array(lights)
+    w = np.ones((len(lights), 3))
+    if len(lights) > 1:
+        w[1] = [0.6, 0.7, 0.8]
+    P = np.c_[rng.uniform(0.05, 0.5, (B, 3)), rng.uniform(0.2, 2.0, (B, 3)),
+              np.exp(rng.uniform(np.log(0.03), np.log(0.5), B))]
+    y = _render(P, pts, V, lights, w) * (1 + 0.02 * rng.standard_normal((B, N, 3)))
+    r = fit_svbrdf_batch(y, V, np.ones((B, N)), pts, lights, w)
+    Q = r["params"]
+    assert Q.shape == (B, SV_SIZE)
+    rel = {k: np.median(np.abs(Q[:, s] / P[:, s] - 1)) for k, s in
+           (("kd", SV_KD), ("ks", SV_KS), ("alpha", SV_ALPHA))}
+    assert rel["alpha"] < 0.02 and rel["kd"] < 0.03 and rel["ks"] < 0.03, rel
+    for s in (SV_KD, SV_KS, SV_ALPHA):
+        z = (Q[:, s] - P[:, s]) / r["sd"][:, s]
+        assert 0.6 < np.std(z) < 2.0, (s, np.std(z))
+
+
+def test_analytic_generator_ggx_recovered():
+    """The analytic generator's own GGX patches (separable Smith masking, its own
+    normalisation, no light fall-off) give the fit's alpha within 3 %: the model is the
+    microfacet physics, not our code's quirks."""
+    from parammap.synth.scene import _ggx
+
+    rng = np.random.default_rng(2)
+    B, N = 200, 60
+    V, pts = _rig(rng, B, N, 65.0)
+    light = np.array([[60.0, 250.0, 300.0]])
+    alpha = rng.uniform(0.08, 0.45, B)
+    l, _ = light_terms(pts, light)
+    h = V + l[:, 0][:, None]
+    h /= np.linalg.norm(h, axis=-1, keepdims=True)
+    f = _ggx(h[..., 2], V[..., 2], l[:, 0, 2][:, None], alpha[:, None])
+    y = 0.3 + 0.8 * f[..., None] * np.array([0.9, 0.75, 0.5])
+    r = fit_svbrdf_batch(y, V, np.ones((B, N)), pts, light, np.ones((1, 3)))
+    assert np.median(np.abs(r["params"][:, SV_ALPHA] / alpha - 1)) < 0.03
+
+
+def test_lights_refined_and_their_intensities():
+    """Two lights started 15 % of their distance off: the refined positions within 2 %
+    of the truth; their relative intensities from the per-light amplitudes within 3 %."""
+    rng = np.random.default_rng(3)
+    B, N = 600, 60
+    V, pts = _rig(rng, B, N, 70.0)
+    truth = np.array([[260.0, 40.0, 380.0], [-60.0, 170.0, 450.0]])
+    w = np.array([[1.0, 1.0, 1.0], [0.5, 0.6, 0.8]])
+    P = np.c_[rng.uniform(0.05, 0.4, (B, 3)), rng.uniform(0.5, 2.0, (B, 3)),
+              rng.uniform(0.1, 0.35, B)]
+    y = _render(P, pts, V, truth, w) * (1 + 0.01 * rng.standard_normal((B, N, 3)))
+    ctr = pts.mean(0)
+    dist = np.linalg.norm(truth - ctr, axis=1)
+    off = rng.standard_normal(truth.shape)
+    start = truth + 0.15 * dist[:, None] * off / np.linalg.norm(off, axis=1, keepdims=True)
+    found, rec = refine_lights(y, V, np.ones((B, N)), pts, start)
+    err = np.linalg.norm(found - truth, axis=1) / dist
+    assert np.all(err < 0.02), (err, rec)
+    assert rec["final"] < rec["start"]
+    r = fit_svbrdf_batch(y, V, np.ones((B, N)), pts, found, None)
+    assert np.allclose(light_weights(r["ks"], r["sd_ks"]), w, rtol=0.03)
+
+
+def test_param_map_round_trip_and_render(tmp_path):
+    """An svbrdf map written to EXR and read back: channels, sds and its lights in the
+    header; rendered through the general evaluator like any map; a map whose header
+    lost its lights refuses to render with one line."""
+    from parammap.errors import InputError
+    from parammap.render import evaluate
+    from parammap.stores.params import ParamMap, read_param_map, write_param_map
+
+    rng = np.random.default_rng(4)
+    P = np.c_[rng.uniform(0.1, 0.5, (6, 5, 3)), rng.uniform(0.2, 1, (6, 5, 3)),
+              rng.uniform(0.05, 0.5, (6, 5, 1))].astype(np.float32)
+    lights = {"position_mm": [[10.0, 20.0, 300.0]], "weights": [[1.0, 1.0, 1.0]]}
+    pm = ParamMap("svbrdf", P, 50.0, 60.0, attrs={"lights": json.dumps(lights)},
+                  sd=np.full_like(P, 0.01))
+    back = read_param_map(write_param_map(tmp_path / "svbrdf-ggx.exr", pm))
+    assert back.model == "svbrdf" and np.array_equal(back.params, P)
+    assert back.sd is not None and np.allclose(back.sd, 0.01)
+    pos, w = back.lights
+    assert np.allclose(pos, [[10, 20, 300]]) and np.allclose(w, 1)
+    pts = np.array([[5.0, 5.0, 0.0], [40.0, 50.0, 0.0]])
+    d = np.array([[0.0, 0.0, 1.0], [0.3, 0.1, 0.95]])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    got = evaluate("svbrdf", P[0, :2].reshape(2, -1), d, pts, back.lights)
+    want = svbrdf_eval(P[0, :2].reshape(2, -1), pts, d, pos, w)
+    assert np.allclose(got, want) and (got > 0).all()
+    with pytest.raises(InputError, match="lights"):
+        evaluate("svbrdf", P[0, :2].reshape(2, -1), d)
+
+
+def test_stage_on_the_tiny_capture(tiny_processed, tmp_path):
+    """``parammap lights`` then ``parammap fit-svbrdf`` on the tiny capture (two point
+    lights; Phong, Blinn and GGX patches): the lights refined under the microfacet
+    model within 10 % of the truth (mostly Phong lobes, which no microfacet lobe
+    matches, pull them 7 % off; on the physically based presets they land within 1-3 %),
+    every texel fitted, the map exported and its
+    held-out renders better than diffuse on every held-out view; without lights the
+    stage says which file it lacks."""
+    import shutil
+
+    from parammap.cli import main
+    from parammap.synth.scene import load_scene
+
+    cap, truth, proc = tiny_processed
+    work = tmp_path / "proc"
+    shutil.copytree(proc, work)
+    assert main(["fit-svbrdf", "--out", str(work)]) == 2  # no lights.yaml yet
+    assert main(["fit-mh", "--out", str(work), "--lobes", "auto"]) == 0
+    assert main(["lights", "--out", str(work)]) == 0
+    assert main(["fit-svbrdf", "--out", str(work), "--figures", str(tmp_path / "fig")]) == 0
+    m = json.loads((work / "metrics" / "fit-svbrdf-ggx.json").read_text())
+    assert m["failed"] == 0 and m["fitted"] == m["texels"]
+    assert (tmp_path / "fig" / "svbrdf-ggx_params.png").is_file()
+    scene = load_scene(truth / "scene.npz")
+    found = np.array(m["light_positions"]["refined_mm"])
+    centre = np.array([scene.width_mm / 2, scene.height_mm / 2, 0.0])
+    for L in scene.light_pos:
+        err = np.linalg.norm(found - L, axis=1).min()
+        assert err < 0.1 * np.linalg.norm(L - centre), (found, L)
+    models = ["svbrdf-ggx", "diffuse"]
+    assert main(["export", "--out", str(work), *[x for k in models for x in ("--model", k)]]) == 0
+    assert main(["holdout", str(cap), "--out", str(work),
+                 *[x for k in models for x in ("--model", k)]]) == 0
+    h = json.loads((work / "metrics" / "holdout.json").read_text())
+    for v in h["views"].values():
+        assert v["models"]["svbrdf-ggx"]["mean_diff_8bit"] < \
+            v["models"]["diffuse"]["mean_diff_8bit"], v
