@@ -430,7 +430,6 @@ def test_relightable_map_matches_python_renderer_as_its_light_moves(svbrdf_viewe
     light sliders): within 2 levels on average both times, and the moved light changes
     the picture."""
     import json
-
     from dataclasses import replace
 
     cap, out, vdir = svbrdf_viewer_dir
