@@ -17,6 +17,7 @@ from parammap.models.svbrdf import (
     refine_lights,
     svbrdf_eval,
 )
+from parammap.stores.lights import light_doc
 
 
 def _rig(rng, B: int, N: int, max_zenith_deg: float, width: float = 200.0):
@@ -56,13 +57,13 @@ def test_parameters_recovered_with_honest_sds(lights, N, zenith):
               np.exp(rng.uniform(np.log(0.03), np.log(0.5), B))]
     y = _render(P, pts, V, lights, w) * (1 + 0.02 * rng.standard_normal((B, N, 3)))
     r = fit_svbrdf_batch(y, V, np.ones((B, N)), pts, lights, w)
-    Q = r["params"]
+    Q = r["estimate"]
     assert Q.shape == (B, SV_SIZE)
     rel = {k: np.median(np.abs(Q[:, s] / P[:, s] - 1)) for k, s in
            (("kd", SV_KD), ("ks", SV_KS), ("alpha", SV_ALPHA))}
     assert rel["alpha"] < 0.02 and rel["kd"] < 0.03 and rel["ks"] < 0.03, rel
     for s in (SV_KD, SV_KS, SV_ALPHA):
-        z = (Q[:, s] - P[:, s]) / r["sd"][:, s]
+        z = (Q[:, s] - P[:, s]) / r["stdev"][:, s]
         assert 0.6 < np.std(z) < 2.0, (s, np.std(z))
 
 
@@ -83,7 +84,7 @@ def test_analytic_generator_ggx_recovered():
     f = _ggx(h[..., 2], V[..., 2], l[:, 0, 2][:, None], alpha[:, None])
     y = 0.3 + 0.8 * f[..., None] * np.array([0.9, 0.75, 0.5])
     r = fit_svbrdf_batch(y, V, np.ones((B, N)), pts, light, np.ones((1, 3)))
-    assert np.median(np.abs(r["params"][:, SV_ALPHA] / alpha - 1)) < 0.03
+    assert np.median(np.abs(r["estimate"][:, SV_ALPHA] / alpha - 1)) < 0.03
 
 
 def test_lights_refined_and_their_intensities():
@@ -106,7 +107,7 @@ def test_lights_refined_and_their_intensities():
     assert np.all(err < 0.02), (err, rec)
     assert rec["final"] < rec["start"]
     r = fit_svbrdf_batch(y, V, np.ones((B, N)), pts, found, None)
-    assert np.allclose(light_weights(r["ks"], r["sd_ks"]), w, rtol=0.03)
+    assert np.allclose(light_weights(r["ks"], r["stdev_ks"]), w, rtol=0.03)
 
 
 def test_param_map_round_trip_and_render(tmp_path):
@@ -120,7 +121,7 @@ def test_param_map_round_trip_and_render(tmp_path):
     rng = np.random.default_rng(4)
     P = np.c_[rng.uniform(0.1, 0.5, (6, 5, 3)), rng.uniform(0.2, 1, (6, 5, 3)),
               rng.uniform(0.05, 0.5, (6, 5, 1))].astype(np.float32)
-    lights = {"position_mm": [[10.0, 20.0, 300.0]], "weights": [[1.0, 1.0, 1.0]]}
+    lights = light_doc([[10.0, 20.0, 300.0]], [[1.0, 1.0, 1.0]])
     pm = ParamMap("svbrdf", P, 50.0, 60.0, attrs={"lights": json.dumps(lights)},
                   sd=np.full_like(P, 0.01))
     back = read_param_map(write_param_map(tmp_path / "svbrdf-ggx.exr", pm))
@@ -175,3 +176,62 @@ def test_stage_on_the_tiny_capture(tiny_processed, tmp_path):
     for v in h["views"].values():
         assert v["models"]["svbrdf-ggx"]["mean_diff_8bit"] < \
             v["models"]["diffuse"]["mean_diff_8bit"], v
+
+
+def test_metallic_roughness_and_the_gltf_and_materialx_files(tmp_path):
+    """A map of dielectric texels (grey Ks = 0.04 k) and metal ones (coloured Ks, no Kd)
+    in glTF's terms: the scale k found from the dielectrics, their albedo and the
+    metals' F0 as baseColor, metallic 0 and 1, roughness sqrt(alpha); the glTF file
+    read back with pygltflib (its textures match within a level of 8 bits), the
+    MaterialX document valid against the MaterialX standard library."""
+    import cv2
+    import MaterialX as mx
+    import pygltflib
+
+    from parammap.cli import main
+    from parammap.models.svbrdf import metallic_roughness
+    from parammap.stores.params import ParamMap, write_param_map
+
+    rng = np.random.default_rng(5)
+    T, S, k = 12, 16, 7.0
+    albedo = rng.uniform(0.1, 0.8, (T, S, 3))
+    f0 = np.array([1.0, 0.78, 0.34])  # gold
+    metal = np.zeros((T, S), bool)
+    metal[:, 12:] = True
+    P = np.zeros((T, S, SV_SIZE))
+    P[..., SV_KD] = np.where(metal[..., None], 0.0, albedo * k / np.pi)
+    P[..., SV_KS] = np.where(metal[..., None], f0 * k, 0.04 * k)
+    P[..., SV_ALPHA] = rng.uniform(0.02, 0.6, (T, S))
+    mr = metallic_roughness(P)
+    assert mr["scale_from"] == "dielectric" and np.isclose(mr["scale"], k)
+    assert np.allclose(mr["metallic"][~metal], 0) and np.allclose(mr["metallic"][metal], 1)
+    assert np.allclose(mr["base_color"][~metal], albedo[~metal], atol=1e-6)
+    assert np.allclose(mr["base_color"][metal], f0, atol=1e-6)
+    assert np.allclose(mr["roughness"], np.sqrt(P[..., SV_ALPHA]))
+
+    proc = tmp_path / "proc"
+    pm = ParamMap("svbrdf", P.astype(np.float32), 160.0, 120.0, attrs={"lights": json.dumps(
+        light_doc([[0.0, 0.0, 300.0]], [[1.0, 1.0, 1.0]]))})
+    write_param_map(proc / "params" / "svbrdf-ggx.exr", pm)
+    assert main(["material", "--out", str(proc)]) == 0
+    g = pygltflib.GLTF2().load(str(proc / "params" / "svbrdf-ggx.gltf"))
+    mat = g.materials[0].pbrMetallicRoughness
+    uri = g.images[g.textures[mat.metallicRoughnessTexture.index].source].uri
+    mrt = cv2.imread(str(proc / "params" / uri), cv2.IMREAD_UNCHANGED)[..., ::-1]
+    assert mrt.shape == (T, S, 3)
+    assert np.abs(mrt[..., 1] / 255 - mr["roughness"]).max() <= 0.5 / 255 + 1e-9
+    assert np.abs(mrt[..., 2] / 255 - mr["metallic"]).max() <= 0.5 / 255 + 1e-9
+    uri = g.images[g.textures[mat.baseColorTexture.index].source].uri
+    bc = cv2.imread(str(proc / "params" / uri))[..., ::-1] / 255.0
+    lin = np.where(bc <= 0.04045, bc / 12.92, ((bc + 0.055) / 1.055) ** 2.4)
+    assert np.abs(lin - mr["base_color"]).max() < 0.01
+    pts = g.accessors[g.meshes[0].primitives[0].attributes.POSITION]
+    assert np.allclose(pts.max, [0.16, 0.12, 0.0])
+    doc = mx.createDocument()
+    mx.readFromXmlFile(doc, str(proc / "params" / "svbrdf-ggx.mtlx"))
+    lib = mx.createDocument()
+    mx.loadLibraries(mx.getDefaultDataLibraryFolders(), mx.getDefaultDataSearchPath(), lib)
+    doc.setDataLibrary(lib)
+    ok, msg = doc.validate()
+    assert ok, msg
+    assert doc.getMaterialNodes()[0].getName() == "parammap"

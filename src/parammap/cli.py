@@ -112,7 +112,8 @@ def _summary(a: argparse.Namespace) -> int:
 
 
 # stages that read the processed folder, not the capture (their positional argument)
-ON_PROCESSED = ("fit-mh", "fit-sh", "fit-svbrdf", "materials", "advise", "lights", "best", "export")
+ON_PROCESSED = ("fit-mh", "fit-sh", "fit-svbrdf", "material", "materials", "advise",
+                "lights", "best", "export")
 
 
 def _source(a: argparse.Namespace) -> str:
@@ -245,6 +246,14 @@ def _fit_svbrdf(a: argparse.Namespace) -> int:
     full = _stage_config(a)
     m = run_fit(_source(a), a.out, full, model=SVBRDF_MODEL, workers=a.workers)
     _model_figures(a, m["model"], _lobe_texels(full))
+    return 0
+
+
+@_command("material")
+def _material(a: argparse.Namespace) -> int:
+    from .stages.export import run_material
+
+    run_material(_source(a), a.out, _stage_config(a), model=a.model)
     return 0
 
 
@@ -467,6 +476,7 @@ def _parser() -> argparse.ArgumentParser:
                            ("lights", "where the lights are, from an MH fit's lobes"),
                            ("best", "the best model per texel among exported maps"),
                            ("export", "write parameter-map EXRs from fit stores"),
+                           ("material", "a relightable map as glTF 2.0 and MaterialX"),
                            ("holdout", "compare renders with the held-out photos")):
         s = add(name, help=helptext)
         if name in ON_PROCESSED:
@@ -505,6 +515,8 @@ def _parser() -> argparse.ArgumentParser:
                            help="model name (mh-1, sh-lsop-36, diffuse...), repeatable")
         if name == "export":
             s.add_argument("--half", action="store_true", help="half floats (default float32)")
+        if name == "material":
+            s.add_argument("--model", default="svbrdf-ggx", help="the relightable map")
         if name == "fit-sh":
             s.add_argument("--model", default="sh-lsop-36",
                            help="sh-<zh|mirror|lsop|rlsop|wls>-<coefficients>")

@@ -102,6 +102,8 @@ def surface_targets(sid):
     data = [f"{PROC}/{sid}/params/{m}.exr" for m in models() + ["diffuse"]]
     data += [f"{PROC}/{sid}/metrics/{m}.json" for m in ("hdr", "poses", "observation",
                                                         "holdout")]
+    if config["fit"]["svbrdf"]["enabled"]:  # the relightable map for renderers
+        data += [f"{PROC}/{sid}/params/svbrdf-ggx.gltf", f"{PROC}/{sid}/params/svbrdf-ggx.mtlx"]
     return figs + data
 
 

@@ -118,6 +118,24 @@ rule export_params:
         " 2> {log}"
 
 
+rule material:
+    input:
+        exr=f"{PROC}/{{sid}}/params/svbrdf-ggx.exr",
+    output:
+        gltf=f"{PROC}/{{sid}}/params/svbrdf-ggx.gltf",
+        mtlx=f"{PROC}/{{sid}}/params/svbrdf-ggx.mtlx",
+        metrics=f"{PROC}/{{sid}}/metrics/material-svbrdf-ggx.json",
+    params:
+        cli=PARAMMAP,
+        out=lambda wc: f"{PROC}/{wc.sid}",
+    log:
+        "logs/export/{sid}/material.log",
+    conda:
+        "../envs/parammap.yaml"
+    shell:
+        "{params.cli} material --out {params.out} --model svbrdf-ggx 2> {log}"
+
+
 rule export_diffuse:
     input:
         obs=f"{PROC}/{{sid}}/observation.zarr",

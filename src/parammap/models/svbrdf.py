@@ -39,7 +39,8 @@ from .residuals import mean_percentage_residual
 from .weights import noise_weights, reduced_chi2
 
 __all__ = ["ALPHA_RANGE", "MIN_OBS", "alpha_grid", "fit_svbrdf_batch", "fit_svbrdf_tile",
-           "ggx_vis", "light_terms", "light_weights", "neighbour_priors", "pool_svbrdf_tile",
+           "ggx_vis", "light_terms", "light_weights", "metallic_roughness", "neighbour_priors",
+           "pool_svbrdf_tile",
            "refine_lights", "specular_basis", "svbrdf_eval", "svbrdf_outputs"]
 
 #: GGX alpha searched: from a near-mirror (a lobe about 0.3 deg wide) to fully rough.
@@ -204,10 +205,11 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
 
     Returns
     -------
-    dict: ``params`` (B, ``SV_SIZE``) (with ``weights`` None, ``Ks`` of the first light),
-    ``ks`` (B, J, 3) the specular amplitude per light (``Ks w_j``), ``sd`` (B,
-    ``SV_SIZE``) standard deviations (alpha's from the curvature of the profile), ``rss``
-    (B,) the weighted residual sum, ``dof`` (B,) degrees of freedom.
+    dict: ``estimate`` (B, ``SV_SIZE``) (with ``weights`` None, ``Ks`` of the first
+    light), ``ks`` (B, J, 3) the specular amplitude per light (``Ks w_j``), ``stdev``
+    (B, ``SV_SIZE``) standard deviations (HC3 sandwich; with ``prior``, the
+    posterior's), ``stdev_ks`` (B, J, 3), ``rss`` (B,) the weighted residual sum,
+    ``dof`` (B,) degrees of freedom.
     """
     grid = alpha_grid() if grid is None else np.asarray(grid, float)
     y = np.asarray(y, float)
@@ -306,8 +308,8 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
     sd[:, SV_KS] = sd_c[:, :, 1]
     sd[:, SV_ALPHA] = alpha * sd_u
     ks = (c[:, 1:2] * w[None]) if shared else c[:, 1:]
-    return {"params": params, "ks": ks, "sd": sd, "sd_ks": sd_c[:, :, 1:].swapaxes(1, 2),
-            "rss": rss.sum(1), "dof": dof}
+    return {"estimate": params, "ks": ks, "stdev": sd,
+            "stdev_ks": sd_c[:, :, 1:].swapaxes(1, 2), "rss": rss.sum(1), "dof": dof}
 
 
 def _sandwich_sd(y, omega, e_w, c, bases, alpha, rel_step: float = 1e-3) -> np.ndarray:
@@ -369,7 +371,7 @@ def refine_lights(y: np.ndarray, views: np.ndarray, omega: np.ndarray, points: n
 
     Returns
     -------
-    (J, 3) positions and a record: ``start`` and ``final`` objective, ``evals``.
+    (J, 3) positions and a record: ``start`` and ``final`` objective, ``evaluations``.
     """
     x0 = np.asarray(lights_mm, float).ravel()
     centre = np.asarray(points, float).mean(0)
@@ -397,7 +399,7 @@ def refine_lights(y: np.ndarray, views: np.ndarray, omega: np.ndarray, points: n
     if final > start:
         x, final = x0, start
     return x.reshape(-1, 3), {"start": start, "final": final,
-                              "evals": int(opt.get_numevals())}
+                              "evaluations": int(opt.get_numevals())}
 
 
 def light_weights(ks: np.ndarray, sd_ks: np.ndarray, min_z: float = 3.0) -> np.ndarray:
@@ -478,11 +480,11 @@ def fit_svbrdf_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarr
         except (np.linalg.LinAlgError, FloatingPointError):
             flat[FitArray.STATUS][sel] = FitStatus.FAILED
             continue
-        P = r["params"]
+        P = r["estimate"]
         fitted = svbrdf_eval(np.repeat(P, N, 0), np.repeat(pts[sel], N, 0),
                              V[sel].reshape(-1, 3), lights_mm, weights).reshape(len(sel), N, 3)
         flat[FitArray.PARAMS][sel] = P
-        flat[FitArray.SD][sel] = r["sd"]
+        flat[FitArray.SD][sel] = r["stdev"]
         res = np.where(W[sel][..., None], fitted - L[sel], 0.0)
         flat[FitArray.RMSE][sel] = np.sqrt((res ** 2).sum(1) / nobs[sel][:, None])
         flat[FitArray.MPR][sel] = mean_percentage_residual(L[sel], fitted, W[sel])
@@ -605,3 +607,65 @@ def pool_svbrdf_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
         base[k][sel] = out[k][sel]
     base[FitArray.CHANGED] = sel.astype(np.int8)
     return base
+
+
+# ---------------------------------------------------------------------------------
+# The metallic-roughness model of glTF 2.0 and MaterialX's standard_surface
+
+DIELECTRIC_F0 = 0.04  # glTF's (and most renderers') reflectance at normal incidence
+CHROMA_MAX = 0.1  # a dielectric's highlight is the light's colour: Ks's RGB spread
+ALBEDO_CEILING = 0.9  # without a dielectric to scale by, the brightest texel's albedo
+
+
+def metallic_roughness(P: np.ndarray, SD: np.ndarray | None = None,
+                       ) -> dict[str, np.ndarray | float | str]:
+    """glTF's metallic-roughness parameters of an svbrdf map.
+
+    ``Kd = albedo / pi * k`` and ``Ks = F0 k`` share the unknown irradiance scale ``k``
+    of the first light (its intensity over its height squared). A dielectric reflects
+    ``F0 = 0.04`` of the light, uncoloured: over the texels whose Ks is determined
+    (3 sds, where ``SD`` is given) and grey (RGB spread under ``CHROMA_MAX`` of its
+    mean), ``k`` is the median of ``Ks / 0.04``; where no texel qualifies (every
+    highlight coloured: all metal), ``k`` puts the 99th percentile of the diffuse
+    albedo at ``ALBEDO_CEILING``. Per texel, the diffuse albedo ``rho = pi Kd / k`` and
+    ``F0 = Ks / k`` are glTF's ``baseColor (1 - metallic)`` and ``0.04 (1 - metallic)
+    + baseColor metallic``: metallic from their luminances (the root in [0, 1] of that
+    quadratic), then baseColor per channel. Roughness is ``sqrt(alpha)``.
+
+    Parameters
+    ----------
+    P : (..., SV_SIZE); SD : its sds, or None.
+
+    Returns
+    -------
+    dict: ``base_color`` (..., 3) linear, ``metallic`` (...), ``roughness`` (...), ``scale``
+    (k) and ``scale_from`` (``dielectric`` or ``albedo_ceiling``).
+    """
+    P = np.nan_to_num(np.asarray(P, float))
+    kd, ks, alpha = P[..., SV_KD], P[..., SV_KS], P[..., SV_ALPHA]
+    lum_s = ks @ LUMINANCE
+    with np.errstate(invalid="ignore", divide="ignore"):
+        chroma = (ks.max(-1) - ks.min(-1)) / np.maximum(ks.mean(-1), 1e-30)
+        det = lum_s > 0
+        if SD is not None:
+            det &= lum_s > KS_MIN_Z * np.sqrt(np.nan_to_num(SD[..., SV_KS], nan=np.inf) ** 2
+                                              @ LUMINANCE ** 2)
+    grey = det & (chroma < CHROMA_MAX)
+    if grey.sum() >= 16:
+        k, source = float(np.median(lum_s[grey])) / DIELECTRIC_F0, "dielectric"
+    else:
+        top = np.percentile(math.pi * (kd @ LUMINANCE), 99)
+        k, source = float(max(top, 1e-30) / ALBEDO_CEILING), "albedo_ceiling"
+    rho, f0 = math.pi * kd / k, ks / k
+    r, f = rho @ LUMINANCE, f0 @ LUMINANCE
+    # 0.04 x^2 - (F0 + rho) x + rho = 0, x = 1 - metallic in [0, 1]
+    b = f + r
+    disc = np.sqrt(np.maximum(b * b - 4 * DIELECTRIC_F0 * r, 0.0))
+    x = np.where(f <= DIELECTRIC_F0, 1.0, np.clip((b - disc) / (2 * DIELECTRIC_F0), 0, 1))
+    m = 1 - x
+    with np.errstate(invalid="ignore", divide="ignore"):
+        base = np.where((x > 0.5)[..., None], rho / np.maximum(x, 1e-12)[..., None],
+                        (f0 - DIELECTRIC_F0 * x[..., None]) / np.maximum(m, 1e-12)[..., None])
+    return {"base_color": np.clip(base, 0, 1), "metallic": np.clip(m, 0, 1),
+            "roughness": np.sqrt(np.clip(alpha, *ALPHA_RANGE)), "scale": k,
+            "scale_from": source}

@@ -1,5 +1,6 @@
 """The export stage: parameter maps as OpenEXR (``params/<model>.exr``) from the fit
-stores, and the diffuse-only baseline from the observation map."""
+stores, and the diffuse-only baseline from the observation map; a relightable map as
+glTF 2.0 and MaterialX for renderers (:func:`run_material`)."""
 
 from __future__ import annotations
 
@@ -7,12 +8,19 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from ..stores.params import diffuse_map, param_map_from_fit, write_param_map
+import numpy as np
+
+from ..conventions import SVBRDF_MODEL
+from ..errors import InputError
+from ..models.svbrdf import metallic_roughness
+from ..stores.material import write_gltf, write_materialx
+from ..stores.metrics import write_metrics
+from ..stores.params import diffuse_map, param_map_from_fit, read_param_map, write_param_map
 from ..stores.paths import Processed
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["run_export"]
+__all__ = ["run_export", "run_material"]
 
 
 def run_export(source: str | Path, processed: str | Path, config: dict[str, Any], *,
@@ -30,3 +38,29 @@ def run_export(source: str | Path, processed: str | Path, config: dict[str, Any]
         logger.info(f"export: {paths[-1]} ({pm.params.shape[-1]} channels, "
                     f"{'half' if half else 'float32'})")
     return paths
+
+
+def run_material(source: str | Path, processed: str | Path, config: dict[str, Any], *,
+                 model: str = SVBRDF_MODEL) -> dict[str, Any]:
+    """A relightable map for renderers: ``params/<model>.gltf`` (glTF 2.0, textured quad)
+    and ``params/<model>.mtlx`` (MaterialX standard_surface) with their PNG textures,
+    from ``params/<model>.exr`` in glTF's metallic-roughness terms
+    (:func:`parammap.models.svbrdf.metallic_roughness`); ``metrics/material-<model>.json``
+    says how the albedo's scale was set. ``config`` holds no setting of this stage."""
+    src, proc = Processed(source), Processed(processed)
+    pm = read_param_map(src.params(model))
+    if pm.model != "svbrdf":
+        raise InputError(f"{src.params(model)}: a {pm.model} map has no material for "
+                         f"renderers; only {SVBRDF_MODEL} is relightable")
+    mr = metallic_roughness(pm.params, pm.sd)
+    extras = {"model": model, "albedo_scale": mr["scale"], "scale_from": mr["scale_from"]}
+    gltf = write_gltf(proc.gltf(model), mr["base_color"], mr["metallic"],
+                      mr["roughness"], pm.width_mm, pm.height_mm, extras)
+    mtlx = write_materialx(proc.mtlx(model), mr["base_color"], mr["metallic"],
+                           mr["roughness"])
+    m = {**extras, "gltf": str(gltf), "mtlx": str(mtlx),
+         "metallic_median": float(np.median(mr["metallic"])),
+         "roughness_median": float(np.median(mr["roughness"]))}
+    write_metrics(proc.metrics(f"material-{model}"), m)
+    logger.info(f"material: {gltf} and {mtlx} (albedo scale from {mr['scale_from']})")
+    return m

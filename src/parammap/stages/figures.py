@@ -334,8 +334,7 @@ def svbrdf_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Pa
     out_dir = Path(out_dir)
     p = g[FitArray.PARAMS][:].astype(float)
     sd = g[FitArray.SD][:].astype(float)
-    lights = g.group.attrs["lights"]
-    pos, w = np.asarray(lights["position_mm"], float), np.asarray(lights["weights"], float)
+    pos, w = g.lights
     with np.errstate(invalid="ignore", divide="ignore"):
         maps = {"Kd (luminance)": p[..., SV_KD] @ LUMINANCE,
                 "Ks (luminance)": p[..., SV_KS] @ LUMINANCE,

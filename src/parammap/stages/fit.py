@@ -539,11 +539,11 @@ def svbrdf_lights(obs_path: str | Path, lights_mm: np.ndarray,
                    "seconds": time.perf_counter() - t0}
         logger.info(f"fit: lights refined to {np.round(lights_mm, 1).tolist()} mm "
                     f"(pilot residual {rec['start']:.4g} -> {rec['final']:.4g}, "
-                    f"{rec['evals']} evaluations)")
+                    f"{rec['evaluations']} evaluations)")
     weights = np.ones((len(lights_mm), 3))
     if len(lights_mm) > 1:
         r = fit_svbrdf_batch(L, V, w, pts, lights_mm, None)
-        weights = svbrdf_weights(r["ks"], r["sd_ks"])
+        weights = svbrdf_weights(r["ks"], r["stdev_ks"])
     return lights_mm, weights, record
 
 

@@ -33,6 +33,7 @@ from .common import (
     open_complete,
     software,
 )
+from .lights import light_doc, parse_light_doc
 from .observation import ObservationMap, open_observation_map
 from .paths import Processed
 
@@ -71,7 +72,7 @@ _MATERIAL_UNITS = {FitArray.LABEL: "basis material (0: diffuse only)",
                                      "materials)"}
 
 _RESUME_ATTR = "parammap_resume_key"  # the key of the fit that wrote a partial store
-_MODEL, _LAYOUT = "model", "layout"
+_MODEL, _LAYOUT, _LIGHTS = "model", "layout", "lights"
 
 
 class FitError(InputError):
@@ -115,9 +116,7 @@ def svbrdf_attrs(lights_mm: np.ndarray, weights: np.ndarray, **settings: Any) ->
     (``lights``: ``position_mm`` (J, 3), ``weights`` (J, 3) relative RGB intensities)
     and ``settings`` (where the lights came from)."""
     return {_MODEL: "svbrdf", "model_version": 1, _LAYOUT: SVBRDF_LAYOUT,
-            "lights": {"position_mm": np.round(np.asarray(lights_mm, float), 4).tolist(),
-                       "weights": np.round(np.asarray(weights, float), 6).tolist()},
-            **settings}
+            _LIGHTS: light_doc(lights_mm, weights), **settings}
 
 
 def grid_attrs(obs: ObservationMap, tile: int, provenance: bool = True) -> dict[str, Any]:
@@ -206,9 +205,16 @@ class FitStore(MapStore):
         keys = ("lobes", "K_max", FitArray.BANDS, "coefficients", "regularisation",
                 "shrunk_to_mean", "robust_refit")
         out = {k: self.group.attrs[k] for k in keys if self.group.attrs.get(k) is not None}
-        if "lights" in self.group.attrs:  # an EXR header holds strings, not mappings
-            out["lights"] = json.dumps(self.group.attrs["lights"])
+        if _LIGHTS in self.group.attrs:  # an EXR header holds strings, not mappings
+            out[_LIGHTS] = json.dumps(self.group.attrs[_LIGHTS])
         return out
+
+    @property
+    def lights(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """An svbrdf fit's lights: positions (J, 3) mm and relative RGB intensities
+        (J, 3); None for other fits."""
+        doc = self.group.attrs.get(_LIGHTS)
+        return None if doc is None else parse_light_doc(doc)
 
 
 def open_fit(path: str | Path) -> FitStore:

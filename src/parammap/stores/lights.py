@@ -3,20 +3,44 @@ ones."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
 from ..errors import InputError
 
-__all__ = ["LIGHTS_VERSION", "LightsError", "read_lights", "write_lights"]
+__all__ = ["LIGHTS_VERSION", "LightsError", "light_doc", "parse_light_doc", "read_lights",
+           "write_lights"]
 
 LIGHTS_VERSION = 1
 
 
 class LightsError(InputError):
     """A missing or malformed ``camera/lights.yaml``."""
+
+
+# the lights a relightable map carries (fit-store attribute, EXR header as JSON)
+_POSITION, _INTENSITY = "position_mm", "intensity"
+
+
+def light_doc(position_mm: np.ndarray, intensity: np.ndarray) -> dict[str, Any]:
+    """The lights of a relightable map as stored with it: positions (J, 3) mm, surface
+    frame, and relative RGB intensities (J, 3)."""
+    return {_POSITION: np.round(np.asarray(position_mm, float), 4).reshape(-1, 3).tolist(),
+            _INTENSITY: np.round(np.asarray(intensity, float), 6).reshape(-1, 3).tolist()}
+
+
+def parse_light_doc(doc: dict[str, Any] | str) -> tuple[np.ndarray, np.ndarray]:
+    """(J, 3) positions and (J, 3) intensities of :func:`light_doc` (or its JSON)."""
+    doc = json.loads(doc) if isinstance(doc, str) else doc
+    try:
+        return (np.asarray(doc[_POSITION], float).reshape(-1, 3),
+                np.asarray(doc[_INTENSITY], float).reshape(-1, 3))
+    except (KeyError, TypeError, ValueError):
+        raise LightsError(f"malformed lights of a relightable map: {str(doc)[:80]}") from None
 
 
 def write_lights(path: str | Path, lights: list[dict[str, Any]], info: dict[str, Any]) -> None:

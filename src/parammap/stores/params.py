@@ -6,7 +6,7 @@ Channel names and header attributes follow docs/reference/conventions.md:
   ``lobek.Ks.R lobek.Ks.G lobek.Ks.B lobek.d.X lobek.d.Y lobek.d.Z``;
 - SH (n bands): ``sh.R.00 ... sh.R.(n^2-1)``, then G, then B (two digits at least);
 - a microfacet SVBRDF (``svbrdf-ggx``): ``Kd.R Kd.G Kd.B Ks.R Ks.G Ks.B alpha``, its
-  lights in the header (``parammap_lights``, JSON: ``position_mm`` and ``weights``);
+  lights in the header (``parammap_lights``, JSON, :func:`parammap.stores.lights.light_doc`);
 - a diffuse-only map (the baseline): ``Kd.R Kd.G Kd.B``.
 
 Rows as in the texel convention (row 0 at the top edge), float32 by default (half on
@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -43,6 +43,7 @@ from ..conventions import (
 from .common import HEIGHT_ATTR, S_ATTR, SOFTWARE_ATTR, T_ATTR, WIDTH_ATTR, software
 from .exr import ExrError, read_exr, write_exr
 from .fit import open_fit
+from .lights import light_doc, parse_light_doc
 from .observation import open_observation_map
 
 __all__ = ["MODELS", "ParamMap", "best_shares", "channel_names", "param_map_from_fit",
@@ -108,16 +109,18 @@ class ParamMap:
     def shape(self) -> tuple[int, int]:
         return self.params.shape[:2]
 
+    def relit(self, position_mm: np.ndarray, intensity: np.ndarray) -> ParamMap:
+        """This svbrdf map under other lights: positions (J, 3) mm and relative RGB
+        intensities (J, 3) in its own lights' units."""
+        return replace(self, attrs={**self.attrs,
+                                    "lights": json.dumps(light_doc(position_mm, intensity))})
+
     @property
     def lights(self) -> tuple[np.ndarray, np.ndarray] | None:
         """An svbrdf map's lights: positions (J, 3) mm and relative RGB intensities
         (J, 3), from its header (``parammap_lights``); None for other maps."""
         doc = self.attrs.get("lights")
-        if doc is None:
-            return None
-        doc = json.loads(doc) if isinstance(doc, str) else doc
-        return (np.asarray(doc["position_mm"], float).reshape(-1, 3),
-                np.asarray(doc["weights"], float).reshape(-1, 3))
+        return None if doc is None else parse_light_doc(doc)
 
 
 def write_param_map(path: str | Path, pm: ParamMap, half: bool = False) -> Path:

@@ -80,6 +80,15 @@ class Processed:
     def params(self, model: str) -> Path:
         return self.root / "params" / f"{model}.exr"
 
+    def gltf(self, model: str) -> Path:
+        """A relightable map as glTF 2.0 (:mod:`parammap.stores.material`), its textures
+        beside it."""
+        return self.root / "params" / f"{model}.gltf"
+
+    def mtlx(self, model: str) -> Path:
+        """A relightable map as MaterialX (:mod:`parammap.stores.material`)."""
+        return self.root / "params" / f"{model}.mtlx"
+
     # evaluation
     @property
     def holdout_dir(self) -> Path:

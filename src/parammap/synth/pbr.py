@@ -30,11 +30,12 @@ import json
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
+import yaml
 
 from ..errors import InputError
 from ..geometry import texel_centres, undistort_normalized
@@ -57,7 +58,7 @@ from .sampling import sample_directions
 logger = logging.getLogger(__name__)
 
 __all__ = ["PBR_PRESETS", "FilmicResponse", "Light", "PbrPreset", "generate_pbr",
-           "patch_labels", "read_truth_radiance"]
+           "novel_lights", "patch_labels", "read_truth_radiance", "render_relit"]
 
 
 @dataclass(frozen=True)
@@ -607,6 +608,54 @@ def generate_pbr(
          "radiance_p9995": hi}, indent=1))
     publish(((tmp_out, out), (tmp_truth, truth)))
     logger.info(f"synth {name}: wrote {out} and {truth} in {time.perf_counter() - t0:.1f} s")
+    return out
+
+
+def novel_lights(preset: str | PbrPreset) -> tuple[Light, ...]:
+    """Lights a capture never had, for relighting tests: the first light moved a third
+    of the way around the surface's normal (its height kept) and a smaller disc light
+    added on the other side."""
+    _, preset = resolve_preset(preset, PBR_PRESETS)
+    first = preset.lights[0]
+    x, y, z = first.position_mm
+    a = 2 * math.pi / 3
+    moved = replace(first, position_mm=(x * math.cos(a) - y * math.sin(a),
+                                        x * math.sin(a) + y * math.cos(a), z))
+    extra = Light("disc", (-0.6 * moved.position_mm[0], -0.6 * moved.position_mm[1], 0.8 * z),
+                  (0.5 * max(first.size_mm), 0.0), tuple(0.6 * c for c in first.radiance))
+    return moved, extra
+
+
+def render_relit(truth: str | Path, lights: tuple[Light, ...] | None = None) -> Path:
+    """Clean renders of a generated capture's held-out views under other lights
+    (default :func:`novel_lights`): ``<truth>/relit/<view>.exr`` and
+    ``<truth>/relit/lights.json`` (the lights, positions relative to the surface's
+    centre as in ``scene.json``). The scene is rebuilt from the generator's preset and
+    seed (``generator.json``), so it is the captured one but for its lights."""
+    mi = _mitsuba()
+    truth = Path(truth)
+    gen = json.loads((truth / "generator.json").read_text())
+    name, preset = resolve_preset(gen["preset"], PBR_PRESETS)
+    lights = lights or novel_lights(preset)
+    rng = np.random.default_rng(gen["seed"])
+    albedo = _albedo_texture(preset, rng)  # the generator's draws, in its order
+    mats = _materials(preset, rng)
+    items = _marker_layout(preset, rng)
+    scene = _surface_scene(mi, replace(preset, lights=tuple(lights)), items, mats, albedo)
+    cam_doc = yaml.safe_load((truth / "camera.yaml").read_text())
+    cam = _Camera.build(np.array(cam_doc["K"]), tuple(cam_doc["dist"]),
+                        tuple(cam_doc["image_size"]), preset.render_scale)
+    rig = np.load(truth / "poses.npz")
+    out = truth / "relit"
+    out.mkdir(exist_ok=True)
+    for k in np.flatnonzero(rig["holdout"]):
+        vid = str(rig["view_ids"][k])
+        img = _render(mi, scene, cam, rig["R"][k], rig["t"][k], preset.clean_spp,
+                      (gen["seed"] * 7919 + int(k)) % 2**31)
+        write_rgb(out / f"{vid}.exr", img, {"view_id": vid, "spp": str(preset.clean_spp)})
+    (out / "lights.json").write_text(json.dumps([asdict(L) for L in lights], indent=1))
+    logger.info(f"synth {name}: relit {int(rig['holdout'].sum())} held-out views under "
+                f"{len(lights)} light(s) into {out}")
     return out
 
 

@@ -10,6 +10,7 @@ docs/reference/conventions.md), so every radiance comparison first fits that one
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import cv2
@@ -23,15 +24,16 @@ from ..stages.hdr import load_bracket, merge_bracket
 from ..stages.holdout import choose_gamma, compare, marker_pixels, pixel_regions, region_errors
 from ..stores.camera import load_intrinsics, read_poses
 from ..stores.capture import load_capture
-from ..stores.hdr import read_hdr
+from ..stores.hdr import read_hdr, read_rgb
 from ..stores.observation import open_observation_map
 from ..stores.params import best_shares, read_param_map
 from ..stores.paths import Processed
 from .generate import true_view_radiance
-from .pbr import patch_labels, read_truth_radiance
+from .pbr import Light, patch_labels, read_truth_radiance
 from .scene import load_scene, true_radiance
 
 __all__ = ["directions_against_truth", "hdr_errors", "holdout_against_truth",
+           "relit_against_truth",
            "intrinsics_errors", "pose_errors",
            "true_directions", "angle_deg"]
 
@@ -211,6 +213,63 @@ def _held_out_renders(cap, truth: str | Path, processed: str | Path, models: lis
         size = (photo.shape[1], photo.shape[0])
         images = {name: render(pm, intr, R, t, size)[0] for name, pm in maps.items()}
         yield r["id"], clean, images, mask, choose_gamma(photo, mask), P, inside
+
+
+def _power(light: dict) -> np.ndarray:
+    """(3,) intensity toward the surface of a generator's area light (``scene.json``:
+    radiance times area; the lights face the surface's centre)."""
+    L = Light(**light)
+    w, h = L.size_mm
+    area = w * h if L.shape == "rect" else math.pi * w * w
+    return np.asarray(L.radiance, float) * area
+
+
+def relit_against_truth(capture: str | Path, truth: str | Path, processed: str | Path,
+                        models: list[str]) -> dict[str, dict[str, float]]:
+    """Mean 8-bit difference of each model's render against the clean render of every
+    held-out view under lights the capture never had (:func:`parammap.synth.pbr.
+    render_relit`, ``<truth>/relit``). A relightable map (svbrdf) is rendered under the
+    new lights: their positions as given, their intensities in the map's units from
+    its own lights' (each fitted light matched to the nearest true one, its relative
+    intensity over that light's power); the other models cannot move their light and
+    are rendered as fitted. The clean renders take the captured clean render's scale
+    (:func:`holdout_against_truth`), the tone map the held-out photo's gamma."""
+    cap = load_capture(capture)
+    proc = Processed(processed)
+    truth = Path(truth)
+    scene = json.loads((truth / "scene.json").read_text())
+    new = json.loads((truth / "relit" / "lights.json").read_text())
+    centre = np.array([cap.width_mm / 2, cap.height_mm / 2, 0.0])
+    true_pos = np.array([centre + np.asarray(L["position_mm"]) for L in scene["lights"]])
+    intr = load_intrinsics(proc.intrinsics)
+    maps = {}
+    for m in models:
+        pm = read_param_map(proc.params(m))
+        if pm.lights is not None:
+            pos, w = pm.lights
+            near = [int(np.argmin(np.linalg.norm(true_pos - p, axis=1))) for p in pos]
+            unit = np.mean([w[j] / _power(scene["lights"][k]) for j, k in enumerate(near)], 0)
+            pm = pm.relit([centre + np.asarray(L["position_mm"]) for L in new],
+                          [unit * _power(L) for L in new])
+        maps[m] = pm
+    out = {}
+    for r in read_poses(proc.poses)["views"]:
+        if not (r.get("holdout") and r.get("kept")):
+            continue
+        R, t = np.asarray(r["R"], float), np.asarray(r["t"], float)
+        photo, sat, _ = read_hdr(proc.hdr(r["id"]))
+        clean = read_truth_radiance(truth, r["id"], clean=True)
+        relit = read_rgb(truth / "relit" / f"{r['id']}.exr")
+        P, inside = surface_points(intr, R, t, cap.width_mm, cap.height_mm,
+                                   (photo.shape[1], photo.shape[0]))
+        mask = inside & ~marker_pixels(cap, P)
+        ok = (mask & ~sat)[..., None] & (clean > 0) & (photo > 0)
+        relit = relit * float(np.median(photo[ok] / clean[ok]))
+        gamma = choose_gamma(photo, mask & ~sat)
+        size = (photo.shape[1], photo.shape[0])
+        out[r["id"]] = {m: compare(relit, render(pm, intr, R, t, size)[0], mask,
+                                   gamma)["mean_diff_8bit"] for m, pm in maps.items()}
+    return out
 
 
 HIGHLIGHT_RANGE_8BIT = 32  # a patch shows a highlight: its 99th percentile this above its median
