@@ -4,15 +4,18 @@ issue 48 item 2).
 Each texel of the flat surface (normal +z) reflects each light ``j`` (a point at
 ``p_j``, surface frame, mm; relative RGB intensity ``w_j``) as
 
-    L(v) = sum_j w_j e_j [Kd + Ks D(h_j) Vis(l_j, v)],   e_j = (z_j / r_j)^3
+    L(v) = sum_j w_j e_j [Kd + Ks D(h_j) Vis(l_j, v)],   e_j = cos(theta_j) (R / r_j)^2
 
-with ``l_j`` the unit vector to the light, ``r_j`` its distance, ``z_j`` its height
-over the plane (``e_j`` is the irradiance relative to the point right under the light:
-``cos theta_l / r^2`` times ``z_j^2``), ``h_j`` the half vector of ``l_j`` and the view
-``v``, ``D`` the GGX (Trowbridge-Reitz) distribution of roughness ``alpha`` and ``Vis``
-Smith's height-correlated visibility ``G2 / (4 n.l n.v)`` (Heitz 2014). ``Kd`` (RGB) is
-the diffuse radiance per unit ``e`` (albedo / pi times the intensity), ``Ks`` (RGB) the
-specular amplitude (Fresnel F0 times the intensity, its rise toward grazing not modelled:
+with ``l_j`` the unit vector to the light, ``r_j`` its distance, ``theta_j`` its angle
+from the normal, ``R`` = :data:`REFERENCE_MM` (``e_j`` is the irradiance relative to
+that of the same light a metre away at normal incidence, so that the ``w_j`` are the
+lights' true relative intensities and a moved light dims with its distance as a lamp
+does), ``h_j`` the half vector of ``l_j`` and the view ``v``, ``D`` the GGX
+(Trowbridge-Reitz) distribution of roughness ``alpha`` and ``Vis`` Smith's
+height-correlated visibility ``G2 / (4 n.l n.v)`` (Heitz 2014). ``Kd`` (RGB) is the
+diffuse radiance per unit ``e`` of the first light (albedo / pi times its intensity),
+``Ks`` (RGB) the specular amplitude (Fresnel F0 times the intensity, its rise toward
+grazing not modelled:
 the views rarely see a highlight beyond 60 deg of incidence, where Schlick's factor
 stays within 10 % of F0 for a dielectric). Radiance is in the observation map's units.
 
@@ -47,6 +50,8 @@ __all__ = ["ALPHA_RANGE", "MIN_OBS", "alpha_grid", "fit_svbrdf_batch", "fit_svbr
 ALPHA_RANGE = (0.005, 1.0)
 GRID_STEPS = 48
 REFINE_GRID_STEPS = 24  # half the fit's: the objective needs each texel's best alpha roughly
+#: the irradiance's reference distance (1 m): e = 1 a metre from a light, facing it
+REFERENCE_MM = 1000.0
 MIN_OBS = SV_SIZE + 1  # observations a texel needs (per channel: Kd, Ks, alpha shared)
 
 
@@ -64,14 +69,15 @@ def light_terms(points: np.ndarray, lights_mm: np.ndarray) -> tuple[np.ndarray, 
 
     Returns
     -------
-    l : (..., J, 3) unit vectors toward each light; e : (..., J) ``(z_j / r_j)^3``
-    (0 for a light below the plane).
+    l : (..., J, 3) unit vectors toward each light; e : (..., J)
+    ``cos theta_j (R / r_j)^2`` (0 for a light below the plane).
     """
     p = np.asarray(lights_mm, float)
     d = p - np.asarray(points, float)[..., None, :]
     r = np.linalg.norm(d, axis=-1)
     l = d / np.maximum(r, 1e-12)[..., None]
-    e = np.where(d[..., 2] > 0, (d[..., 2] / np.maximum(r, 1e-12)) ** 3, 0.0)
+    r = np.maximum(r, 1e-12)
+    e = np.where(d[..., 2] > 0, d[..., 2] / r * (REFERENCE_MM / r) ** 2, 0.0)
     return l, e
 
 
@@ -621,9 +627,9 @@ def metallic_roughness(P: np.ndarray, SD: np.ndarray | None = None,
                        ) -> dict[str, np.ndarray | float | str]:
     """glTF's metallic-roughness parameters of an svbrdf map.
 
-    ``Kd = albedo / pi * k`` and ``Ks = F0 k`` share the unknown irradiance scale ``k``
-    of the first light (its intensity over its height squared). A dielectric reflects
-    ``F0 = 0.04`` of the light, uncoloured: over the texels whose Ks is determined
+    ``Kd = albedo / pi * k`` and ``Ks = F0 k`` share the unknown scale ``k`` of the
+    first light (the irradiance it gives a metre away, in the radiance's units). A
+    dielectric reflects ``F0 = 0.04`` of the light, uncoloured: over the texels whose Ks is determined
     (3 sds, where ``SD`` is given) and grey (RGB spread under ``CHROMA_MAX`` of its
     mean), ``k`` is the median of ``Ks / 0.04``; where no texel qualifies (every
     highlight coloured: all metal), ``k`` puts the 99th percentile of the diffuse

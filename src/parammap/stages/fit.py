@@ -60,6 +60,7 @@ from ..models.sh.cap import GUARD_STEPS
 from ..models.svbrdf import MIN_OBS as SVBRDF_MIN_OBS
 from ..models.svbrdf import (
     POOL_RADIUS,
+    REFERENCE_MM,
     fit_svbrdf_batch,
     fit_svbrdf_tile,
     pool_svbrdf_tile,
@@ -555,14 +556,20 @@ def fit_svbrdf_map(obs_path: str | Path, out_path: str | Path, lights_path: str 
     observation map under the lights of ``lights_path`` (``camera/lights.yaml``) into
     ``fit/svbrdf-ggx.zarr``; returns the figures for its metrics file."""
     doc = read_lights(lights_path)
-    if not doc["lights"]:
-        raise FitError(f"{lights_path}: no light was found, so {SVBRDF_MODEL} has none to "
-                       "be fitted under (see metrics/lights.json)")
-    lights_mm = np.array([lt["position_mm"] for lt in doc["lights"]], float)
+    obs = open_observation_map(obs_path)
+    refine = cfg.get("refine_lights", default("fit.svbrdf.refine_lights"))
+    if doc["lights"]:
+        lights_mm = np.array([lt["position_mm"] for lt in doc["lights"]], float)
+    else:  # a matte surface, or lobes that meet nowhere: the run goes on
+        lights_mm = np.array([[obs.width_mm / 2, obs.height_mm / 2, REFERENCE_MM]])
+        refine = False
+        logger.warning(f"fit: {lights_path} lists no light (see metrics/lights.json); "
+                       f"{SVBRDF_MODEL} is fitted under a nominal light {REFERENCE_MM:g} mm "
+                       "above the surface's centre, where it is not relightable")
     lights_mm, weights, record = svbrdf_lights(
         obs_path, lights_mm, cfg.get("pilot_texels", default("fit.svbrdf.pilot_texels")),
-        cfg.get("refine_lights", default("fit.svbrdf.refine_lights")))
-    obs = open_observation_map(obs_path)
+        refine)
+    record["nominal"] = not doc["lights"]
     logger.info(f"fit: {SVBRDF_MODEL} under {len(lights_mm)} light(s) at "
                 f"{np.round(lights_mm, 1).tolist()} mm, relative intensities "
                 f"{np.round(weights, 3).tolist()}")

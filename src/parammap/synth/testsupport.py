@@ -30,7 +30,7 @@ from ..stores.params import best_shares, read_param_map
 from ..stores.paths import Processed
 from .generate import true_view_radiance
 from .pbr import Light, patch_labels, read_truth_radiance
-from .scene import load_scene, true_radiance
+from .scene import KIND_NAMES, load_scene, true_radiance
 
 __all__ = ["directions_against_truth", "hdr_errors", "holdout_against_truth",
            "relit_against_truth",
@@ -341,11 +341,12 @@ def highlight_speckle(capture: str | Path, truth: str | Path, processed: str | P
 
 def directions_against_truth(truth: str | Path, processed: str | Path, models: list[str],
                              directions: np.ndarray, samples: int = 256, seed: int = 0,
-                             ) -> dict[str, float]:
+                             by_kind: bool = False) -> dict:
     """Mean 8-bit difference between each model's map and the analytic generator's
     truth in every one of ``directions`` (Q, 3), surface frame, at every texel centre:
     how a map predicts directions no view of it was taken from, without the noise and
-    the few views of a held-out comparison.
+    the few views of a held-out comparison. ``by_kind``: ``{kind: {model: error}}`` over
+    the texels of each material kind of the scene (``scene.KIND_NAMES``) instead.
 
     The capture's radiance scale is fitted once (median ratio of the observation map to
     the truth at the observed directions of up to ``samples`` texels); the tone map is
@@ -390,6 +391,12 @@ def directions_against_truth(truth: str | Path, processed: str | Path, models: l
                                                           axis=0), d,
                                       np.repeat(ctr, Q, axis=0), pm.lights))
 
+    kind = np.repeat(scene.kind[rows, cols], Q)
     for name, pm in maps.items():
-        out[name] = float(np.abs(tone_map(predict(pm), gamma).astype(float) - ref).mean())
+        err = np.abs(tone_map(predict(pm), gamma).astype(float) - ref).mean(-1)
+        if not by_kind:
+            out[name] = float(err.mean())
+            continue
+        for k in np.unique(kind):
+            out.setdefault(KIND_NAMES[k], {})[name] = float(err[kind == k].mean())
     return out

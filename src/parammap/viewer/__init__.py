@@ -46,7 +46,7 @@ import numpy as np
 
 from ..conventions import sh_norms
 from ..geometry import Intrinsics, undistort_normalized
-from ..models.svbrdf import ALPHA_RANGE
+from ..models.svbrdf import ALPHA_RANGE, REFERENCE_MM
 from ..stores.camera import load_intrinsics, read_poses
 from ..stores.capture import Capture
 from ..stores.metrics import read_metrics
@@ -111,6 +111,7 @@ def glsl_constants() -> str:
         f"const int MH_LAYERS_PER_LOBE = {MH_LAYERS_PER_LOBE};",
         f"const int SV_MAX_LIGHTS = {SV_MAX_LIGHTS};",
         f"const float SV_ALPHA_MIN = {ALPHA_RANGE[0]!r};",
+        f"const float SV_REFERENCE_MM = {REFERENCE_MM!r};",
     ])
 
 
