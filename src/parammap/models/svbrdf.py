@@ -629,8 +629,8 @@ def metallic_roughness(P: np.ndarray, SD: np.ndarray | None = None,
 
     ``Kd = albedo / pi * k`` and ``Ks = F0 k`` share the unknown scale ``k`` of the
     first light (the irradiance it gives a metre away, in the radiance's units). A
-    dielectric reflects ``F0 = 0.04`` of the light, uncoloured: over the texels whose Ks is determined
-    (3 sds, where ``SD`` is given) and grey (RGB spread under ``CHROMA_MAX`` of its
+    dielectric reflects ``F0 = 0.04`` of the light, uncoloured: over the texels whose Ks
+    is determined (3 sds, where ``SD`` is given) and grey (RGB spread under ``CHROMA_MAX`` of its
     mean), ``k`` is the median of ``Ks / 0.04``; where no texel qualifies (every
     highlight coloured: all metal), ``k`` puts the 99th percentile of the diffuse
     albedo at ``ALBEDO_CEILING``. Per texel, the diffuse albedo ``rho = pi Kd / k`` and
