@@ -185,6 +185,21 @@ def _canvas(page) -> np.ndarray:
     return np.array(img.convert("RGB"))
 
 
+@contextlib.contextmanager
+def _viewer_page(browser, vdir):
+    """A fresh page of the shared Chromium on ``vdir``'s viewer, ready; yields (page,
+    the page errors seen) and closes it."""
+    with _shared(browser) as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        page = b.new_page()
+        errors = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto((vdir / "index.html").as_uri())
+        page.wait_for_function("window.viewer && window.viewer.ready", timeout=30000)
+        yield page, errors
+        b.close()
+
+
 @pytest.mark.parametrize("exact", [True, False])
 def test_held_out_view_matches_python_renderer(viewer_dir, exact, chromium):
     cap, out, vdir = viewer_dir
@@ -192,13 +207,7 @@ def test_held_out_view_matches_python_renderer(viewer_dir, exact, chromium):
     held = next(r for r in recs if r["holdout"] and r["kept"])
     intr = load_intrinsics(out / "camera" / "intrinsics.yaml")
     gamma = 2.5
-    with _shared(chromium) as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
-        page = browser.new_page()
-        errors = []
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        page.goto((vdir / "index.html").as_uri())
-        page.wait_for_function("window.viewer && window.viewer.ready", timeout=30000)
+    with _viewer_page(chromium, vdir) as (page, errors):
         for model in ("mh-2", "sh-wls-16", "diffuse", "best"):
             page.evaluate(f"(async () => {{ viewer.setExact({str(exact).lower()});"
                           f" await viewer.setModel('{model}');"
@@ -210,7 +219,6 @@ def test_held_out_view_matches_python_renderer(viewer_dir, exact, chromium):
             assert shot.shape == ref.shape
             diff = np.abs(shot.astype(int) - tone_map(ref, gamma).astype(int))[inside]
             assert diff.mean() < 2.0, (model, diff.mean())
-        browser.close()
     assert not errors
 
 
@@ -429,8 +437,6 @@ def test_relightable_map_matches_python_renderer_as_its_light_moves(svbrdf_viewe
     lights and with its first light moved 80 mm along x and 60 mm down (the page's
     light sliders): within 2 levels on average both times, and the moved light changes
     the picture."""
-
-
     cap, out, vdir = svbrdf_viewer_dir
     recs = yaml.safe_load((out / "camera" / "poses.yaml").read_text())["views"]
     held = next(r for r in recs if r["holdout"] and r["kept"])
@@ -438,13 +444,7 @@ def test_relightable_map_matches_python_renderer_as_its_light_moves(svbrdf_viewe
     pm = read_param_map(out / "params" / "svbrdf-ggx.exr")
     gamma = 2.5
     shots, refs = [], []
-    with _shared(chromium) as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
-        page = browser.new_page()
-        errors = []
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        page.goto((vdir / "index.html").as_uri())
-        page.wait_for_function("window.viewer && window.viewer.ready", timeout=30000)
+    with _viewer_page(chromium, vdir) as (page, errors):
         for shift in ((0, 0, 0), (80, 0, -60)):
             page.evaluate("(async () => { viewer.setExact(true);"
                           " await viewer.setModel('svbrdf-ggx');"
@@ -460,6 +460,5 @@ def test_relightable_map_matches_python_renderer_as_its_light_moves(svbrdf_viewe
             refs.append(tone_map(ref, gamma).astype(int))
             diff = np.abs(shots[-1].astype(int) - refs[-1])[inside]
             assert diff.mean() < 2.0, (shift, diff.mean())
-        browser.close()
     assert not errors
     assert np.abs(refs[1] - refs[0])[inside].mean() > 2.0

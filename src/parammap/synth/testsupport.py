@@ -191,14 +191,18 @@ def _map_size(processed: str | Path, models: list[str]) -> tuple[int, int]:
     return S, T
 
 
-def _held_out_renders(cap, truth: str | Path, processed: str | Path, models: list[str]):
+def _held_out_renders(cap, truth: str | Path, processed: str | Path, models: list[str],
+                      maps: dict | None = None, relit: bool = False):
     """For every kept held-out view of a physically based capture: its id, the clean
     render on the merged photo's relative scale (median ratio inside the region), each
     model's render, the mask compared (region, unsaturated, off the markers), the
-    held-out stage's gamma, and the plane point of each pixel with its ``inside`` mask."""
+    held-out stage's gamma, and the plane point of each pixel with its ``inside`` mask.
+    ``maps``: the models' maps (default read from ``processed``); ``relit``: the clean
+    render under the novel lights (``<truth>/relit``) in place of the captured one, on
+    the captured one's scale."""
     proc = Processed(processed)
     intr = load_intrinsics(proc.intrinsics)
-    maps = {m: read_param_map(proc.params(m)) for m in models}
+    maps = maps or {m: read_param_map(proc.params(m)) for m in models}
     for r in read_poses(proc.poses)["views"]:
         if not (r.get("holdout") and r.get("kept")):
             continue
@@ -209,7 +213,8 @@ def _held_out_renders(cap, truth: str | Path, processed: str | Path, models: lis
                                    (photo.shape[1], photo.shape[0]))
         mask = inside & ~sat & ~marker_pixels(cap, P)
         ok = mask[..., None] & (clean > 0) & (photo > 0)
-        clean = clean * float(np.median(photo[ok] / clean[ok]))
+        scale = float(np.median(photo[ok] / clean[ok]))
+        clean = scale * (read_rgb(Path(truth) / "relit" / f"{r['id']}.exr") if relit else clean)
         size = (photo.shape[1], photo.shape[0])
         images = {name: render(pm, intr, R, t, size)[0] for name, pm in maps.items()}
         yield r["id"], clean, images, mask, choose_gamma(photo, mask), P, inside
@@ -233,7 +238,8 @@ def relit_against_truth(capture: str | Path, truth: str | Path, processed: str |
     its own lights' (each fitted light matched to the nearest true one, its relative
     intensity over that light's power); the other models cannot move their light and
     are rendered as fitted. The clean renders take the captured clean render's scale
-    (:func:`holdout_against_truth`), the tone map the held-out photo's gamma."""
+    (:func:`holdout_against_truth`), the tone map the held-out photo's gamma, the
+    comparison its pixels (:func:`_held_out_renders`)."""
     cap = load_capture(capture)
     proc = Processed(processed)
     truth = Path(truth)
@@ -241,7 +247,6 @@ def relit_against_truth(capture: str | Path, truth: str | Path, processed: str |
     new = json.loads((truth / "relit" / "lights.json").read_text())
     centre = np.array([cap.width_mm / 2, cap.height_mm / 2, 0.0])
     true_pos = np.array([centre + np.asarray(L["position_mm"]) for L in scene["lights"]])
-    intr = load_intrinsics(proc.intrinsics)
     maps = {}
     for m in models:
         pm = read_param_map(proc.params(m))
@@ -252,24 +257,10 @@ def relit_against_truth(capture: str | Path, truth: str | Path, processed: str |
             pm = pm.relit([centre + np.asarray(L["position_mm"]) for L in new],
                           [unit * _power(L) for L in new])
         maps[m] = pm
-    out = {}
-    for r in read_poses(proc.poses)["views"]:
-        if not (r.get("holdout") and r.get("kept")):
-            continue
-        R, t = np.asarray(r["R"], float), np.asarray(r["t"], float)
-        photo, sat, _ = read_hdr(proc.hdr(r["id"]))
-        clean = read_truth_radiance(truth, r["id"], clean=True)
-        relit = read_rgb(truth / "relit" / f"{r['id']}.exr")
-        P, inside = surface_points(intr, R, t, cap.width_mm, cap.height_mm,
-                                   (photo.shape[1], photo.shape[0]))
-        mask = inside & ~marker_pixels(cap, P)
-        ok = (mask & ~sat)[..., None] & (clean > 0) & (photo > 0)
-        relit = relit * float(np.median(photo[ok] / clean[ok]))
-        gamma = choose_gamma(photo, mask & ~sat)
-        size = (photo.shape[1], photo.shape[0])
-        out[r["id"]] = {m: compare(relit, render(pm, intr, R, t, size)[0], mask,
-                                   gamma)["mean_diff_8bit"] for m, pm in maps.items()}
-    return out
+    return {vid: {m: compare(ref, img, mask, gamma)["mean_diff_8bit"]
+                  for m, img in images.items()}
+            for vid, ref, images, mask, gamma, _, _ in _held_out_renders(
+                cap, truth, processed, models, maps, relit=True)}
 
 
 HIGHLIGHT_RANGE_8BIT = 32  # a patch shows a highlight: its 99th percentile this above its median
