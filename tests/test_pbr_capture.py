@@ -156,8 +156,8 @@ def test_svbrdf_relit_from_its_lights(pbr, tmp_path):
     """The microfacet SVBRDF on a capture whose materials are microfacet ones: the light
     (an area light 90 x 60 mm) placed within 2 % of its distance (measured 0.4 %), the
     held-out views against the clean renders closer than MH-1's on every view (measured
-    5.7 / 5.8 / 5.0 against 6.5 / 11.3 / 8.3) and its highlights no more speckled than
-    1.5x the truth's."""
+    5.7 / 5.8 / 5.0 against 6.5 / 11.3 / 8.3), its highlights no more speckled than
+    1.5x the truth's, and relit under other lights (issue 48 item 4)."""
     import shutil
 
     from parammap.synth.testsupport import highlight_speckle, holdout_against_truth
@@ -179,3 +179,18 @@ def test_svbrdf_relit_from_its_lights(pbr, tmp_path):
     assert all(r["svbrdf-ggx"] < r["mh-1"] for r in res.values()), res
     sp = highlight_speckle(cap, truth, work, ["svbrdf-ggx"])
     assert sp["svbrdf-ggx"]["ratio"] < 1.5, sp
+    # under lights the capture never had (the first turned 120 deg, a disc added): the
+    # relightable map follows them (measured 8.4, 1.5x its captured figure; the rest is
+    # the scene's sky, which it cannot tell from its lamps), MH and SH cannot (40-56)
+    from parammap.synth.pbr import render_relit
+    from parammap.synth.testsupport import relit_against_truth
+
+    relit_truth = tmp_path / "truth"
+    shutil.copytree(truth, relit_truth)
+    render_relit(relit_truth)
+    rel = relit_against_truth(cap, relit_truth, work, ["svbrdf-ggx", "mh-1", "sh-rlsop-36"])
+    mean = {m: np.mean([r[m] for r in rel.values()]) for m in ("svbrdf-ggx", "mh-1",
+                                                                "sh-rlsop-36")}
+    captured = np.mean([r["svbrdf-ggx"] for r in res.values()])
+    assert mean["svbrdf-ggx"] < 2 * captured, (mean, captured)
+    assert mean["svbrdf-ggx"] < 0.5 * min(mean["mh-1"], mean["sh-rlsop-36"]), mean
