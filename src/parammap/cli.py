@@ -204,6 +204,15 @@ def _model_figures(a: argparse.Namespace, model: str,
     fn(proc.fit(model), proc.observation, a.figures, model, texels)
 
 
+@_command("radiometry")
+def _radiometry(a: argparse.Namespace) -> int:
+    from .stages.radiometry import run_radiometry
+    from .stores.capture import load_capture
+
+    run_radiometry(load_capture(a.capture), a.out, _stage_config(a))
+    return 0
+
+
 @_command("observe")
 def _observe(a: argparse.Namespace) -> int:
     from .stages.observation import run_observation
@@ -362,7 +371,8 @@ def _import(a: argparse.Namespace) -> int:
     from .stages.importer import run_import
 
     run_import(a.photos, a.out, layout=a.layout, board=a.board, holdout=a.holdout,
-               seed=a.seed, surface_id=a.id, holdout_photos=a.holdout_photos or ())
+               seed=a.seed, surface_id=a.id, holdout_photos=a.holdout_photos or (),
+               flatfield=a.flatfield, chart=a.chart)
     return 0
 
 
@@ -455,6 +465,10 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--holdout-photos", nargs="+", metavar="FILE",
                    help="hold out the views of these camera files instead")
     s.add_argument("--id", help="surface id (default: the capture folder's name)")
+    s.add_argument("--flatfield", help="folder of brackets of a white card lying where the "
+                                       "surface lies, under the capture's light")
+    s.add_argument("--chart", help="folder of one bracket of a ColorChecker Classic under "
+                                   "the capture's light")
     s.add_argument("--out", required=True, help="capture directory to write")
 
     s = add("validate-capture", help="check a capture directory, images included")
@@ -467,6 +481,8 @@ def _parser() -> argparse.ArgumentParser:
                            ("hdr", "merge brackets into linear HDR frames"),
                            ("calibrate", "intrinsics from the calibration photos"),
                            ("poses", "pose of every view from the surface markers"),
+                           ("radiometry", "vignetting, the light's fall-off and the colour "
+                                          "matrix from the white card and colour chart"),
                            ("observe", "build the observation map (zarr)"),
                            ("fit-mh", "fit the Multiple Highlight model to every texel"),
                            ("fit-sh", "project every texel onto spherical harmonics"),

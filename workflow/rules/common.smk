@@ -54,6 +54,14 @@ def view_ids(wildcards):
     return [v.id for v in load_capture(CAPTURES[wildcards.sid]).views]
 
 
+def radiometry_view_ids(wildcards):
+    """The white card's views and the colour chart's bracket (none for most captures)."""
+    checkpoints.validate_capture.get(sid=wildcards.sid)
+    from parammap.stores.capture import load_capture
+
+    return [v.id for v in load_capture(CAPTURES[wildcards.sid]).radiometry_views]
+
+
 def mh_models():
     return [f"mh-{k}" for k in config["fit"]["mh"]["lobes"]]
 

@@ -184,6 +184,7 @@ rule holdout:
     input:
         capture=capture_dir,
         poses=f"{PROC}/{{sid}}/camera/poses.yaml",
+        radiometry=f"{PROC}/{{sid}}/camera/radiometry.json",
         params=lambda wc: expand(f"{PROC}/{wc.sid}/params/{{m}}.exr", m=compared_models()),
     output:
         metrics=f"{PROC}/{{sid}}/metrics/holdout.json",

@@ -1,6 +1,7 @@
 # HDR and camera stages: one response per capture, every view merged in its own job
 # (memory bounded by one bracket), per-view figures gathered into metrics/hdr.json;
-# intrinsics from the board photos; the pose of every view from the surface markers.
+# intrinsics from the board photos; the pose of every view from the surface markers;
+# the flat-field and colour correction from the white card and colour chart.
 # Figures come from report.smk, never from these jobs.
 
 
@@ -83,6 +84,27 @@ rule calibrate:
     shell:
         "{params.cli} calibrate {input.capture} --out {params.out} {params.cfg}"
         " --workers {threads} 2> {log}"
+
+
+rule radiometry:
+    input:
+        capture=capture_dir,
+        intrinsics=f"{PROC}/{{sid}}/camera/intrinsics.yaml",
+        hdr=lambda wc: expand(f"{PROC}/{wc.sid}/hdr/{{view}}.exr",
+                              view=radiometry_view_ids(wc)),
+    output:
+        f"{PROC}/{{sid}}/camera/radiometry.json",
+        f"{PROC}/{{sid}}/metrics/radiometry.json",
+    params:
+        cli=PARAMMAP,
+        cfg=config_arg("radiometry"),
+        out=lambda wc: f"{PROC}/{wc.sid}",
+    log:
+        "logs/radiometry/{sid}.log",
+    conda:
+        "../envs/parammap.yaml"
+    shell:
+        "{params.cli} radiometry {input.capture} --out {params.out} {params.cfg} 2> {log}"
 
 
 rule poses:

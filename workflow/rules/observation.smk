@@ -7,6 +7,7 @@ rule observation:
         capture=capture_dir,
         poses=f"{PROC}/{{sid}}/camera/poses.yaml",
         intrinsics=f"{PROC}/{{sid}}/camera/intrinsics.yaml",
+        radiometry=f"{PROC}/{{sid}}/camera/radiometry.json",
     output:
         store=directory(f"{PROC}/{{sid}}/observation.zarr"),
         metrics=f"{PROC}/{{sid}}/metrics/observation.json",

@@ -183,13 +183,15 @@ def predict(model: str, P: np.ndarray, V: np.ndarray, points: np.ndarray | None 
 
 
 def loo_svbrdf(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray, w: np.ndarray,
-               points: np.ndarray, lights: tuple[np.ndarray, np.ndarray],
-               rel_step: float = 1e-3) -> Loo:
+               points: np.ndarray, lights: tuple, rel_step: float = 1e-3) -> Loo:
     """Leave-one-out residuals of an svbrdf map (:mod:`parammap.models.svbrdf`): Kd, Ks
-    and ln alpha refitted without the view, linearised at the fit."""
+    and ln alpha refitted without the view, linearised at the fit. ``lights`` as
+    :attr:`parammap.stores.params.ParamMap.lights`: with a flat-field's irradiance its
+    radiance is divided by it, as the observations were."""
     P = np.nan_to_num(np.asarray(P, float))
     n, N, _ = V.shape
-    pos, wl = lights
+    pos, wl = lights[:2]
+    k = 1.0 / lights[2](points) if len(lights) > 2 else np.ones(n)
     l, e = light_terms(points, pos)
     alpha = np.clip(P[:, SV_ALPHA], 1e-6, None)
 
@@ -203,8 +205,9 @@ def loo_svbrdf(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray, w: np
     J[..., :3] = (e @ wl)[:, None, :, None] * eye
     J[..., 3:6] = S[..., None] * eye
     J[..., 6] = dS * P[:, None, SV_KS]
-    r = np.where(W[..., None], (e @ wl)[:, None] * P[:, None, SV_KD] + S * P[:, None, SV_KS]
-                 - L, 0.0)
+    J *= k[:, None, None, None]
+    pred = (e @ wl)[:, None] * P[:, None, SV_KD] + S * P[:, None, SV_KS]
+    r = np.where(W[..., None], k[:, None, None] * pred - L, 0.0)
     return loo_linear(J, r, w, W)
 
 

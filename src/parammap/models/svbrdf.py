@@ -105,16 +105,19 @@ def specular_basis(l: np.ndarray, e: np.ndarray, views: np.ndarray, alpha) -> np
 
 
 def svbrdf_eval(params: np.ndarray, points: np.ndarray, views: np.ndarray,
-                lights_mm: np.ndarray, weights: np.ndarray) -> np.ndarray:
+                lights_mm: np.ndarray, weights: np.ndarray, irradiance=None) -> np.ndarray:
     """Radiance (M, 3) of parameter vectors (M, ``SV_SIZE``) at surface points (M, 3)
     seen from unit directions (M, 3), under lights (J, 3) mm of relative RGB
-    intensities ``weights`` (J, 3)."""
+    intensities ``weights`` (J, 3); divided by ``irradiance(points)`` where given (the
+    flat-field's relative irradiance, :class:`parammap.models.radiometry.IrradianceGrid`:
+    the capture's frames were read so)."""
     p = np.asarray(params, float)
     l, e = light_terms(points, lights_mm)  # (M, J, 3), (M, J)
     alpha = np.clip(p[:, SV_ALPHA], *ALPHA_RANGE)[:, None, None]
     s = specular_basis(l, e, np.asarray(views, float)[:, None, :], alpha)[:, 0]  # (M, J)
     w = np.asarray(weights, float)
-    return p[:, SV_KD] * (e @ w) + p[:, SV_KS] * (s @ w)
+    out = p[:, SV_KD] * (e @ w) + p[:, SV_KS] * (s @ w)
+    return out if irradiance is None else out / irradiance(points)[:, None]
 
 
 def _nnls_small(G: np.ndarray, r: np.ndarray, yy: np.ndarray) -> tuple[np.ndarray,
@@ -442,7 +445,8 @@ def fit_svbrdf_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarr
                     origin: tuple[int, int], grid: tuple[int, int, float, float],
                     lights_mm: np.ndarray, weights: np.ndarray,
                     noise: np.ndarray | None = None, batch: int = 1024,
-                    prior: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+                    prior: dict[str, np.ndarray] | None = None,
+                    irradiance=None) -> dict[str, np.ndarray]:
     """Fit every texel of a tile (:func:`fit_svbrdf_batch`).
 
     Parameters
@@ -453,6 +457,9 @@ def fit_svbrdf_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarr
     lights_mm : (J, 3); weights : (J, 3) relative intensities (:func:`light_weights`).
     noise : (t, u, N) relative sd per observation (weights, chi-square), or None.
     prior : per texel (t u, ...) priors of :func:`fit_svbrdf_batch`, or None.
+    irradiance : the flat-field's relative irradiance the observations were divided by
+        (:class:`parammap.models.radiometry.IrradianceGrid`), put back: the lights'
+        fall-off is the model's own. None: the observations as they are.
 
     Returns
     -------
@@ -467,6 +474,8 @@ def fit_svbrdf_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarr
     pts = texel_centres(S, T, width, height, np.arange(r0, r0 + t),
                         np.arange(c0, c0 + u)).reshape(-1, 3)
     L = np.asarray(radiance, float).reshape(t * u, N, 3)
+    if irradiance is not None:
+        L = L * irradiance(pts)[:, None, None]
     V = np.asarray(direction, float).reshape(t * u, N, 3)
     W = np.asarray(valid, bool).reshape(t * u, N) & np.isfinite(L).all(-1) \
         & np.isfinite(V).all(-1) & (V[..., 2] > 0)
@@ -571,7 +580,8 @@ def pool_svbrdf_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
                      direction: np.ndarray, valid: np.ndarray, offset: tuple[int, int], *,
                      origin: tuple[int, int], grid: tuple[int, int, float, float],
                      lights_mm: np.ndarray, weights: np.ndarray,
-                     noise: np.ndarray | None = None) -> dict[str, np.ndarray] | None:
+                     noise: np.ndarray | None = None, irradiance=None,
+                     ) -> dict[str, np.ndarray] | None:
     """The repair pass of an svbrdf fit (:func:`parammap.stages.fit.fit_map`): every
     texel of a tile refitted with its neighbours' priors on ln alpha and Ks
     (:func:`neighbour_priors`, from the tile pass's results over the tile and its halo
@@ -607,7 +617,8 @@ def pool_svbrdf_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
     base = {k: fields[k][i0:i0 + t, j0:j0 + u].copy() for k in svbrdf_outputs()}
     out = fit_svbrdf_tile(radiance, direction, valid & take.reshape(t, u, 1), origin=origin,
                           grid=grid, lights_mm=lights_mm, weights=weights, noise=noise,
-                          prior={k: v for k, v in pri.items() if k != "n"})
+                          prior={k: v for k, v in pri.items() if k != "n"},
+                          irradiance=irradiance)
     sel = take.reshape(t, u) & (out[FitArray.STATUS] == FitStatus.OK)
     for k in base:
         base[k][sel] = out[k][sel]

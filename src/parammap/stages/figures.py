@@ -334,7 +334,7 @@ def svbrdf_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Pa
     out_dir = Path(out_dir)
     p = g[FitArray.PARAMS][:].astype(float)
     sd = g[FitArray.SD][:].astype(float)
-    pos, w = g.lights
+    lights = g.lights  # with a flat-field's irradiance: compared with its observations
     with np.errstate(invalid="ignore", divide="ignore"):
         maps = {"Kd (luminance)": p[..., SV_KD] @ LUMINANCE,
                 "Ks (luminance)": p[..., SV_KS] @ LUMINANCE,
@@ -345,7 +345,7 @@ def svbrdf_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Pa
     def predict(r, c, d):
         pt = texel_centres(g.S, g.T, g.width_mm, g.height_mm, [r], [c]).reshape(1, 3)
         return svbrdf_eval(np.repeat(p[r, c][None], len(d), 0), np.repeat(pt, len(d), 0),
-                           d, pos, w)
+                           d, *lights)
 
     return paths + fit_figures(g, obs, out_dir, name, predict, texels)
 

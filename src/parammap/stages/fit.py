@@ -55,6 +55,7 @@ from ..models.mh import (
     repair_mh_tile,
     stains,
 )
+from ..models.radiometry import IrradianceGrid
 from ..models.sh import fit_sh_tile, parse_sh_model, sh_outputs
 from ..models.sh.cap import GUARD_STEPS
 from ..models.svbrdf import MIN_OBS as SVBRDF_MIN_OBS
@@ -86,6 +87,7 @@ from ..stores.lights import read_lights
 from ..stores.metrics import digest, write_metrics
 from ..stores.observation import open_observation_map, tile_observations, tile_reader
 from ..stores.paths import Processed
+from ..stores.radiometry import read_radiometry
 
 logger = logging.getLogger(__name__)
 
@@ -505,13 +507,16 @@ PILOT_TILES = 128  # tiles the pilot's texels come from
 
 def svbrdf_lights(obs_path: str | Path, lights_mm: np.ndarray,
                   texels: int = default("fit.svbrdf.pilot_texels"), refine: bool = True,
-                  seed: int = 0) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+                  seed: int = 0, irradiance: IrradianceGrid | None = None,
+                  ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """The lights an svbrdf fit is made under, from a pilot of up to ``texels`` texels
     from tiles across the map: their positions refined from the found ones
     (:func:`parammap.models.svbrdf.refine_lights`, with ``refine``) and their (J, 3)
     relative intensities (the first's 1), each texel given a specular amplitude per
     light and their ratios pooled (:func:`parammap.models.svbrdf.light_weights`).
-    Returns positions (J, 3) mm, intensities and a record for the metrics."""
+    ``irradiance``: the flat-field's, put back into the observations (the lights'
+    fall-off is the model's). Returns positions (J, 3) mm, intensities and a record for
+    the metrics."""
     obs = open_observation_map(obs_path)
     rng = np.random.default_rng(seed)
     # texels from many tiles, a few from each: the highlights' positions over the whole
@@ -526,6 +531,8 @@ def svbrdf_lights(obs_path: str | Path, lights_mm: np.ndarray,
                             np.arange(cols.start, cols.stop)).reshape(-1, 3)
         keep = np.flatnonzero(W.sum(1) >= SVBRDF_MIN_OBS)
         keep = rng.permutation(keep)[:each]
+        if irradiance is not None:
+            L = L * irradiance(pts)[:, None, None]
         parts.append((V[keep], L[keep], w[keep], pts[keep]))
     V, L, w, pts = (np.concatenate(a)[:texels] for a in zip(*parts, strict=True))
     record: dict[str, Any] = {"found_mm": np.round(lights_mm, 3).tolist(), "pilot_texels": len(V)}
@@ -549,13 +556,19 @@ def svbrdf_lights(obs_path: str | Path, lights_mm: np.ndarray,
 
 
 def fit_svbrdf_map(obs_path: str | Path, out_path: str | Path, lights_path: str | Path,
+                   radiometry_path: str | Path | None,
                    cfg: dict, scheduler: str = default("fit.scheduler"),
                    workers: int = default("workers"),
                    start_method: str = default("fit.start_method")) -> dict:
     """Fit the microfacet SVBRDF (:mod:`parammap.models.svbrdf`) to every texel of an
     observation map under the lights of ``lights_path`` (``camera/lights.yaml``) into
-    ``fit/svbrdf-ggx.zarr``; returns the figures for its metrics file."""
+    ``fit/svbrdf-ggx.zarr``; returns the figures for its metrics file. Where the
+    capture's flat-field (``radiometry_path``, ``camera/radiometry.json``; None or
+    missing: none) divided the lights' fall-off out of the observations, it is put back:
+    the model's lights fall off themselves."""
     doc = read_lights(lights_path)
+    rad = read_radiometry(radiometry_path if radiometry_path and Path(radiometry_path).is_file()
+                          else None)
     obs = open_observation_map(obs_path)
     refine = cfg.get("refine_lights", default("fit.svbrdf.refine_lights"))
     if doc["lights"]:
@@ -566,18 +579,20 @@ def fit_svbrdf_map(obs_path: str | Path, out_path: str | Path, lights_path: str 
         logger.warning(f"fit: {lights_path} lists no light (see metrics/lights.json); "
                        f"{SVBRDF_MODEL} is fitted under a nominal light {REFERENCE_MM:g} mm "
                        "above the surface's centre, where it is not relightable")
+    irradiance = None if rad.irradiance is None else IrradianceGrid(
+        rad.irradiance, obs.width_mm, obs.height_mm)
     lights_mm, weights, record = svbrdf_lights(
         obs_path, lights_mm, cfg.get("pilot_texels", default("fit.svbrdf.pilot_texels")),
-        refine)
+        refine, irradiance=irradiance)
     record["nominal"] = not doc["lights"]
     logger.info(f"fit: {SVBRDF_MODEL} under {len(lights_mm)} light(s) at "
                 f"{np.round(lights_mm, 1).tolist()} mm, relative intensities "
                 f"{np.round(weights, 3).tolist()}")
     geom = {"grid": (obs.S, obs.T, obs.width_mm, obs.height_mm), "lights_mm": lights_mm,
-            "weights": weights}
+            "weights": weights, "irradiance": irradiance}
     pool = bool(cfg.get("pool_neighbours", default("fit.svbrdf.pool_neighbours")))
     res = fit_map(obs_path, out_path, partial(fit_svbrdf_tile, **geom), svbrdf_outputs(),
-                  svbrdf_attrs(lights_mm, weights, lights_source=doc.get("source"),
+                  svbrdf_attrs(lights_mm, weights, irradiance, lights_source=doc.get("source"),
                                pool_radius=POOL_RADIUS if pool else 0),
                   scheduler, workers, start_method=start_method,
                   repair_fn=partial(pool_svbrdf_tile, **geom) if pool else None,
@@ -605,7 +620,8 @@ def run_fit(source: str | Path, processed: str | Path, config: dict[str, Any], *
         K = parse_lobes(model[3:])
         name, fit, args, family = f"mh-{K}", fit_mh_map, (K,), "mh"
     elif model == SVBRDF_MODEL:
-        name, fit, args, family = model, fit_svbrdf_map, (proc.lights,), "svbrdf"
+        name, fit, args, family = (model, fit_svbrdf_map, (proc.lights, proc.radiometry),
+                                   "svbrdf")
     else:
         hemi, n = parse_sh_model(model)
         name, fit, args, family = f"sh-{hemi}-{n * n}", fit_sh_map, (hemi, n), "sh"

@@ -660,14 +660,16 @@ def _merge_job(job: tuple) -> dict:
 def run_hdr(cap: Capture, processed: str | Path, config: dict[str, Any], *,
             view_ids: list[str] | None = None, response: str | Path | None = None,
             workers: int | None = None) -> list[dict]:
-    """The hdr stage: merge the brackets of the given views (default: all) into
+    """The hdr stage: merge the brackets of the given views (default: all, with the
+    white card's and the colour chart's) into
     ``hdr/<view>.exr`` with per-view statistics in ``hdr/<view>.json``, on ``workers``
     processes (default: config ``workers``); ``config`` section ``hdr``."""
     cfg = config["hdr"]
     workers = workers or config["workers"]
     out = Processed(processed)
     g = None if cap.response == "linear" else load_response(response or out.response_csv)
-    views = [cap.view(v) for v in view_ids] if view_ids else cap.views
+    views = ([cap.view(v) for v in view_ids] if view_ids
+             else [*cap.views, *cap.radiometry_views])
     prov = hdr_provenance(digest(cfg), "linear" if g is None else digest(g))
     jobs = [(v, g, out.hdr(v.id), cfg["low"], cfg["high"], prov, out.hdr_stats(v.id))
             for v in views]

@@ -31,6 +31,7 @@ from scipy.cluster.vq import kmeans2
 from ..conventions import LUMINANCE
 from ..geometry import Intrinsics, plane_to_texel
 from ..models.display import tone_gamma
+from ..models.radiometry import correct_frame
 from ..render import render, reproject_frame, surface_points, tone_map
 from ..stores.camera import kept_poses, load_intrinsics, read_poses
 from ..stores.capture import Capture
@@ -40,6 +41,7 @@ from ..stores.metrics import write_metrics
 from ..stores.observation import open_observation_map
 from ..stores.params import ParamMap, read_param_map
 from ..stores.paths import Processed
+from ..stores.radiometry import radiometry_for
 
 logger = logging.getLogger(__name__)
 
@@ -173,6 +175,13 @@ def holdout_comparison(
     centre = np.array([cap.width_mm / 2, cap.height_mm / 2, 0.0])
     kdir = np.array([(v.centre - centre) / np.linalg.norm(v.centre - centre) for v in kept])
     labels, described = regions or texel_regions(proc.observation)
+    radiometry = radiometry_for(cap, proc)
+
+    def frame(view_id: str, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # read as the observation map read its frames: the flat-field and colour out
+        rad, sat, _ = read_hdr(proc.hdr(view_id))
+        return correct_frame(rad, intr, R, t, cap.width_mm, cap.height_mm, radiometry), sat
+
     result: dict[str, Any] = {"views": {}, "models": list(maps) + ["nearest-view"],
                               "skipped": {}, "regions": described}
     for r in held:
@@ -182,7 +191,7 @@ def holdout_comparison(
             logger.info(f"holdout: skipping {vid}: {result['skipped'][vid]}")
             continue
         R, t = np.asarray(r["R"], float), np.asarray(r["t"], float)
-        photo, sat, _ = read_hdr(proc.hdr(vid))
+        photo, sat = frame(vid, R, t)
         P, inside = surface_points(intr, R, t, cap.width_mm, cap.height_mm,
                                    (photo.shape[1], photo.shape[0]))
         mask = inside & ~sat & ~marker_pixels(cap, P)
@@ -191,8 +200,8 @@ def holdout_comparison(
         near = kept[int(np.argmax(kdir @ ((C - centre) / np.linalg.norm(C - centre))))]
         renders = {name: render(pm, intr, R, t, (photo.shape[1], photo.shape[0]))[0]
                    for name, pm in maps.items()}
-        renders["nearest-view"] = reproject_frame(read_hdr(near.hdr)[0], intr, near.R, near.t,
-                                                  P, inside)
+        renders["nearest-view"] = reproject_frame(frame(near.id, near.R, near.t)[0], intr,
+                                                  near.R, near.t, P, inside)
         row = {"gamma": gamma, "nearest_view": near.id, "models": {}, "regions": {}}
         px_regions = pixel_regions(labels, P, inside, cap.width_mm, cap.height_mm)
         if r.get("warning"):  # the pose policy would have dropped a fitted view like it

@@ -37,7 +37,7 @@ import yaml
 
 from ..errors import InputError
 from ..parallel import progress
-from ..stores.capture import load_capture
+from ..stores.capture import DEFAULT_CHART, DEFAULT_CHART_ID, load_capture
 from ..stores.images import (
     PHOTO_SUFFIXES,
     ImageReadError,
@@ -218,7 +218,8 @@ def _place(src: Path, dst: Path) -> None:
 def run_import(photos: str | Path, out: str | Path, *, layout: str | Path,
                board: str | Path | None = None, holdout: int | None = None, seed: int = 0,
                surface_id: str | None = None,
-               holdout_photos: Sequence[str] = ()) -> dict[str, Any]:
+               holdout_photos: Sequence[str] = (), flatfield: str | Path | None = None,
+               chart: str | Path | None = None) -> dict[str, Any]:
     """Build the capture ``out`` from a folder of camera files.
 
     Parameters
@@ -233,6 +234,11 @@ def run_import(photos: str | Path, out: str | Path, *, layout: str | Path,
     holdout_photos : camera file names (any photo of a bracket) whose views are held
         out instead of drawn ones.
     surface_id : default the capture folder's name.
+    flatfield : folder of photos of a uniform white card lying where the surface lies,
+        under the capture's light, from a few places (brackets as the views'); the
+        capture's ``flatfield`` section.
+    chart : folder of one bracket of a ColorChecker Classic under the capture's light;
+        the capture's ``colour_chart`` section.
 
     Returns
     -------
@@ -247,14 +253,18 @@ def run_import(photos: str | Path, out: str | Path, *, layout: str | Path,
     if board and not calib:
         raise CameraFolderError(f"{board}: a board layout has a calibration section "
                            "(parammap board writes one)")
-    files = _files(photos)
-    metas = []
-    for f in progress(files, len(files), "import: headers", logger):
-        try:
-            metas.append(photo_meta(f))
-        except ImageReadError as exc:
-            raise CameraFolderError(str(exc)) from None
-    _check_camera(metas)
+    extra = [Path(p).resolve() for p in (flatfield, chart) if p]
+    files = [f for f in _files(photos)
+             if not any(f.resolve().is_relative_to(e) for e in extra)]
+    metas = _headers(files, "import: headers")
+    card = brackets_of(_headers(_files(Path(flatfield)), "import: white card")) \
+        if flatfield else []
+    chart_groups = brackets_of(_headers(_files(Path(chart)), "import: colour chart")) \
+        if chart else []
+    if chart and len(chart_groups) != 1:
+        raise CameraFolderError(f"{chart}: {len(chart_groups)} brackets; the colour chart's "
+                                "folder holds one")
+    _check_camera(metas + [m for g in card + chart_groups for m in g])
     groups = brackets_of(metas)
     kinds = [_shows_board(g, lay["markers"], calib)
              for g in progress(groups, len(groups), "import: views and board photos", logger)]
@@ -278,6 +288,7 @@ def run_import(photos: str | Path, out: str | Path, *, layout: str | Path,
     shutil.rmtree(tmp, ignore_errors=True)
     try:
         doc = _write(tmp, views, boards, held, lay, calib, surface_id or out.name)
+        _write_radiometry(tmp, doc, card, chart_groups[0] if chart_groups else None)
         load_capture(tmp, check_images=True)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -286,12 +297,52 @@ def run_import(photos: str | Path, out: str | Path, *, layout: str | Path,
         shutil.rmtree(out)
     tmp.replace(out)
     summary = {"photos": len(files), "views": len(views), "held_out": n_hold,
-               "board_photos": len(boards),
+               "board_photos": len(boards), "card_views": len(card),
+               "chart": bool(chart_groups),
                "exposures_per_view": sorted({len(g) for g in views})}
     logger.info(f"import: {out}: {summary['views']} views ({n_hold} held out) of "
                 f"{'/'.join(map(str, summary['exposures_per_view']))} exposures, "
                 f"{len(boards)} board photos, from {len(files)} photos")
     return summary | {"capture": doc}
+
+
+def _headers(files: list[Path], what: str) -> list[PhotoMeta]:
+    """The camera metadata of each file; one line naming an unreadable one."""
+    metas = []
+    for f in progress(files, len(files), what, logger):
+        try:
+            metas.append(photo_meta(f))
+        except ImageReadError as exc:
+            raise CameraFolderError(str(exc)) from None
+    return metas
+
+
+def _bracket_doc(root: Path, name: str, g: list[PhotoMeta]) -> list[dict[str, Any]]:
+    """A bracket's photos placed under ``radiometry/`` as ``<name>_<k>``, longest
+    exposure first; their capture-format entries."""
+    exps = []
+    for j, m in enumerate(sorted(g, key=lambda m: -m.exposure_s)):
+        rel = Path("radiometry") / f"{name}_{j}{m.path.suffix.lower()}"
+        _place(m.path, root / rel)
+        exps.append({"file": rel.as_posix(), "exposure_s": float(m.exposure_s)})
+    return exps
+
+
+def _write_radiometry(root: Path, doc: dict, card: list[list[PhotoMeta]],
+                      chart: list[PhotoMeta] | None) -> None:
+    """The white card's views and the chart's bracket into ``root`` and its
+    ``capture.yaml`` (``doc``, updated)."""
+    if card:
+        doc["flatfield"] = {"views": [{"id": f"card{k:02d}",
+                                       "exposures": _bracket_doc(root, f"card{k:02d}", g)}
+                                      for k, g in enumerate(card)]}
+    if chart:
+        doc["colour_chart"] = {"id": DEFAULT_CHART_ID, "chart": DEFAULT_CHART,
+                               "exposures": _bracket_doc(root, DEFAULT_CHART_ID, chart)}
+    if card or chart:
+        (root / "capture.yaml").write_text(
+            "# written by parammap import\n"
+            + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None))
 
 
 def _camera_settings(metas: list[PhotoMeta]) -> dict[str, Any]:

@@ -53,6 +53,7 @@ import logging
 import math
 import shutil
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +63,7 @@ import numpy as np
 from .. import __version__
 from ..config import default
 from ..geometry import Intrinsics, sample_image, unit
+from ..models.radiometry import correct_frame
 from ..parallel import executor, progress
 from ..stores.camera import PosesError, kept_poses, load_intrinsics, read_poses
 from ..stores.capture import Capture
@@ -81,6 +83,7 @@ from ..stores.observation import (
     write_view_rows,
 )
 from ..stores.paths import Processed
+from ..stores.radiometry import Radiometry, radiometry_for
 from ..vision.pose import point_uncertainty
 
 logger = logging.getLogger(__name__)
@@ -361,12 +364,13 @@ def _pass1_view(job: tuple) -> tuple[str, float, int, float, int]:
     """Sample one view into the scratch store; returns (id, valid fraction, bytes read,
     seconds, observations dropped as blended with their neighbours)."""
     (scratch, n, view, intr, S, T, w_mm, h_mm, band, max_zen, max_ss, max_blend,
-     resolved) = job
+     resolved, radiometry) = job
     t0 = time.perf_counter()
     rad, sat, _, noise = read_hdr_noise(view.hdr)
     if (rad.shape[1], rad.shape[0]) != tuple(intr.image_size):
         raise ObservationError(f"{view.hdr}: frame {rad.shape[1]}x{rad.shape[0]} does not "
                                f"match the intrinsics image size {intr.image_size}")
+    rad = correct_frame(rad, intr, view.R, view.t, w_mm, h_mm, radiometry)
     g = open_scratch(scratch)
     nvalid = 0
     stats: dict[str, int] = {}
@@ -418,6 +422,7 @@ def build_observation_map(
     config: dict[str, Any] | None = None,
     max_blend: float | None = None,
     max_band_mib: float = default("observation.max_band_mib"),
+    radiometry: Radiometry | None = None,
 ) -> dict[str, Any]:
     """Build ``observation.zarr`` from a processed capture's poses and HDR frames.
 
@@ -436,6 +441,8 @@ def build_observation_map(
         :func:`texel_pixels`); None keeps them.
     max_band_mib : memory (MiB) one process gives a block of the transpose
         (:func:`band_columns`).
+    radiometry : the flat-field and colour correction each frame is read through
+        (:func:`parammap.radiometry.correct_frame`); None reads frames as merged.
 
     Returns
     -------
@@ -464,7 +471,7 @@ def build_observation_map(
     key = digest({"views": [(v.id, v.R, v.t, mtime_ns(v.hdr)) for v in views],
                   "K": intr.K, "dist": intr.dist, "grid": [S, T, tile],
                   "sampling": [max_zenith_deg, max_supersample, max_blend],
-                  "config": config or {},
+                  "config": config or {}, "radiometry": radiometry and asdict(radiometry),
                   "surface": [cap.width_mm, cap.height_mm, cap.marker_corners],
                   "software": __version__})
     resume = tmp.is_dir() and (marks / "key").is_file() and (marks / "key").read_text() == key
@@ -491,7 +498,7 @@ def build_observation_map(
                        "are left out" if resolved else
                        "the photos do not resolve them, every read is kept"))
     jobs = [(str(scratch), n, v, intr, S, T, cap.width_mm, cap.height_mm, band,
-             max_zenith_deg, max_supersample, max_blend, resolved)
+             max_zenith_deg, max_supersample, max_blend, resolved, radiometry)
             for n, v in enumerate(views) if n not in done]
     with executor(workers) as ex:
         sampled = progress(ex.map(_pass1_view, jobs), len(jobs), "observation: views sampled",
@@ -565,7 +572,8 @@ def run_observation(cap: Capture, processed: str | Path, config: dict[str, Any],
     m = build_observation_map(
         cap, proc.root, proc.observation, cfg["texels_x"], cfg["texels_y"], cfg["tile"],
         cfg["max_zenith_deg"], cfg["max_supersample"], workers or config["workers"],
-        config=config, max_blend=cfg["max_blend_sd"], max_band_mib=cfg["max_band_mib"])
+        config=config, max_blend=cfg["max_blend_sd"], max_band_mib=cfg["max_band_mib"],
+        radiometry=radiometry_for(cap, proc))
     write_metrics(proc.metrics("observation"), m)
     logger.info(f"observation: {m['S']}x{m['T']} texels x {m['views']} views, valid "
                 f"{m['valid_fraction']:.3f} ({m['blended_fraction']:.4f} left out as "

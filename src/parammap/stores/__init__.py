@@ -14,6 +14,7 @@ module                    artifact
 :mod:`.hdr`               merged HDR frames and the camera response
 :mod:`.camera`            intrinsics and per-view poses
 :mod:`.lights`            the lights found from the highlights' lobes
+:mod:`.radiometry`        the flat-field and colour correction of the frames
 :mod:`.observation`       the observation map (``observation.zarr``)
 :mod:`.fit`               fit stores (``fit/<model>.zarr``)
 :mod:`.params`            parameter maps (``params/<model>.exr``)

@@ -32,6 +32,12 @@ __all__ = [
 ]
 
 
+#: the colour chart a capture names when it does not say (the ColorChecker Classic)
+DEFAULT_CHART = "MCC24"
+#: the chart's bracket's id when capture.yaml gives none
+DEFAULT_CHART_ID = "chart"
+
+
 class CaptureError(InputError):
     """An invalid capture directory; the message names the file and key."""
 
@@ -68,12 +74,23 @@ class Capture:
     raw: dict[str, Any] = field(repr=False, default_factory=dict)
     # lights the lab measured: each ``position_mm`` (surface frame) and maybe ``size_mm``
     lights: list[dict[str, Any]] = field(default_factory=list)
+    # white-card views (flat-field) and the colour chart's bracket, merged as views are
+    flatfield: list[View] = field(default_factory=list)
+    chart: View | None = None
+    chart_type: str = DEFAULT_CHART
+    chart_reference: str | None = None  # colour-science's name; None: the chart's own
 
     def view(self, view_id: str) -> View:
-        for v in self.views:
+        """A view, white-card view or the chart's bracket by id."""
+        for v in [*self.views, *self.radiometry_views]:
             if v.id == view_id:
                 return v
         raise KeyError(view_id)
+
+    @property
+    def radiometry_views(self) -> list[View]:
+        """The white card's views and the chart's bracket (the radiometry stage's)."""
+        return [*self.flatfield, *([self.chart] if self.chart else [])]
 
     @property
     def fitted_views(self) -> list[View]:
@@ -246,30 +263,49 @@ def _calibration(c: _Ctx, raw: dict) -> tuple[dict, list[Path], Path | None]:
     return dict(calib), images, intr_path
 
 
-def _views(c: _Ctx, raw: dict) -> list[View]:
-    """Every view with its exposures (times from capture.yaml, or from EXIF)."""
-    views, seen = [], set()
-    for k, v in enumerate(raw["views"]):
-        where = f"views[{k}]"
+def _exposures(c: _Ctx, items: list, where: str) -> tuple[Exposure, ...]:
+    """A bracket's exposures (times from capture.yaml, or from EXIF)."""
+    exps = []
+    for e, ex in enumerate(items):
+        ew = f"{where}.exposures[{e}]"
+        p = c.path(ex["file"], f"{ew}.file")
+        t = ex.get("exposure_s")
+        if t is None:
+            # EXIF is read from the header only, cheap enough for every load.
+            t = exif_exposure_time(p) if p.is_file() else None
+            if t is None:
+                c.fail(f"{ew}.exposure_s", f"missing, and {p.name} has no EXIF ExposureTime")
+        elif not np.isfinite(float(t)):
+            c.fail(f"{ew}.exposure_s", f"must be positive (got {t})")
+        exps.append(Exposure(p, float(t)))
+    return tuple(exps)
+
+
+def _views(c: _Ctx, items: list, key: str, seen: set[str]) -> list[View]:
+    """Every view of ``items`` (``capture.yaml``'s list ``key``) with its exposures;
+    ids must be new to ``seen``, which gathers them."""
+    views = []
+    for k, v in enumerate(items):
+        where = f"{key}[{k}]"
         vid = str(v["id"])
         if vid in seen:
             c.fail(f"{where}.id", f"duplicate view id {vid!r}")
         seen.add(vid)
-        exps = []
-        for e, ex in enumerate(v["exposures"]):
-            ew = f"{where}.exposures[{e}]"
-            p = c.path(ex["file"], f"{ew}.file")
-            t = ex.get("exposure_s")
-            if t is None:
-                # EXIF is read from the header only, cheap enough for every load.
-                t = exif_exposure_time(p) if p.is_file() else None
-                if t is None:
-                    c.fail(f"{ew}.exposure_s", f"missing, and {p.name} has no EXIF ExposureTime")
-            elif not np.isfinite(float(t)):
-                c.fail(f"{ew}.exposure_s", f"must be positive (got {t})")
-            exps.append(Exposure(p, float(t)))
-        views.append(View(vid, bool(v.get("holdout", False)), tuple(exps)))
+        views.append(View(vid, bool(v.get("holdout", False)),
+                          _exposures(c, v["exposures"], where)))
     return views
+
+
+def _radiometry_views(c: _Ctx, raw: dict, seen: set[str]) -> tuple[list[View], View | None]:
+    """The white card's views and the colour chart's bracket (ids new to ``seen``)."""
+    card = _views(c, (raw.get("flatfield") or {}).get("views") or [], "flatfield.views", seen)
+    chart_raw = raw.get("colour_chart")
+    if not chart_raw:
+        return card, None
+    cid = str(chart_raw.get("id", DEFAULT_CHART_ID))
+    if cid in seen:
+        c.fail("colour_chart.id", f"duplicate view id {cid!r}")
+    return card, View(cid, False, _exposures(c, chart_raw["exposures"], "colour_chart"))
 
 
 def load_capture(directory: str | Path, check_images: bool = False) -> Capture:
@@ -303,6 +339,10 @@ def load_capture(directory: str | Path, check_images: bool = False) -> Capture:
     surface = raw["surface"]
     dict_name, ids, corners = _markers(c, raw)
     calib, calib_images, intr_path = _calibration(c, raw)
+    seen: set[str] = set()
+    views = _views(c, raw["views"], "views", seen)
+    card, chart = _radiometry_views(c, raw, seen)
+    chart_raw = raw.get("colour_chart") or {}
     response = (raw.get("camera") or {}).get("response", "auto")
     if response not in ("auto", "linear"):
         response = str(c.path(response, "camera.response"))
@@ -312,8 +352,10 @@ def load_capture(directory: str | Path, check_images: bool = False) -> Capture:
         height_mm=c.positive(surface, "height_mm", "surface"),
         marker_dictionary=dict_name, marker_ids=ids,
         marker_corners=corners, calibration=calib, calibration_images=calib_images,
-        intrinsics_path=intr_path, response=response, views=_views(c, raw), raw=raw,
-        lights=[dict(lt) for lt in raw.get("lights") or []],
+        intrinsics_path=intr_path, response=response, views=views, raw=raw,
+        lights=[dict(lt) for lt in raw.get("lights") or []], flatfield=card, chart=chart,
+        chart_type=chart_raw.get("chart", DEFAULT_CHART),
+        chart_reference=chart_raw.get("reference"),
     )
     if check_images:
         _check_images(c, cap, raw["views"])
@@ -322,9 +364,12 @@ def load_capture(directory: str | Path, check_images: bool = False) -> Capture:
 
 def _check_images(c: _Ctx, cap: Capture, views_raw: list) -> None:
     view_size = None
-    for k, v in enumerate(cap.views):
+    keyed = ([(f"views[{k}]", v) for k, v in enumerate(cap.views)]
+             + [(f"flatfield.views[{k}]", v) for k, v in enumerate(cap.flatfield)]
+             + ([("colour_chart", cap.chart)] if cap.chart else []))
+    for where, v in keyed:
         for e, ex in enumerate(v.exposures):
-            key = f"views[{k}].exposures[{e}].file"
+            key = f"{where}.exposures[{e}].file"
             try:
                 size = image_size(ex.path)
             except ImageReadError as exc:

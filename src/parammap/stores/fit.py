@@ -20,6 +20,7 @@ import zarr
 
 from ..conventions import FitArray, FitStatus
 from ..errors import InputError
+from ..models.radiometry import IrradianceGrid
 from .common import (
     COMPLETE_ATTR,
     HEIGHT_ATTR,
@@ -111,12 +112,14 @@ def sh_attrs(hemisphere: str, n: int, sampled_cap: bool, solid_angles: str,
 SVBRDF_LAYOUT = "Kd.R Kd.G Kd.B Ks.R Ks.G Ks.B alpha"
 
 
-def svbrdf_attrs(lights_mm: np.ndarray, weights: np.ndarray, **settings: Any) -> dict[str, Any]:
+def svbrdf_attrs(lights_mm: np.ndarray, weights: np.ndarray,
+                 irradiance: IrradianceGrid | None = None, **settings: Any) -> dict[str, Any]:
     """The attributes that describe an svbrdf fit: the lights it was fitted under
-    (``lights``: ``position_mm`` (J, 3), ``weights`` (J, 3) relative RGB intensities)
+    (``lights``: ``position_mm`` (J, 3), ``weights`` (J, 3) relative RGB intensities,
+    the flat-field's ``irradiance`` it put back, :func:`parammap.stores.lights.light_doc`)
     and ``settings`` (where the lights came from)."""
     return {_MODEL: "svbrdf", "model_version": 1, _LAYOUT: SVBRDF_LAYOUT,
-            _LIGHTS: light_doc(lights_mm, weights), **settings}
+            _LIGHTS: light_doc(lights_mm, weights, irradiance), **settings}
 
 
 def grid_attrs(obs: ObservationMap, tile: int, provenance: bool = True) -> dict[str, Any]:
@@ -210,9 +213,10 @@ class FitStore(MapStore):
         return out
 
     @property
-    def lights(self) -> tuple[np.ndarray, np.ndarray] | None:
+    def lights(self) -> tuple | None:
         """An svbrdf fit's lights: positions (J, 3) mm and relative RGB intensities
-        (J, 3); None for other fits."""
+        (J, 3) (and the flat-field's irradiance, :func:`parse_light_doc`); None for
+        other fits."""
         doc = self.group.attrs.get(_LIGHTS)
         return None if doc is None else parse_light_doc(doc)
 

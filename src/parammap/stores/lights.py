@@ -11,6 +11,7 @@ import numpy as np
 import yaml
 
 from ..errors import InputError
+from ..models.radiometry import IrradianceGrid
 
 __all__ = ["LIGHTS_VERSION", "LightsError", "light_doc", "parse_light_doc", "read_lights",
            "write_lights"]
@@ -23,22 +24,36 @@ class LightsError(InputError):
 
 
 # the lights a relightable map carries (fit-store attribute, EXR header as JSON)
-_POSITION, _INTENSITY = "position_mm", "intensity"
+_POSITION, _INTENSITY, _IRRADIANCE = "position_mm", "intensity", "irradiance"
 
 
-def light_doc(position_mm: np.ndarray, intensity: np.ndarray) -> dict[str, Any]:
+def light_doc(position_mm: np.ndarray, intensity: np.ndarray,
+              irradiance: IrradianceGrid | None = None) -> dict[str, Any]:
     """The lights of a relightable map as stored with it: positions (J, 3) mm, surface
-    frame, and relative RGB intensities (J, 3)."""
-    return {_POSITION: np.round(np.asarray(position_mm, float), 4).reshape(-1, 3).tolist(),
-            _INTENSITY: np.round(np.asarray(intensity, float), 6).reshape(-1, 3).tolist()}
+    frame, relative RGB intensities (J, 3) and, when the capture's frames had the
+    lights' fall-off divided out (a white card, :mod:`parammap.models.radiometry`), that
+    relative irradiance, which the map's renders of the capture divide out too."""
+    doc = {_POSITION: np.round(np.asarray(position_mm, float), 4).reshape(-1, 3).tolist(),
+           _INTENSITY: np.round(np.asarray(intensity, float), 6).reshape(-1, 3).tolist()}
+    if irradiance is not None:
+        doc[_IRRADIANCE] = {"grid": np.round(np.asarray(irradiance.grid), 6).tolist(),
+                            "width_mm": irradiance.width_mm,
+                            "height_mm": irradiance.height_mm}
+    return doc
 
 
-def parse_light_doc(doc: dict[str, Any] | str) -> tuple[np.ndarray, np.ndarray]:
-    """(J, 3) positions and (J, 3) intensities of :func:`light_doc` (or its JSON)."""
+def parse_light_doc(doc: dict[str, Any] | str) -> tuple:
+    """(J, 3) positions and (J, 3) intensities of :func:`light_doc` (or its JSON), and
+    its :class:`~parammap.models.radiometry.IrradianceGrid` third where it has one."""
     doc = json.loads(doc) if isinstance(doc, str) else doc
     try:
-        return (np.asarray(doc[_POSITION], float).reshape(-1, 3),
-                np.asarray(doc[_INTENSITY], float).reshape(-1, 3))
+        out = (np.asarray(doc[_POSITION], float).reshape(-1, 3),
+               np.asarray(doc[_INTENSITY], float).reshape(-1, 3))
+        irr = doc.get(_IRRADIANCE)
+        if irr is not None:
+            out += (IrradianceGrid(np.asarray(irr["grid"], float), float(irr["width_mm"]),
+                                   float(irr["height_mm"])),)
+        return out
     except (KeyError, TypeError, ValueError):
         raise LightsError(f"malformed lights of a relightable map: {str(doc)[:80]}") from None
 

@@ -116,9 +116,12 @@ class ParamMap:
                                     "lights": json.dumps(light_doc(position_mm, intensity))})
 
     @property
-    def lights(self) -> tuple[np.ndarray, np.ndarray] | None:
+    def lights(self) -> tuple | None:
         """An svbrdf map's lights: positions (J, 3) mm and relative RGB intensities
-        (J, 3), from its header (``parammap_lights``); None for other maps."""
+        (J, 3), from its header (``parammap_lights``), and the flat-field's irradiance
+        its renders of the capture divide by, where it has one
+        (:func:`parammap.stores.lights.parse_light_doc`); None for other maps. A
+        relit map (:meth:`relit`) has none: its renders are the light's."""
         doc = self.attrs.get("lights")
         return None if doc is None else parse_light_doc(doc)
 

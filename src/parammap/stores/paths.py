@@ -53,6 +53,11 @@ class Processed:
         return self.camera / "lights.yaml"
 
     @property
+    def radiometry(self) -> Path:
+        """Flat-field and colour correction (:mod:`parammap.stores.radiometry`)."""
+        return self.camera / "radiometry.json"
+
+    @property
     def poses(self) -> Path:
         return self.camera / "poses.yaml"
 

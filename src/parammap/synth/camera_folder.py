@@ -77,10 +77,13 @@ def write_camera_folder(capture: str | Path, out: str | Path, seed: int = 0,
     for the bracket's times, the white level at the response's level 255; board photos
     from their 8-bit photos through the generator's response.
 
+    A capture's white-card views and colour chart go to ``out/FLATFIELD`` and
+    ``out/CHART`` (the import's ``--flatfield`` and ``--chart``).
+
     Returns
     -------
     ``{"photos": folder, "layout": markers.yaml, "board": board.yaml or None, "views":
-    count, "board_photos": count}``.
+    count, "board_photos": count}`` and ``flatfield`` and ``chart`` folders if written.
     """
     cap = load_capture(capture)
     out = Path(out)
@@ -94,22 +97,24 @@ def write_camera_folder(capture: str | Path, out: str | Path, seed: int = 0,
         levels, exposure = _truth_response(Path(truth))
         white = float(exposure[255].mean())
 
-    def shoot(path: Path, exposure_s: float, radiance: np.ndarray | None = None) -> None:
+    def shoot(path: Path, exposure_s: float, radiance: np.ndarray | None = None,
+              folder: Path = dcim) -> None:
         nonlocal when, n
         n += 1
+        folder.mkdir(parents=True, exist_ok=True)
         if raw is not None:
             if radiance is None:  # a board photo: its exposure from its levels
                 img = read_image(path).astype(float)
                 img = img / 257.0 if img.max() > 255 else img
                 radiance = np.stack([np.interp(img[..., c], levels, exposure[:, c])
                                      for c in range(3)], -1) / exposure_s
-            write_dng(dcim / f"IMG_{n:04d}.DNG", expose_raw(radiance * exposure_s / white,
+            write_dng(folder / f"IMG_{n:04d}.DNG", expose_raw(radiance * exposure_s / white,
                                                             raw, rng), raw, exposure_s, when)
             return
         img = read_image(path)
         if img.dtype != np.uint8:
             img = (img >> 8).astype(np.uint8)
-        write_jpeg_exif(dcim / f"IMG_{n:04d}.JPG", img, exposure_s, when)
+        write_jpeg_exif(folder / f"IMG_{n:04d}.JPG", img, exposure_s, when)
 
     for p in cap.calibration_images:
         shoot(p, 1 / 60)
@@ -118,6 +123,15 @@ def write_camera_folder(capture: str | Path, out: str | Path, seed: int = 0,
         rad = _view_radiance(cap.root, Path(truth), v.id) if raw is not None else None
         for k in rng.permutation(len(v.exposures)):
             shoot(v.exposures[k].path, v.exposures[k].exposure_s, rad)
+            when += timedelta(seconds=FRAME_S)
+        when += timedelta(seconds=MOVE_S)
+    # the white card's views and the chart's bracket, each in its own folder, as a lab
+    # keeps them apart from the surface's (the card shows the surface's markers)
+    extra = {"flatfield": out / "FLATFIELD", "chart": out / "CHART"}
+    for v in cap.radiometry_views:
+        folder = extra["chart"] if v is cap.chart else extra["flatfield"]
+        for k in rng.permutation(len(v.exposures)):
+            shoot(v.exposures[k].path, v.exposures[k].exposure_s, folder=folder)
             when += timedelta(seconds=FRAME_S)
         when += timedelta(seconds=MOVE_S)
     doc = cap.raw
@@ -132,4 +146,5 @@ def write_camera_folder(capture: str | Path, out: str | Path, seed: int = 0,
             k: v for k, v in doc["calibration"].items() if k not in ("images", "intrinsics")}},
             sort_keys=False))
     return {"photos": dcim, "layout": layout, "board": board, "views": len(cap.views),
-            "board_photos": len(cap.calibration_images)}
+            "board_photos": len(cap.calibration_images),
+            **{k: p for k, p in extra.items() if p.is_dir()}}

@@ -35,6 +35,7 @@ from ..parallel import executor
 from ..sheets import marker_layout
 from ..stores.capture import aruco_dictionary
 from ..stores.images import write_image_atomic
+from .chart import chart_camera_rgb, chart_shade, chart_size_mm
 from .sampling import sample_directions
 from .scene import Scene, build_scene, load_scene, mh_truth, true_radiance
 
@@ -63,6 +64,16 @@ class Preset:
     shot_noise: float = 2e-5  # variance per unit of normalised exposure
     read_noise: float = 2e-4  # std, normalised exposure units
     image_format: str = "png"
+    # flat-field and colour (docs/synthetic.md): the lens's fall-off at the frame's
+    # corner (0.3: 30 %), the light's irradiance varying by +-light_gradient/2 across
+    # the surface on top of the lights' own cosine, photos of a white card where the
+    # surface lies, and a colour chart photo through a real camera's spectral
+    # sensitivities (colour-science's name) under a light (its illuminant name)
+    vignetting: float = 0.0
+    light_gradient: float = 0.0
+    card_views: int = 0
+    chart_camera: str = ""
+    chart_light: str = "A"
 
 
 PRESETS = {
@@ -130,6 +141,39 @@ class _World:
     paper: float
     marker_white: float
     marker_black: float
+    gradient: float = 0.0  # Preset.light_gradient
+    card: bool = False  # a white card (albedo CARD_ALBEDO) in place of the surface
+
+
+#: the flat-field card's albedo
+CARD_ALBEDO = 0.8
+
+
+def light_gradient(x: np.ndarray, y: np.ndarray, width_mm: float, height_mm: float,
+                   g: float) -> np.ndarray:
+    """The extra irradiance factor over the surface (``Preset.light_gradient``): a ramp
+    that rises by ``g`` across the width and ``g / 2`` across the height, mean 1."""
+    return 1.0 + g * ((x / width_mm - 0.5) + 0.5 * (y / height_mm - 0.5))
+
+
+def lens_vignetting(size: tuple[int, int], K: np.ndarray, v: float) -> np.ndarray:
+    """(H, W) relative illumination ``1 - v q^2`` of the generator's lens, ``q`` the
+    pixel's distance from the principal point over the farthest corner's."""
+    w, h = size
+    u, vv = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
+    r2 = (u - K[0, 2]) ** 2 + (vv - K[1, 2]) ** 2
+    corners = [(0, 0), (w - 1, 0), (0, h - 1), (w - 1, h - 1)]
+    r2max = max((cu - K[0, 2]) ** 2 + (cv - K[1, 2]) ** 2 for cu, cv in corners)
+    return (1.0 - v * r2 / r2max).astype(np.float32)
+
+
+def _cosine_irradiance(scene: Scene, P: np.ndarray) -> np.ndarray:
+    """The lights' intensity times cosine at plane points (N,) (what the scene's kd
+    holds over its albedo)."""
+    irr = np.zeros(len(P))
+    for lp, inten in zip(scene.light_pos, scene.light_int, strict=True):
+        irr += inten * np.clip(unit(lp - P)[:, 2], 0, None)
+    return irr
 
 
 def _shade_surface(world: _World, P: np.ndarray, C: np.ndarray) -> np.ndarray:
@@ -153,8 +197,13 @@ def _shade_surface(world: _World, P: np.ndarray, C: np.ndarray) -> np.ndarray:
         r, c = plane_to_texel(P[inside, 0], P[inside, 1], S, T, sc.width_mm, sc.height_mm)
         r = np.clip(np.floor(r).astype(int), 0, T - 1)
         c = np.clip(np.floor(c).astype(int), 0, S - 1)
-        v = unit(C - P[inside])
-        out[inside] = true_radiance(sc, r, c, v)
+        if world.card:
+            out[inside] = CARD_ALBEDO * _cosine_irradiance(sc, P[inside])[:, None]
+        else:
+            out[inside] = true_radiance(sc, r, c, unit(C - P[inside]))
+        if world.gradient:
+            out[inside] *= light_gradient(P[inside, 0], P[inside, 1], sc.width_mm,
+                                          sc.height_mm, world.gradient)[:, None]
     for img, H, bb in zip(world.marker_img, world.marker_H, world.marker_bbox, strict=True):
         sel = (P[:, 0] >= bb[0]) & (P[:, 0] <= bb[1]) & (P[:, 1] >= bb[2]) & (P[:, 1] <= bb[3])
         if not sel.any():
@@ -292,7 +341,7 @@ def _world(scene: Scene, preset: Preset, items: list[dict]) -> _World:
     irr = float(np.sum(scene.light_int * unit(scene.light_pos - [
         scene.width_mm / 2, scene.height_mm / 2, 0])[:, 2]))
     return _World(scene, imgs, Hs, np.array(bbs), paper=0.55 * irr, marker_white=0.8 * irr,
-                  marker_black=0.04 * irr)
+                  marker_black=0.04 * irr, gradient=preset.light_gradient)
 
 
 def view_pose(direction, preset: Preset, K, items, rng):
@@ -356,10 +405,13 @@ def _near_markers(world: _World):
 
 
 def _render_view_job(args):
-    (world, preset, K, R, t, exposures_s, response, seed) = args
-    rad = render_radiance(lambda P, C: _shade_surface(world, P, C), preset.image_size, K,
+    (world, preset, K, R, t, exposures_s, response, seed) = args[:8]
+    shade = args[8] if len(args) > 8 else (lambda P, C: _shade_surface(world, P, C))
+    rad = render_radiance(shade, preset.image_size, K,
                           preset.dist, R, t, ss=preset.supersample,
                           edge_ss=preset.edge_supersample, refine=_near_markers(world))
+    if preset.vignetting:
+        rad *= lens_vignetting(preset.image_size, K, preset.vignetting)[..., None]
     rng = np.random.default_rng(seed)
     return [_expose(rad, te, response, preset, rng) for te in exposures_s]
 
@@ -378,6 +430,8 @@ def _render_board_job(args):
 
     rad = render_radiance(shade, preset.image_size, K, preset.dist, R, t,
                           ss=max(2, preset.supersample), edge_ss=preset.edge_supersample)
+    if preset.vignetting:
+        rad *= lens_vignetting(preset.image_size, K, preset.vignetting)[..., None]
     return _expose(rad, exposure_s, response, preset, np.random.default_rng(seed))
 
 
@@ -448,15 +502,17 @@ def write_rig_truth(tmp_truth: Path, view_ids: list[str], is_hold: np.ndarray, p
 
 
 def write_capture_yaml(tmp_out: Path, header: str, sid: str, preset, items: list[dict],
-                       calib: dict, ext: str, views_yaml: list[dict]) -> None:
+                       calib: dict, ext: str, views_yaml: list[dict],
+                       extra: dict | None = None) -> None:
     """``capture.yaml`` of a generated capture (docs/reference/capture-format.md), under a comment
-    ``header``."""
+    ``header``; ``extra`` sections (the white card, the colour chart) after the views."""
     cap = {
         "surface": {"id": sid, "width_mm": preset.width_mm, "height_mm": preset.height_mm},
         "markers": {"dictionary": preset.marker_dictionary, "items": items},
         "calibration": {**calib, "images": f"calibration/*.{ext}", "intrinsics": None},
         "camera": {"response": "auto"},
         "views": views_yaml,
+        **(extra or {}),
     }
     (tmp_out / "capture.yaml").write_text(
         f"# {header}\n"
@@ -568,8 +624,11 @@ def generate(
         for k, img in enumerate(ex.map(_render_board_job, bjobs)):
             write_image_atomic(tmp_out / f"calibration/board_{k:02d}.{ext}", img)
 
+        extra = _radiometry_photos(tmp_out, world, preset, K, items, times, response, ex,
+                                   seed, ext)
+
     write_capture_yaml(tmp_out, f"Synthetic capture written by parammap synth (preset {name}, "
-                       f"seed {seed})", sid, preset, items, calib, ext, views_yaml)
+                       f"seed {seed})", sid, preset, items, calib, ext, views_yaml, extra)
 
     # Ground truth, never read by the pipeline.
     scene.save(tmp_truth / "scene.npz")
@@ -588,6 +647,56 @@ def generate(
     publish(((tmp_out, out), (tmp_truth, truth)))
     logger.info(f"synth {name}: wrote {out} and {truth} in {time.perf_counter() - t0:.1f} s")
     return out
+
+
+def _write_bracket(tmp_out: Path, vid: str, photos: list, times: list[float], ext: str,
+                   ) -> list[dict]:
+    exps = []
+    for e, img in enumerate(photos):
+        rel = f"radiometry/{vid}_{e}.{ext}"
+        write_image_atomic(tmp_out / rel, img)
+        exps.append({"file": rel, "exposure_s": times[e]})
+    return exps
+
+
+def _radiometry_photos(tmp_out: Path, world: _World, preset: Preset, K: np.ndarray,
+                       items: list[dict], times: list[float], response: Response, ex,
+                       seed: int, ext: str) -> dict:
+    """The white card's views and the colour chart's bracket of a preset that asks for
+    them, as ``capture.yaml`` sections. Their own random stream: a preset without them
+    keeps its bytes."""
+    extra: dict = {}
+    rng = np.random.default_rng(seed + 7919)
+    if preset.card_views:
+        card = replace(world, card=True)
+        dirs = sample_directions("stratified", 50.0, n_side=max(2, int(np.ceil(np.sqrt(
+            preset.card_views)))), seed=seed + 3)[:preset.card_views]
+        jobs = [(card, preset, K, *view_pose(d, preset, K, items, rng), times, response,
+                 int(rng.integers(2**31))) for d in dirs]
+        views = []
+        for k, photos in enumerate(ex.map(_render_view_job, jobs)):
+            vid = f"card{k:02d}"
+            views.append({"id": vid, "exposures": _write_bracket(tmp_out, vid, photos,
+                                                                  times, ext)})
+        extra["flatfield"] = {"views": views}
+    if preset.chart_camera:
+        sc = world.scene
+        cw, ch = chart_size_mm()
+        scale = 0.9 * sc.width_mm / cw
+        rgb = world.marker_white * chart_camera_rgb(preset.chart_camera, preset.chart_light)
+        shade = chart_shade(rgb, ((sc.width_mm - scale * cw) / 2, (sc.height_mm + scale * ch) / 2),
+                            scale, np.full(3, world.paper))
+        centre = np.array([sc.width_mm / 2, sc.height_mm / 2, 0.0])
+        d = preset.focal_px * scale * cw / (0.8 * preset.image_size[0])
+        R, t = look_at(centre + d * unit(np.array([0.15, -0.1, 1.0])), centre,
+                       np.radians(rng.uniform(-8, 8)))
+        photos = _render_view_job((world, preset, K, R, t, times, response,
+                                   int(rng.integers(2**31)), lambda P, C: shade(P, C)))
+        extra["colour_chart"] = {"id": "chart", "chart": "MCC24",
+                                 "reference": "BabelColor Average",
+                                 "exposures": _write_bracket(tmp_out, "chart", photos, times,
+                                                             ext)}
+    return extra
 
 
 def preset_with(name: str, **changes) -> Preset:

@@ -44,7 +44,7 @@ def layer_info(pm: ParamMap) -> tuple[dict, int]:
     if pm.model == "diffuse":
         return {"model": "diffuse"}, 1
     if pm.model == "svbrdf":  # (Kd, alpha), (Ks, 0); its lights for the shader
-        pos, w = pm.lights
+        pos, w = pm.lights[:2]
         if len(pos) > SV_MAX_LIGHTS:
             raise InputError(f"the viewer evaluates up to {SV_MAX_LIGHTS} lights")
         return {"model": "svbrdf", "lights": np.round(pos, 4).tolist(),

@@ -1,0 +1,255 @@
+"""Flat-field and colour: the lens's vignetting, the light's fall-off over the surface and
+the camera's colour, measured from a white card and a colour chart and divided out of
+every frame (``docs/models.md``, section "Flat-field and colour").
+
+A frame's radiance at pixel ``p`` that sees surface point ``x`` is taken as
+
+    L_frame(p) = V(p) G(x) M^-1 L(x)
+
+- ``V`` the vignetting, a function of the field angle only:
+  ``ln V = sum_k b_k rho^(2k)``, ``rho^2 = ((u - cx)/fx)^2 + ((v - cy)/fy)^2``,
+  ``V = 1`` on the optical axis;
+- ``G`` the relative irradiance of the surface (mean 1 over it): the lights' fall-off
+  and cosine, measured on the card, which a model without lights would otherwise fold
+  into each texel's albedo;
+- ``M`` the colour correction from the camera's RGB to a scene-linear space (linear
+  sRGB / Rec.709 or ACEScg): a matrix on the RGB's terms (:func:`colour_terms`),
+  fitted on a chart (:mod:`parammap.models.colour`), scaled to keep the neutral
+  patches' luminance (the exposure's scale is the merge's, not the chart's).
+
+The card is Lambertian and lies where the surface lies, so in every view a point's
+radiance is ``V(p) G(x)`` up to one constant: with the card seen from several places
+the two separate (each surface cell is seen at several field angles), a linear
+least-squares problem in ``ln`` with one free level per cell (:func:`fit_flatfield`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.interpolate import RegularGridInterpolator
+
+from ..geometry import Intrinsics, pixel_to_plane
+
+__all__ = ["COLOUR_MODELS", "VIGNETTING_TERMS", "IrradianceGrid", "Radiometry",
+           "apply_colour", "colour_terms", "correct_frame", "field_radius2", "fit_flatfield",
+           "frame_gain", "irradiance_at", "vignetting"]
+
+#: terms of the vignetting polynomial ``ln V = sum_k b_k rho^(2k)`` (rho^2, rho^4, rho^6)
+VIGNETTING_TERMS = 3
+#: colour corrections: the root-polynomial of Finlayson, Mackiewicz & Hurlbert (2015),
+#: degree 2, is exposure-invariant like a 3 x 3 matrix and follows a camera whose
+#: sensitivities are not a linear transform of the eye's (``docs/models.md`` gives the
+#: measured difference); ``linear`` is the plain 3 x 3
+COLOUR_MODELS = ("root-polynomial", "linear")
+#: the gain is evaluated every GAIN_STRIDE pixels and interpolated between: the
+#: vignetting and the light's fall-off are smooth over far more than that
+GAIN_STRIDE = 8
+
+
+@dataclass
+class Radiometry:
+    """What divides out of every frame; None for a part not measured.
+
+    vignetting : (VIGNETTING_TERMS,) coefficients ``b_k`` of ``ln V``.
+    field_max : the largest squared field radius ``rho^2`` the card was seen at; the
+        vignetting is held at its value there beyond (a polynomial is not extrapolated).
+    irradiance : (ny, nx) relative irradiance G at the centres of a regular grid of
+        cells over the surface (row 0 at y = height, as texel rows), mean 1.
+    colour_matrix : (3, n) camera RGB -> ``colour_space`` on the terms of
+        ``colour_model`` (:func:`parammap.radiometry.apply_colour`).
+    colour_space : name of the scene-linear space of the matrix.
+    colour_model : ``linear`` (3 x 3) or ``root-polynomial`` (3 x 6).
+    """
+
+    vignetting: np.ndarray | None = None
+    irradiance: np.ndarray | None = None
+    colour_matrix: np.ndarray | None = None
+    colour_space: str | None = None
+    field_max: float | None = None
+    colour_model: str | None = None
+
+    @property
+    def identity(self) -> bool:
+        """Nothing measured: frames are read as merged."""
+        return (self.vignetting is None and self.irradiance is None
+                and self.colour_matrix is None)
+
+
+@dataclass(frozen=True)
+class IrradianceGrid:
+    """The relative irradiance of a surface (:attr:`Radiometry.irradiance`) as a
+    function of surface points: what a frame read through :func:`correct_frame` was
+    divided by, which a model with its own lights puts back."""
+
+    grid: np.ndarray  # (ny, nx), row 0 at y = height
+    width_mm: float
+    height_mm: float
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        """G at surface points (..., 3) or (..., 2) mm -> (...)."""
+        p = np.asarray(points, float)
+        return irradiance_at(p[..., 0], p[..., 1], np.asarray(self.grid, float),
+                             self.width_mm, self.height_mm)
+
+
+def field_radius2(u: np.ndarray, v: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """Squared field radius ``rho^2`` (tangent of the field angle, squared, before the
+    lens's distortion) of pixel coordinates; same shape as ``u``."""
+    K = intr.K
+    return ((u - K[0, 2]) / K[0, 0]) ** 2 + ((v - K[1, 2]) / K[1, 1]) ** 2
+
+
+def _powers(rho2: np.ndarray) -> np.ndarray:
+    """(..., VIGNETTING_TERMS) rho^2, rho^4, rho^6."""
+    return np.stack([rho2 ** (k + 1) for k in range(VIGNETTING_TERMS)], -1)
+
+
+def vignetting(rho2: np.ndarray, coeffs: np.ndarray, field_max: float = np.inf) -> np.ndarray:
+    """Relative illumination ``V`` (1 on the axis) at squared field radii ``rho2``,
+    held at its ``field_max`` value beyond it."""
+    return np.exp(_powers(np.minimum(rho2, field_max)) @ np.asarray(coeffs, float))
+
+
+def fit_flatfield(cell: np.ndarray, rho2: np.ndarray, log_y: np.ndarray, n_cells: int,
+                  ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Vignetting and per-cell irradiance from card samples.
+
+    Parameters
+    ----------
+    cell : (N,) int surface cell of each sample; rho2 : (N,) its squared field radius;
+    log_y : (N,) ln of its luminance (any scale); n_cells : number of cells.
+
+    Returns
+    -------
+    coeffs : (VIGNETTING_TERMS,) ``ln V`` coefficients.
+    log_g : (n_cells,) ``ln G`` per cell (NaN where no sample), mean 0 over the
+        cells seen.
+    stats : ``residual_rms`` (ln units), ``coeff_sd`` (their standard errors),
+        ``samples``, ``cells``.
+
+    Notes
+    -----
+    Fixed effects: each cell's own mean is removed from ``ln y`` and from the powers of
+    ``rho^2``, so the vignetting is estimated only from how a cell's brightness changes
+    with where it falls in the frame, whatever the light does across the surface.
+    """
+    X = _powers(rho2)
+    counts = np.bincount(cell, minlength=n_cells).astype(float)
+    seen = counts > 0
+
+    def demean(a: np.ndarray) -> np.ndarray:
+        if a.ndim == 1:
+            return a - (np.bincount(cell, a, n_cells) / np.maximum(counts, 1))[cell]
+        return np.stack([demean(a[:, k]) for k in range(a.shape[1])], -1)
+
+    Xd, yd = demean(X), demean(log_y)
+    n = len(yd)
+    best = None
+    # as many terms as the field the card covered supports (BIC): a card seen only near
+    # the axis pins rho^2 and leaves rho^6 to the noise
+    for k in range(1, VIGNETTING_TERMS + 1):
+        ck, *_ = np.linalg.lstsq(Xd[:, :k], yd, rcond=None)
+        res = yd - Xd[:, :k] @ ck
+        dof = max(n - int(seen.sum()) - k, 1)
+        s2 = float(res @ res) / dof
+        bic = n * np.log(max(s2, 1e-300)) + k * np.log(n)
+        if best is None or bic < best[0]:
+            best = (bic, k, ck, s2)
+    _, k, ck, s2 = best
+    coeffs = np.zeros(VIGNETTING_TERMS)
+    coeffs[:k] = ck
+    cov = s2 * np.linalg.pinv(Xd[:, :k].T @ Xd[:, :k])
+    log_g = np.full(n_cells, np.nan)
+    log_g[seen] = (np.bincount(cell, log_y - X @ coeffs, n_cells) / np.maximum(counts, 1))[seen]
+    log_g -= np.log(np.mean(np.exp(log_g[seen])))
+    return coeffs, log_g, {"residual_rms": float(np.sqrt(s2)), "terms": k,
+                           "coeff_sd": np.sqrt(np.diag(cov)).tolist(),
+                           "field_max": float(rho2.max()),
+                           "samples": int(len(yd)), "cells": int(seen.sum())}
+
+
+def cell_centres(n: int, length_mm: float) -> np.ndarray:
+    """Centres (mm) of ``n`` equal cells over ``[0, length_mm]``."""
+    return (np.arange(n) + 0.5) * length_mm / n
+
+
+def irradiance_at(x: np.ndarray, y: np.ndarray, grid: np.ndarray, width_mm: float,
+                  height_mm: float) -> np.ndarray:
+    """Relative irradiance ``G`` at surface points (mm), bilinear between the grid's
+    cell centres, constant beyond the outer centres (and off the surface)."""
+    ny, nx = grid.shape
+    xs = cell_centres(nx, width_mm)
+    ys = height_mm - cell_centres(ny, height_mm)  # row 0 at the top, as texels
+    f = RegularGridInterpolator((ys[::-1], xs), grid[::-1], bounds_error=False)
+    pts = np.stack([np.clip(y, ys[-1], ys[0]), np.clip(x, xs[0], xs[-1])], -1)
+    return f(pts)
+
+
+def frame_gain(intr: Intrinsics, R: np.ndarray, t: np.ndarray, width_mm: float,
+               height_mm: float, rad: Radiometry, size: tuple[int, int] | None = None,
+               ) -> np.ndarray | None:
+    """(H, W) gain ``V(p) G(x(p))`` of a frame taken with pose ``R, t``; None when the
+    radiometry measures neither."""
+    if rad.vignetting is None and rad.irradiance is None:
+        return None
+    W, H = size or intr.image_size
+    us = np.append(np.arange(0, W, GAIN_STRIDE), W - 1).astype(float)
+    vs = np.append(np.arange(0, H, GAIN_STRIDE), H - 1).astype(float)
+    u, v = np.meshgrid(us, vs)
+    gain = np.ones_like(u)
+    if rad.vignetting is not None:
+        gain *= vignetting(field_radius2(u, v, intr), rad.vignetting, rad.field_max)
+    if rad.irradiance is not None:
+        P, hit = pixel_to_plane(np.stack([u, v], -1), intr.K, intr.dist, R, t)
+        g = irradiance_at(P[..., 0], P[..., 1], rad.irradiance, width_mm, height_mm)
+        gain *= np.where(hit, g, 1.0)
+    # piecewise bilinear between the coarse points, exactly at them
+    fu = RegularGridInterpolator((vs, us), gain)
+    uu, vv = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
+    return fu(np.stack([vv, uu], -1)).astype(np.float32)
+
+
+def _spow_sqrt(x: np.ndarray) -> np.ndarray:
+    return np.sign(x) * np.sqrt(np.abs(x))
+
+
+def colour_terms(rgb: np.ndarray, model: str) -> np.ndarray:
+    """The terms (..., n) a colour correction of ``model`` is linear in:
+    ``R, G, B`` (``linear``, n = 3), and ``sqrt(RG), sqrt(GB), sqrt(RB)`` with their
+    products' signs (``root-polynomial``, degree 2 of Finlayson, Mackiewicz & Hurlbert
+    2015, n = 6: each term scales with the exposure, as the RGB does)."""
+    rgb = np.asarray(rgb, float)
+    if model == "linear":
+        return rgb
+    if model != "root-polynomial":
+        raise ValueError(f"unknown colour model {model!r}; one of {', '.join(COLOUR_MODELS)}")
+    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
+    return np.stack([r, g, b, _spow_sqrt(r * g), _spow_sqrt(g * b), _spow_sqrt(r * b)], -1)
+
+
+def apply_colour(rgb: np.ndarray, matrix: np.ndarray | None, model: str | None,
+                 ) -> np.ndarray:
+    """The colour correction ``matrix`` (3, n) of ``model`` applied to RGB (..., 3):
+    ``matrix @ colour_terms(rgb)``; unchanged without a matrix."""
+    if matrix is None:
+        return rgb
+    out = colour_terms(rgb, model) @ np.asarray(matrix, float).T
+    return out.astype(rgb.dtype, copy=False)
+
+
+def correct_frame(radiance: np.ndarray, intr: Intrinsics, R: np.ndarray, t: np.ndarray,
+                  width_mm: float, height_mm: float, rad: Radiometry | None) -> np.ndarray:
+    """A merged frame (H, W, 3) with the flat-field divided out and the colour matrix
+    applied: what every stage that reads radiance from a frame reads."""
+    if rad is None or rad.identity:
+        return radiance
+    out = apply_colour(radiance, rad.colour_matrix, rad.colour_model)
+    gain = frame_gain(intr, R, t, width_mm, height_mm, rad,
+                      (radiance.shape[1], radiance.shape[0]))
+    if gain is not None:
+        out = out / gain[..., None]
+    return out.astype(np.float32, copy=False)
+
+
