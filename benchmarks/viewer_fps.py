@@ -5,6 +5,11 @@ same page) in the same run; also the page's load time and payload size per model
 
     python benchmarks/viewer_fps.py data/processed/demo [--model mh-2 ...] [--size 512 ...]
 
+``--repeat`` lays copies of each map side by side instead (a fitted 1024 x 1024 map four
+times across is a 4096 x 4096 map with a fitted map's detail in every texel, which
+nearest resampling would not give: its payload would compress to nothing); the time to
+the first frame of the model is then that of a map of the lab's size.
+
 Measured in the free orbit view and in the first held-out view; then a mouse drag
 orbits the camera and the benchmark reports whether the image changed.
 """
@@ -34,6 +39,8 @@ def main() -> None:
     ap.add_argument("--model", nargs="+", default=["mh-1", "mh-2", "sh-rlsop-36"])
     ap.add_argument("--size", type=int, nargs="+", default=[512])
     ap.add_argument("--chromium", default="/usr/bin/chromium")
+    ap.add_argument("--repeat", action="store_true",
+                    help="copies of each map side by side, not nearest resampling")
     a = ap.parse_args()
     from playwright.sync_api import sync_playwright
 
@@ -44,7 +51,7 @@ def main() -> None:
     held = next(v["id"] for v in views if v["holdout"])
     names = ["diffuse"] + [m for m in a.model if m != "diffuse"]
     for size in a.size:
-        maps = _Resampled(proc, names, size)
+        maps = _Resampled(proc, names, size, a.repeat)
         with tempfile.TemporaryDirectory() as tmp, sync_playwright() as p:
             t0 = time.perf_counter()
             write_viewer(tmp, "bench", maps, intr, views, 1.0)
@@ -68,6 +75,11 @@ def main() -> None:
                 t0 = time.perf_counter()
                 page.evaluate(f"viewer.setModel('{name}')")
                 loaded = time.perf_counter() - t0
+                heap = page.evaluate("performance.memory ? performance.memory.usedJSHeapSize"
+                                     " : null")
+                print(f"  {name}: first frame {ready + loaded:.2f} s after the page was "
+                      f"opened ({man_bytes(man, name) / 1e6:.1f} MB of payload; JS heap "
+                      f"{heap / 1e6 if heap else float('nan'):.0f} MB)")
                 note = page.inner_text("#msg").strip()
                 if note:
                     print(f"  {name}: {note}")
@@ -82,19 +94,28 @@ def main() -> None:
             browser.close()
 
 
+def man_bytes(man: dict, name: str) -> float:
+    """The bytes of a model's payload the page loads (from the manifest)."""
+    return float(next(m["bytes_loaded"] for m in man["models"] if m["name"] == name))
+
+
 class _Resampled(Mapping):
     """Each model's map resampled (nearest) to size x size texels, made when it is
     asked for and not kept: a 4096 x 4096 SH-64 map is 12.9 GB of float32, so the
     page's maps are encoded one at a time."""
 
-    def __init__(self, proc: Path, names: list[str], size: int):
-        self.proc, self.names, self.size = proc, names, size
+    def __init__(self, proc: Path, names: list[str], size: int, repeat: bool = False):
+        self.proc, self.names, self.size, self.repeat = proc, names, size, repeat
 
     def __getitem__(self, name: str) -> ParamMap:
         pm = read_param_map(self.proc / "params" / f"{name}.exr")
         T, S = pm.shape
-        r = (np.arange(self.size) * T // self.size)[:, None]
-        c = (np.arange(self.size) * S // self.size)[None, :]
+        if self.repeat:
+            r = (np.arange(self.size) % T)[:, None]
+            c = (np.arange(self.size) % S)[None, :]
+        else:
+            r = (np.arange(self.size) * T // self.size)[:, None]
+            c = (np.arange(self.size) * S // self.size)[None, :]
         return ParamMap(pm.model, pm.params.astype(np.float32)[r, c], pm.width_mm,
                         pm.height_mm, pm.hemisphere)
 
