@@ -1,19 +1,22 @@
 """What every zarr store of a processed folder shares: the completion mark, opening a
-finished store, its size on disk and its inputs' modification times."""
+finished store, its size on disk and its inputs' modification times; and reading a
+small JSON or YAML record with one-line errors."""
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 from typing import Any
 
+import yaml
 import zarr
 
 from .. import __version__
 
 __all__ = ["COMPLETE_ATTR", "HEIGHT_ATTR", "MapStore", "SOFTWARE_ATTR", "S_ATTR", "TILE_ATTR",
            "T_ATTR", "UNITS_ATTR", "WIDTH_ATTR", "free_disk_gib", "mtime_ns", "open_complete",
-           "software", "store_bytes"]
+           "read_document", "software", "store_bytes"]
 
 # Set on a store's group only after every chunk is written and just before the rename
 # from its temporary name: a store without it is never accepted.
@@ -26,6 +29,22 @@ WIDTH_ATTR, HEIGHT_ATTR = "width_mm", "height_mm"
 SOFTWARE_ATTR = "software"
 # what an array or a file holds, in words (xarray shows it)
 UNITS_ATTR = "units"
+
+
+def read_document(path: str | Path, error: type[Exception], what: str) -> Any:
+    """A small JSON (``.json``) or YAML record, parsed; ``error`` with one line naming
+    the file (``what``: the record, for the message) when it cannot be read or parsed."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise error(f"{path}: cannot read the {what} ({exc.strerror})") from None
+    try:
+        return json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
+    except json.JSONDecodeError as exc:
+        raise error(f"{path}: not valid JSON ({exc.msg})") from None
+    except yaml.YAMLError as exc:
+        raise error(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
 
 
 def software() -> str:

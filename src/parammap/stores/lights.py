@@ -12,6 +12,7 @@ import yaml
 
 from ..errors import InputError
 from ..models.radiometry import IrradianceGrid
+from .common import read_document
 
 __all__ = ["LIGHTS_VERSION", "LightsError", "light_doc", "parse_light_doc", "read_lights",
            "write_lights"]
@@ -73,12 +74,7 @@ def write_lights(path: str | Path, lights: list[dict[str, Any]], info: dict[str,
 def read_lights(path: str | Path) -> dict[str, Any]:
     """Read ``camera/lights.yaml`` (:func:`write_lights`)."""
     path = Path(path)
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise LightsError(f"{path}: cannot read the lights ({exc.strerror})") from None
-    except yaml.YAMLError as exc:
-        raise LightsError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    doc = read_document(path, LightsError, "lights")
     if not isinstance(doc, dict) or not isinstance(doc.get("lights"), list):
         raise LightsError(f"{path}: no list of lights")
     return doc

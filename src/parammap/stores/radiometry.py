@@ -17,6 +17,7 @@ import numpy as np
 from ..errors import InputError
 from ..models.radiometry import VIGNETTING_TERMS, Radiometry
 from .capture import Capture
+from .common import read_document
 from .paths import Processed
 
 __all__ = ["RADIOMETRY_VERSION", "RadiometryError",
@@ -60,12 +61,7 @@ def read_radiometry(path: str | Path | None) -> Radiometry:
     if path is None:
         return Radiometry()
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text())
-    except OSError as exc:
-        raise RadiometryError(f"{path}: cannot read the radiometry ({exc.strerror})") from None
-    except json.JSONDecodeError as exc:
-        raise RadiometryError(f"{path}: not valid JSON ({exc.msg})") from None
+    doc = read_document(path, RadiometryError, "radiometry")
     try:
         rad = Radiometry(_array(doc[_VIGNETTING]), _array(doc[_IRRADIANCE]),
                          _array(doc[_MATRIX]), doc[_SPACE], doc.get(_FIELD),
