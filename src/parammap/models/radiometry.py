@@ -34,7 +34,7 @@ from ..geometry import Intrinsics, pixel_to_plane
 
 __all__ = ["COLOUR_MODELS", "VIGNETTING_TERMS", "IrradianceGrid", "Radiometry",
            "apply_colour", "colour_terms", "correct_frame", "field_radius2", "fit_flatfield",
-           "frame_gain", "irradiance_at", "vignetting"]
+           "frame_gain", "irradiance_at", "smooth_irradiance", "vignetting"]
 
 #: terms of the vignetting polynomial ``ln V = sum_k b_k rho^(2k)`` (rho^2, rho^4, rho^6)
 VIGNETTING_TERMS = 3
@@ -168,6 +168,41 @@ def fit_flatfield(cell: np.ndarray, rho2: np.ndarray, log_y: np.ndarray, n_cells
                            "coeff_sd": np.sqrt(np.diag(cov)).tolist(),
                            "field_max": float(rho2.max()),
                            "samples": int(len(yd)), "cells": int(seen.sum())}
+
+
+#: highest total degree of the polynomial the card's irradiance is smoothed with
+MAX_IRRADIANCE_DEGREE = 8
+
+
+def smooth_irradiance(log_g: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, int]:
+    """The card's per-cell ``ln G`` (ny, nx) (NaN where unseen) as a smooth surface: a
+    polynomial in the cell's position of the total degree (1 to
+    ``MAX_IRRADIANCE_DEGREE``) that BIC prefers, fitted with each cell weighed by its
+    reads ``counts`` (ny, nx). A light's irradiance is smooth over the surface (over its
+    own distance), while each cell's level carries its reads' noise (on a Monte Carlo
+    render, 1 % a cell); the polynomial keeps the one and averages out the other, and
+    fills cells no view saw. Returns the smoothed ``ln G`` (mean of ``G`` 1) and the
+    degree."""
+    ny, nx = log_g.shape
+    yy, xx = np.mgrid[0:ny, 0:nx]
+    u, v = (2 * xx + 1) / nx - 1, (2 * yy + 1) / ny - 1
+    seen = np.isfinite(log_g) & (counts > 0)
+    w = np.sqrt(counts[seen] / counts[seen].mean())
+    n = int(seen.sum())
+    best = None
+    for deg in range(1, MAX_IRRADIANCE_DEGREE + 1):
+        basis = np.stack([u ** i * v ** j for i in range(deg + 1) for j in range(deg + 1 - i)],
+                         -1)
+        k = basis.shape[-1]
+        if k >= n:
+            break
+        c, *_ = np.linalg.lstsq(basis[seen] * w[:, None], log_g[seen] * w, rcond=None)
+        rss = float(np.sum((w * (log_g[seen] - basis[seen] @ c)) ** 2))
+        bic = n * np.log(max(rss / n, 1e-300)) + k * np.log(n)
+        if best is None or bic < best[0]:
+            best = (bic, deg, basis @ c)
+    _, deg, smooth = best
+    return smooth - np.log(np.mean(np.exp(smooth))), deg
 
 
 def cell_centres(n: int, length_mm: float) -> np.ndarray:

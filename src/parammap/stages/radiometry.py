@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from ..conventions import LUMINANCE
+from ..errors import InputError
 from ..geometry import project_points, sample_image
 from ..models.colour import (
     CHART_REFERENCES,
@@ -23,7 +24,13 @@ from ..models.colour import (
     chart_reference,
     fit_colour_matrix,
 )
-from ..models.radiometry import Radiometry, field_radius2, fit_flatfield, vignetting
+from ..models.radiometry import (
+    Radiometry,
+    field_radius2,
+    fit_flatfield,
+    smooth_irradiance,
+    vignetting,
+)
 from ..stores.camera import load_intrinsics
 from ..stores.capture import Capture
 from ..stores.hdr import read_hdr
@@ -112,18 +119,19 @@ def _flatfield(cap: Capture, proc: Processed, intr, cfg: dict) -> tuple[dict, di
         logs.append(ly)
         used.append(v.id)
     if len(used) < MIN_CARD_VIEWS:
-        raise ValueError(f"{cap.root / 'capture.yaml'}: flatfield: {len(used)} card view(s) "
+        raise InputError(f"{cap.root / 'capture.yaml'}: flatfield: {len(used)} card view(s) "
                          f"with a pose, at least {MIN_CARD_VIEWS} needed to separate the "
                          f"lens's fall-off from the light's ({dropped or 'none listed'})")
     coeffs, log_g, stats = fit_flatfield(np.concatenate(cells), np.concatenate(rho2s),
                                          np.concatenate(logs), shape[0] * shape[1])
-    grid = np.exp(log_g).reshape(shape)
-    if np.isnan(grid).any():  # cells no view saw read their nearest seen neighbour's
-        seen = ~np.isnan(grid)
-        yy, xx = np.nonzero(seen)
-        for i, j in zip(*np.nonzero(~seen), strict=True):
-            n = np.argmin((yy - i) ** 2 + (xx - j) ** 2)
-            grid[i, j] = grid[yy[n], xx[n]]
+    cells_all = np.concatenate(cells)
+    counts = np.bincount(cells_all, minlength=shape[0] * shape[1]).reshape(shape)
+    log_smooth, degree = smooth_irradiance(log_g.reshape(shape), counts)
+    grid = np.exp(log_smooth)
+    stats["irradiance_degree"] = degree
+    seen = np.isfinite(log_g)
+    stats["irradiance_cell_rms"] = float(np.sqrt(np.mean(
+        (log_g[seen] - log_smooth.ravel()[seen]) ** 2)))
     edge = float(vignetting(np.array(stats["field_max"]), coeffs))
     rec = {"card_views": used, "card_views_left_out": dropped, "grid": list(shape),
            "vignetting_at_field_max": 1 - edge, "irradiance_min": float(grid.min()),
@@ -131,7 +139,8 @@ def _flatfield(cap: Capture, proc: Processed, intr, cfg: dict) -> tuple[dict, di
     logger.info(f"radiometry: vignetting {100 * (1 - edge):.1f} % at the widest field the "
                 f"card covered (rho {np.sqrt(stats['field_max']):.2f}), "
                 f"light {grid.min():.3f}-{grid.max():.3f} of its mean over the surface "
-                f"({len(used)} card views, residual {stats['residual_rms']:.4f} in ln)")
+                f"(degree {degree}; cells {stats['irradiance_cell_rms']:.4f} about it in ln), "
+                f"{len(used)} card views, residual {stats['residual_rms']:.4f} in ln")
     return {"vignetting": coeffs, "field_max": stats["field_max"],
             "irradiance": grid if cfg["light_falloff"] else None}, rec
 
@@ -153,7 +162,7 @@ def _colour(cap: Capture, proc: Processed, cfg: dict) -> tuple[np.ndarray, dict]
         if best is None or st["delta_e_mean"] < best[1]["delta_e_mean"]:
             best = (M, st, ok)
     if best is None:
-        raise ValueError(f"{proc.hdr(cap.chart.id)}: too few unsaturated chart patches")
+        raise InputError(f"{proc.hdr(cap.chart.id)}: too few unsaturated chart patches")
     M, st, ok = best
     rec = {"chart": cap.chart_type, "reference": ref_name, "space": cfg["colour_space"],
            "detector_cost": cost, "patches": int(ok.sum()),

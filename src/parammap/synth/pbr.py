@@ -43,6 +43,7 @@ from ..stores.capture import aruco_dictionary
 from ..stores.hdr import read_rgb, write_rgb
 from ..stores.images import write_image_atomic
 from .generate import (
+    CARD_ALBEDO,
     _expose,
     board_poses,
     partial_dirs,
@@ -58,7 +59,8 @@ from .sampling import sample_directions
 logger = logging.getLogger(__name__)
 
 __all__ = ["PBR_PRESETS", "FilmicResponse", "Light", "PbrPreset", "generate_pbr",
-           "novel_lights", "patch_labels", "read_truth_radiance", "render_relit"]
+           "novel_lights", "patch_labels", "read_truth_radiance", "render_relit",
+           "render_white_card"]
 
 
 @dataclass(frozen=True)
@@ -657,6 +659,55 @@ def render_relit(truth: str | Path, lights: tuple[Light, ...] | None = None) -> 
     logger.info(f"synth {name}: relit {int(rig['holdout'].sum())} held-out views under "
                 f"{len(lights)} light(s) into {out}")
     return out
+
+
+def render_white_card(capture: str | Path, truth: str | Path, views: int = 6,
+                      seed: int = 0) -> list[str]:
+    """White-card views (the flat-field, ``docs/models.md``) added to a generated
+    capture: the scene rebuilt from its preset and seed with every patch a matte card of
+    albedo ``CARD_ALBEDO`` under the capture's lights, photographed from ``views``
+    directions up to 50 deg through the capture's response and exposure times into
+    ``<capture>/radiometry/``; ``capture.yaml`` gains its ``flatfield`` section (written
+    through a temporary name). Returns the card views' ids."""
+    mi = _mitsuba()
+    capture, truth = Path(capture), Path(truth)
+    gen = json.loads((truth / "generator.json").read_text())
+    name, preset = resolve_preset(gen["preset"], PBR_PRESETS)
+    rng = np.random.default_rng(gen["seed"])
+    albedo = _albedo_texture(preset, rng)  # the generator's draws, in its order
+    mats = _materials(preset, rng)
+    items = _marker_layout(preset, rng)
+    scene = _surface_scene(mi, preset, items, [{"kind": "diffuse"}] * len(mats),
+                           np.full_like(albedo, CARD_ALBEDO))
+    cam_doc = yaml.safe_load((truth / "camera.yaml").read_text())
+    K = np.array(cam_doc["K"], float)
+    cam = _Camera.build(K, tuple(cam_doc["dist"]), tuple(cam_doc["image_size"]),
+                        preset.render_scale)
+    crng = np.random.default_rng(seed + 7919)
+    dirs = sample_directions("stratified", 50.0, n_side=max(2, math.ceil(math.sqrt(views))),
+                             seed=seed + 3)[:views]
+    times = gen["exposure_s"]
+    entries = []
+    for k, d in enumerate(dirs):
+        R, t = view_pose(d, preset, K, items, crng)
+        rad = _render(mi, scene, cam, R, t, preset.spp, int(crng.integers(2**31)))
+        nrng = np.random.default_rng(int(crng.integers(2**31)))
+        vid, exps = f"card{k:02d}", []
+        for e, te in enumerate(times):
+            rel = f"radiometry/{vid}_{e}.{preset.image_format}"
+            _write_photo(capture / rel, _expose(rad, te, preset.response, preset, nrng),
+                         preset)
+            exps.append({"file": rel, "exposure_s": te})
+        entries.append({"id": vid, "exposures": exps})
+    path = capture / "capture.yaml"
+    doc = yaml.safe_load(path.read_text())
+    doc["flatfield"] = {"views": entries}
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(f"# {name}, seed {gen['seed']}, with {views} white-card views\n"
+                   + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=100))
+    tmp.replace(path)
+    logger.info(f"synth {name}: {views} white-card views into {capture / 'radiometry'}")
+    return [e["id"] for e in entries]
 
 
 def read_truth_radiance(truth_dir: str | Path, view_id: str, clean: bool = False) -> np.ndarray:
