@@ -198,6 +198,10 @@ def test_chart_in_a_capture(vignetted):
     assert rad.colour_matrix.shape == (3, 6) and rad.colour_space == "srgb-linear"
     colour = json.loads((out / "metrics" / "radiometry.json").read_text())["colour"]
     assert colour["patches"] == 24 and colour["delta_e_mean"] < 2.0, colour
+    figs = out / "figures"
+    assert main(["figures", "radiometry", str(cap), "--out", str(out), "--figures",
+                 str(figs)]) == 0
+    assert (figs / "radiometry.png").stat().st_size > 10_000
 
 
 def test_capture_with_card_needs_its_radiometry(vignetted, tmp_path):

@@ -268,3 +268,56 @@ def plot_light_rays(rays: dict, lights: list[dict], path: str | Path,
     fig.suptitle(f"{len(lights)} light(s) where the lobes' mirror rays meet "
                  f"({len(p)} determined lobes)")
     return save_figure(fig, path)
+
+
+def plot_radiometry(vignetting: np.ndarray | None, field_max: float | None,
+                    irradiance: np.ndarray | None, delta_e: list[float] | None,
+                    width_mm: float, height_mm: float, path: str | Path,
+                    title: str = "") -> Path:
+    """The flat-field and colour a capture's frames are read through: the vignetting
+    against the field radius (dashed beyond the widest field the card covered), the
+    light's relative irradiance over the surface, and the colour chart's CIEDE2000 per
+    patch; a panel says so where the capture has no card or chart."""
+    fig, axes = plt.subplots(1, 3, figsize=(14, 3.8))
+    ax = axes[0]
+    if vignetting is not None:
+        rho = np.linspace(0, 1.5 * np.sqrt(field_max), 200)
+        inside = rho <= np.sqrt(field_max)
+        lnv = np.stack([np.minimum(rho ** 2, field_max) ** (k + 1)
+                        for k in range(len(vignetting))], -1) @ np.asarray(vignetting)
+        v = np.exp(lnv)
+        ax.plot(rho[inside], v[inside], "k-")
+        ax.plot(rho[~inside], v[~inside], "k--", label="held beyond the card")
+        ax.set_xlabel("field radius (tan of the field angle)")
+        ax.set_ylabel("relative illumination V")
+        ax.legend(fontsize=8)
+        ax.set_title("lens vignetting")
+    else:
+        ax.axis("off")
+        ax.text(0.5, 0.5, "no white card:\nno vignetting or light fall-off\ndivided out",
+                ha="center", va="center")
+    ax = axes[1]
+    if irradiance is not None:
+        im = ax.imshow(irradiance, extent=(0, width_mm, 0, height_mm), cmap="magma")
+        fig.colorbar(im, ax=ax, shrink=0.8, label="G (mean 1)")
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+        ax.set_title("the light's relative irradiance")
+    else:
+        ax.axis("off")
+        ax.text(0.5, 0.5, "light fall-off not divided out", ha="center", va="center")
+    ax = axes[2]
+    if delta_e is not None:
+        ax.bar(np.arange(1, len(delta_e) + 1), delta_e, color="0.4")
+        ax.axhline(float(np.mean(delta_e)), color="C3", lw=1,
+                   label=f"mean {np.mean(delta_e):.2f}")
+        ax.set_xlabel("chart patch")
+        ax.set_ylabel("CIEDE2000 after correction")
+        ax.legend(fontsize=8)
+        ax.set_title("colour chart")
+    else:
+        ax.axis("off")
+        ax.text(0.5, 0.5, "no colour chart:\ncamera RGB as merged", ha="center",
+                va="center")
+    fig.suptitle(title, y=1.04)
+    return save_figure(fig, path)

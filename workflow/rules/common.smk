@@ -99,7 +99,7 @@ def surface_targets(sid):
     """Everything the workflow produces for one surface (the default target)."""
     R = f"{REPORTS}/{sid}"
     figs = [f"{R}/{f}.png" for f in ("contact_sheet", "response", "reexposure",
-                                      "calibration", "view_directions",
+                                      "calibration", "radiometry", "view_directions",
                                       "pose_reprojection", "observation_valid_count",
                                       "observation_lobes")]
     figs += [f"{R}/{m}_{k}.png" for m in models() for k in ("params", "residuals", "lobes")]

@@ -56,6 +56,31 @@ rule fig_hdr:
         " 2> {log}"
 
 
+rule fig_radiometry:
+    input:
+        capture=capture_dir,
+        radiometry=f"{PROC}/{{sid}}/camera/radiometry.json",
+        metrics=f"{PROC}/{{sid}}/metrics/radiometry.json",
+    output:
+        report(
+            f"{REPORTS}/{{sid}}/radiometry.png",
+            caption="../report/radiometry.rst",
+            category="1 Capture",
+            subcategory="{sid}",
+        ),
+    params:
+        cli=PARAMMAP,
+        out=lambda wc: f"{PROC}/{wc.sid}",
+        figures=lambda wc: f"{REPORTS}/{wc.sid}",
+    log:
+        "logs/figures/{sid}/radiometry.log",
+    conda:
+        "../envs/parammap.yaml"
+    shell:
+        "{params.cli} figures radiometry {input.capture} --out {params.out}"
+        " --figures {params.figures} 2> {log}"
+
+
 rule fig_calibration:
     input:
         capture=capture_dir,

@@ -6,6 +6,8 @@ Each ``kind`` writes into ``reports/<id>/``:
 - ``response``: response.png (recovered curve; a reference beside it when given)
 - ``hdr``: reexposure.png (re-exposure self-check per view)
 - ``calibration``: calibration.png (per-photo RMS of the board calibration)
+- ``radiometry``: radiometry.png (vignetting, the light's irradiance, the colour chart's
+  error: the flat-field and colour the frames are read through)
 - ``poses``: view_directions.png, pose_reprojection.png, poses.csv (every view, kept
   or dropped and why)
 - ``observation``: observation_valid_count.png, observation_lobes.png
@@ -49,6 +51,7 @@ from ..plots import (
     plot_lobes,
     plot_map,
     plot_maps,
+    plot_radiometry,
     plot_reexposure,
     plot_reprojection,
     plot_response,
@@ -63,10 +66,12 @@ from ..stores.images import read_image
 from ..stores.metrics import read_metrics
 from ..stores.observation import open_observation_map
 from ..stores.paths import Processed
+from ..stores.radiometry import read_radiometry
 
 __all__ = ["KINDS", "make_figures"]
 
-KINDS = ("response", "hdr", "calibration", "poses", "observation", "model", "holdout", "tables")
+KINDS = ("response", "hdr", "calibration", "radiometry", "poses", "observation", "model",
+         "holdout", "tables")
 
 
 def _write_csv(path: Path, rows: list[dict]) -> Path:
@@ -251,6 +256,13 @@ def make_figures(kind: str, capture_dir: str | Path, processed: str | Path,
                                 out / "reexposure.png")]
     if kind == "calibration":
         return _calibration(proc, out)
+    if kind == "radiometry":
+        rad = read_radiometry(proc.radiometry)
+        colour = read_metrics(proc.metrics("radiometry")).get("colour") or {}
+        return [plot_radiometry(rad.vignetting, rad.field_max, rad.irradiance,
+                                colour.get("delta_e"), cap.width_mm, cap.height_mm,
+                                out / "radiometry.png",
+                                f"{cap.surface_id}: flat-field and colour")]
     if kind == "poses":
         return _poses(proc, out, cap.width_mm, cap.height_mm, cap.surface_id)
     if kind == "observation":
