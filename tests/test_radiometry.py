@@ -96,7 +96,8 @@ def _chart_frame(camera: str, light: str, seed: int) -> tuple[np.ndarray, np.nda
 def test_chart_recovers_reflectances(camera, light):
     """A chart rendered from its spectra under a tinted light through a real camera's
     sensitivities: found by the detector, and corrected to its reflectances within a
-    mean CIEDE2000 of 2 (each patch left out of the fit in turn: within 2.5)."""
+    mean CIEDE2000 of 2 (each patch left out of the fit in turn, seen with the frame's
+    noise: within 3)."""
     frame, rgb = _chart_frame(camera, light, seed=len(camera) + len(light))
     polygons, _ = detect_chart(frame)
     assert polygons.shape == (24, 4, 2)
@@ -105,8 +106,8 @@ def test_chart_recovers_reflectances(camera, light):
     # the detector's patches are the chart's, in its order
     np.testing.assert_allclose(means / means[18].max(), rgb, rtol=0.02, atol=2e-3)
     ref = chart_reference("BabelColor Average")
-    _, st = fit_colour_matrix(means, ref.rgb, ref.lab, ref.to_lab, ref.neutral)
-    assert st["delta_e_mean"] < 2.0 and st["delta_e_loo_mean"] < 2.5, st
+    _, st = fit_colour_matrix(means, ref.rgb, ref.lab, ref.to_lab, ref.neutral, noise=0.003)
+    assert st["delta_e_mean"] < 2.0 and st["delta_e_loo_mean"] < 3.0, st
     # a plain 3 x 3 is worse under the tinted light, which is why it is not the default
     _, lin = fit_colour_matrix(means, ref.rgb, ref.lab, ref.to_lab, ref.neutral, "linear")
     assert lin["delta_e_mean"] > st["delta_e_mean"]

@@ -193,11 +193,11 @@ def plot_lobes(entries: list[dict], path: str | Path, title: str) -> Path:
         if "fitted" in e:
             lf = np.asarray(e["fitted"]) @ LUMA
             ax.scatter(d[:, 0], d[:, 1], lf, s=6, marker="x", color="tab:red", linewidths=0.6)
-        ax.set_title(e["label"], fontsize=7)
+        ax.set_title(e["label"] + ("" if len(d) else ": no valid observation"), fontsize=7)
         ax.tick_params(labelsize=5)
         ax.set_xlabel("x", fontsize=6)
         ax.set_ylabel("y", fontsize=6)
-        if "fitted" in e:
+        if "fitted" in e and len(d):  # a texel every view saw saturated has none
             ax2 = fig.add_subplot(2, n, n + k + 1)
             pct = 100 * (lf - lm) / np.maximum(np.abs(lm), 1e-12)
             lim = max(float(np.percentile(np.abs(pct), 98)), 0.5)

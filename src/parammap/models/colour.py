@@ -69,9 +69,13 @@ def colour_delta_e(rgb: np.ndarray, reference_lab: np.ndarray, to_lab) -> np.nda
     return np.asarray(colour.delta_E(to_lab(rgb), reference_lab, method="CIE 2000"))
 
 
+#: noisy copies of a left-out patch whose corrected colours judge a correction's noise
+NOISE_COPIES = 16
+
+
 def fit_colour_matrix(camera: np.ndarray, reference: np.ndarray, reference_lab: np.ndarray,
                       to_lab, neutral: np.ndarray, model: str = "root-polynomial",
-                      ) -> tuple[np.ndarray, dict]:
+                      noise: float = 0.0) -> tuple[np.ndarray, dict]:
     """The colour correction from a chart's camera RGB to its reference RGB.
 
     Parameters
@@ -81,34 +85,74 @@ def fit_colour_matrix(camera: np.ndarray, reference: np.ndarray, reference_lab: 
     reference_lab : (N, 3) their L*a*b*; to_lab : linear target RGB -> L*a*b*.
     neutral : (N,) bool, the grey patches.
     model : a name in :data:`parammap.models.radiometry.COLOUR_MODELS`.
+    noise : relative sd of one pixel of the frames the correction will be applied to
+        (the merge's record): the correction is judged on noisy copies of each left-out
+        patch, so one that cancels large coefficients to fit the chart, and would
+        multiply every pixel's noise as much, loses.
 
     Returns
     -------
-    matrix : (3, n) on the model's terms of the RGB (least squares; :func:`apply_colour`), with
+    matrix : (3, n) on the model's terms of the RGB (:func:`apply_colour`), with
         ``apply_colour(camera_i) ~ s reference_i``, ``s`` the neutral patches' camera
         luminance over their reference luminance: a corrected frame keeps the merge's
         exposure scale (both models are homogeneous of degree one in the RGB).
     stats : ``delta_e`` per patch (CIEDE2000 of the corrected RGB over ``s``), its
         mean and maximum, ``delta_e_loo_mean`` (each patch predicted by a fit without
-        it: what a colour the chart does not hold can expect), ``scale`` s.
+        it: what a colour the chart does not hold can expect), ``scale`` s, ``ridge``
+        (the pull on the root-polynomial's cross terms, relative to their mean square)
+        and the matrix's ``largest_coefficient``.
+
+    Notes
+    -----
+    Least squares, the root-polynomial's cross terms pulled toward zero (ridge) by the
+    amount that predicts each patch left out of the fit best, with the frames' pixel
+    noise (a grid of 13 values and none): as far as the chart and the noise allow, the
+    most the cross terms can follow. ``delta_e_loo_mean`` is that prediction's error,
+    the noise included.
     """
     s = float((camera[neutral] @ LUMINANCE).sum() / (reference[neutral] @ LUMINANCE).sum())
     x = camera / s
-
+    lin = colour_terms(x, "linear")
     terms = colour_terms(x, model)
-
-    def solve(idx: np.ndarray) -> np.ndarray:
-        m, *_ = np.linalg.lstsq(terms[idx], reference[idx], rcond=None)
-        return m.T
-
+    q = terms.shape[1]
     every = np.arange(len(camera))
-    M = solve(every)
+
+    def solve(idx: np.ndarray, lam: float) -> np.ndarray:
+        # least squares, the terms beyond R, G, B pulled toward zero by lam (ridge):
+        # on a chart they are nearly collinear with R, G, B (sqrt(RG) ~ (R + G) / 2 on
+        # its greys), and unpulled they cancel in coefficients of +-100 that a colour
+        # off the chart's gamut turns into nonsense
+        m0, *_ = np.linalg.lstsq(lin[idx], reference[idx], rcond=None)
+        if q == 3:
+            return m0.T
+        A, b = terms[idx].T @ terms[idx], terms[idx].T @ reference[idx]
+        pen = np.diag([0.0] * 3 + [lam] * (q - 3))
+        return np.linalg.solve(A + pen + 1e-12 * np.trace(A) * np.eye(q), b).T
+
+    rng = np.random.default_rng(0)
+    jitter = 1 + noise * rng.standard_normal((NOISE_COPIES, 3))
+
+    def loo(lam: float) -> np.ndarray:
+        out = np.empty(len(every))
+        for i in every:
+            m = solve(every[every != i], lam)
+            seen = np.vstack([x[[i]], x[i] * jitter]) if noise > 0 else x[[i]]
+            out[i] = colour_delta_e(apply_colour(seen, m, model),
+                                    np.repeat(reference_lab[[i]], len(seen), 0), to_lab).mean()
+        return out
+
+    # the pull that predicts a patch left out of the fit best (cross-validation), as a
+    # pixel with the frames' noise sees it
+    scale = float(np.trace(terms.T @ terms)) / q
+    grid = [0.0] if q == 3 else [0.0, *(scale * np.logspace(-5, 1, 13))]
+    scores = [float(loo(lam).mean()) for lam in grid]
+    lam = grid[int(np.argmin(scores))]
+    M = solve(every, lam)
     de = colour_delta_e(apply_colour(x, M, model), reference_lab, to_lab)
-    loo = np.array([colour_delta_e(apply_colour(x[[i]], solve(every[every != i]), model),
-                                   reference_lab[[i]], to_lab)[0] for i in every])
     return M, {"delta_e": de.tolist(), "delta_e_mean": float(de.mean()),
-               "delta_e_max": float(de.max()), "delta_e_loo_mean": float(loo.mean()),
-               "scale": s, "model": model}
+               "delta_e_max": float(de.max()), "delta_e_loo_mean": min(scores),
+               "scale": s, "model": model, "ridge": lam / scale if scale else 0.0,
+               "largest_coefficient": float(np.abs(M).max())}
 
 
 def chart_patch_means(radiance: np.ndarray, saturated: np.ndarray, polygons: np.ndarray,

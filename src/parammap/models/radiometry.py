@@ -43,6 +43,8 @@ VIGNETTING_TERMS = 3
 #: sensitivities are not a linear transform of the eye's (``docs/models.md`` gives the
 #: measured difference); ``linear`` is the plain 3 x 3
 COLOUR_MODELS = ("root-polynomial", "linear")
+#: pixels whose colour terms are made at once (their memory, not the frame's)
+COLOUR_STRIP = 1 << 20
 #: the gain is evaluated every GAIN_STRIDE pixels and interpolated between: the
 #: vignetting and the light's fall-off are smooth over far more than that
 GAIN_STRIDE = 8
@@ -240,10 +242,22 @@ def frame_gain(intr: Intrinsics, R: np.ndarray, t: np.ndarray, width_mm: float,
         P, hit = pixel_to_plane(np.stack([u, v], -1), intr.K, intr.dist, R, t)
         g = irradiance_at(P[..., 0], P[..., 1], rad.irradiance, width_mm, height_mm)
         gain *= np.where(hit, g, 1.0)
-    # piecewise bilinear between the coarse points, exactly at them
-    fu = RegularGridInterpolator((vs, us), gain)
-    uu, vv = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
-    return fu(np.stack([vv, uu], -1)).astype(np.float32)
+    # piecewise bilinear between the coarse points, exactly at them: two small
+    # interpolation matrices, so a 24 MP frame costs its own size and no more
+    return (_linear_weights(vs, H) @ gain.astype(np.float32)
+            @ _linear_weights(us, W).T).astype(np.float32)
+
+
+def _linear_weights(knots: np.ndarray, n: int) -> np.ndarray:
+    """(n, len(knots)) float32 weights of linear interpolation at 0 .. n - 1 between
+    increasing ``knots`` (the first at 0, the last at n - 1)."""
+    x = np.arange(n, dtype=float)
+    j = np.clip(np.searchsorted(knots, x, side="right") - 1, 0, len(knots) - 2)
+    f = (x - knots[j]) / (knots[j + 1] - knots[j])
+    out = np.zeros((n, len(knots)), np.float32)
+    out[np.arange(n), j] = 1 - f
+    out[np.arange(n), j + 1] += f
+    return out
 
 
 def _spow_sqrt(x: np.ndarray) -> np.ndarray:
@@ -270,8 +284,12 @@ def apply_colour(rgb: np.ndarray, matrix: np.ndarray | None, model: str | None,
     ``matrix @ colour_terms(rgb)``; unchanged without a matrix."""
     if matrix is None:
         return rgb
-    out = colour_terms(rgb, model) @ np.asarray(matrix, float).T
-    return out.astype(rgb.dtype, copy=False)
+    m = np.asarray(matrix, float).T
+    flat = np.asarray(rgb).reshape(-1, 3)
+    out = np.empty(flat.shape, rgb.dtype)
+    for i in range(0, len(flat), COLOUR_STRIP):  # the terms of a strip at a time
+        out[i:i + COLOUR_STRIP] = colour_terms(flat[i:i + COLOUR_STRIP], model) @ m
+    return out.reshape(np.shape(rgb))
 
 
 def correct_frame(radiance: np.ndarray, intr: Intrinsics, R: np.ndarray, t: np.ndarray,

@@ -341,7 +341,8 @@ def sample_view(
             resolved = seen.size > 0 and float(np.median(seen)) >= 2 * PIXEL_REACH["bilinear"]
         if max_blend is not None and resolved:
             bias = blend_bias(rad, wx, wy, near, frontal)
-            level = sd[core] * np.nanmean(rad[core], -1)
+            # (a colour-corrected read may have a channel below 0: out of the gamut)
+            level = sd[core] * np.abs(np.nanmean(rad[core], -1))
             with np.errstate(invalid="ignore"):
                 blended = valid[core] & (np.nanmax(bias, -1) > max_blend * level)
             if stats is not None:

@@ -33,7 +33,7 @@ from ..models.radiometry import (
 )
 from ..stores.camera import load_intrinsics
 from ..stores.capture import Capture
-from ..stores.hdr import read_hdr
+from ..stores.hdr import read_hdr, read_hdr_noise
 from ..stores.metrics import write_metrics
 from ..stores.paths import Processed
 from ..stores.radiometry import write_radiometry
@@ -145,9 +145,22 @@ def _flatfield(cap: Capture, proc: Processed, intr, cfg: dict) -> tuple[dict, di
             "irradiance": grid if cfg["light_falloff"] else None}, rec
 
 
-def _colour(cap: Capture, proc: Processed, cfg: dict) -> tuple[np.ndarray, dict]:
-    """The colour matrix from the chart's frame, and its record."""
-    rad, sat, _ = read_hdr(proc.hdr(cap.chart.id))
+def _colour(cap: Capture, proc: Processed, cfg: dict, lens: tuple | None,
+            ) -> tuple[np.ndarray, dict]:
+    """The colour matrix from the chart's frame, and its record. ``lens``: (intrinsics,
+    vignetting coefficients, field_max) when the card measured the lens, whose
+    fall-off is divided out of the chart's frame first (a patch at the frame's edge
+    would read darker than its colour)."""
+    rad, sat, _, noise = read_hdr_noise(proc.hdr(cap.chart.id))
+    if lens is not None:
+        intr, coeffs, field_max = lens
+        H, W = rad.shape[:2]
+        u, v = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
+        rad = rad / vignetting(field_radius2(u, v, intr), coeffs,
+                               field_max).astype(np.float32)[..., None]
+    # one pixel's relative noise, as the merge recorded it (the correction is judged on
+    # noisy copies of the patches: it is applied to pixels, not to the patches' means)
+    sigma = float(np.nanmedian(noise[~sat])) if noise is not None and (~sat).any() else 0.0
     polygons, cost = detect_chart(rad, cap.chart_type, str(proc.hdr(cap.chart.id)))
     ref_name = cap.chart_reference or CHART_REFERENCES[cap.chart_type]
     ref = chart_reference(ref_name, cfg["colour_space"])
@@ -158,14 +171,15 @@ def _colour(cap: Capture, proc: Processed, cfg: dict) -> tuple[np.ndarray, dict]
         if ok.sum() < 12 or not ref.neutral[ok].any():
             continue
         M, st = fit_colour_matrix(means[ok], ref.rgb[ok], ref.lab[ok], ref.to_lab,
-                                  ref.neutral[ok], cfg["colour_model"])
+                                  ref.neutral[ok], cfg["colour_model"], sigma)
         if best is None or st["delta_e_mean"] < best[1]["delta_e_mean"]:
             best = (M, st, ok)
     if best is None:
         raise InputError(f"{proc.hdr(cap.chart.id)}: too few unsaturated chart patches")
     M, st, ok = best
     rec = {"chart": cap.chart_type, "reference": ref_name, "space": cfg["colour_space"],
-           "detector_cost": cost, "patches": int(ok.sum()),
+           "detector_cost": cost, "patches": int(ok.sum()), "pixel_noise": sigma,
+           "vignetting_divided_out": lens is not None,
            "patches_left_out": [ref.names[i] for i in np.flatnonzero(~ok)], **st}
     logger.info(f"radiometry: {cfg['colour_model']} colour correction to "
                 f"{cfg['colour_space']} from {int(ok.sum())} patches, mean CIEDE2000 "
@@ -185,7 +199,9 @@ def run_radiometry(cap: Capture, processed: str | Path, config: dict[str, Any]) 
         intr = load_intrinsics(proc.intrinsics)
         parts, info["flatfield"] = _flatfield(cap, proc, intr, cfg)
     if cap.chart and cfg["colour"]:
-        parts["colour_matrix"], info["colour"] = _colour(cap, proc, cfg)
+        lens = ((load_intrinsics(proc.intrinsics), parts["vignetting"], parts["field_max"])
+                if parts.get("vignetting") is not None else None)
+        parts["colour_matrix"], info["colour"] = _colour(cap, proc, cfg, lens)
         parts["colour_space"] = cfg["colour_space"]
         parts["colour_model"] = cfg["colour_model"]
     rad = Radiometry(**parts)

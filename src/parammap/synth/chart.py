@@ -14,6 +14,8 @@ __all__ = ["CHART_LAYOUT_MM", "chart_camera_rgb", "chart_shade", "chart_size_mm"
 
 #: the ColorChecker Classic's layout: 6 x 4 patches, patch, gap and border (mm)
 CHART_LAYOUT_MM = {"columns": 6, "rows": 4, "patch": 40.0, "gap": 5.0, "border": 10.0}
+#: the analytic generator's RGB camera (no spectra: linear sRGB under a white light)
+SRGB_CAMERA = "srgb"
 #: spectral data that go with each reference (colour-science's names)
 _SPECTRA = {"BabelColor Average": "BabelColor Average"}
 _SHAPE = colour.SpectralShape(400, 700, 10)
@@ -31,10 +33,16 @@ def chart_camera_rgb(camera: str, light: str, reference: str = "BabelColor Avera
     """(24, 3) linear camera RGB of the chart's patches, the white patch's largest
     channel 1: reflectance x light x the camera's sensitivities, summed over 400-700 nm.
 
-    camera : a name in ``colour.MSDS_CAMERA_SENSITIVITIES`` (e.g. ``Nikon 5100 (NPL)``).
+    camera : a name in ``colour.MSDS_CAMERA_SENSITIVITIES`` (e.g. ``Nikon 5100 (NPL)``),
+        or ``srgb``: the analytic generator's own camera, whose RGB is linear sRGB under
+        a white light (the chart's reference colours; ``light`` unused), consistent with
+        the colours of that generator's surfaces.
     light : a name in ``colour.SDS_ILLUMINANTS`` (``A``: tungsten, ``FL2``...).
     reference : the chart data whose spectra are rendered.
     """
+    if camera == SRGB_CAMERA:
+        rgb = np.clip(chart_reference(reference).rgb, 0.0, None)
+        return rgb / rgb[18].max()
     sds = colour.SDS_COLOURCHECKERS[_SPECTRA[reference]]
     refl = np.array([sds[n].copy().align(_SHAPE).values for n in chart_reference(reference).names])
     ill = colour.SDS_ILLUMINANTS[light].copy().align(_SHAPE).values
