@@ -28,7 +28,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.interpolate import RegularGridInterpolator
 
 from ..geometry import Intrinsics, pixel_to_plane
 
@@ -207,21 +206,22 @@ def smooth_irradiance(log_g: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray
     return smooth - np.log(np.mean(np.exp(smooth))), deg
 
 
-def cell_centres(n: int, length_mm: float) -> np.ndarray:
-    """Centres (mm) of ``n`` equal cells over ``[0, length_mm]``."""
-    return (np.arange(n) + 0.5) * length_mm / n
-
-
 def irradiance_at(x: np.ndarray, y: np.ndarray, grid: np.ndarray, width_mm: float,
                   height_mm: float) -> np.ndarray:
     """Relative irradiance ``G`` at surface points (mm), bilinear between the grid's
     cell centres, constant beyond the outer centres (and off the surface)."""
+    grid = np.asarray(grid, float)
     ny, nx = grid.shape
-    xs = cell_centres(nx, width_mm)
-    ys = height_mm - cell_centres(ny, height_mm)  # row 0 at the top, as texels
-    f = RegularGridInterpolator((ys[::-1], xs), grid[::-1], bounds_error=False)
-    pts = np.stack([np.clip(y, ys[-1], ys[0]), np.clip(x, xs[0], xs[-1])], -1)
-    return f(pts)
+    # fractional cell indices of the points (row 0 at y = height, as texels)
+    fx = np.clip(np.asarray(x, float) / width_mm * nx - 0.5, 0, nx - 1)
+    fy = np.clip((height_mm - np.asarray(y, float)) / height_mm * ny - 0.5, 0, ny - 1)
+    fx, fy = np.nan_to_num(fx), np.nan_to_num(fy)
+    i0 = np.minimum(fy.astype(int), max(ny - 2, 0))
+    j0 = np.minimum(fx.astype(int), max(nx - 2, 0))
+    i1, j1 = np.minimum(i0 + 1, ny - 1), np.minimum(j0 + 1, nx - 1)
+    ty, tx = fy - i0, fx - j0
+    return ((1 - ty) * ((1 - tx) * grid[i0, j0] + tx * grid[i0, j1])
+            + ty * ((1 - tx) * grid[i1, j0] + tx * grid[i1, j1]))
 
 
 def frame_gain(intr: Intrinsics, R: np.ndarray, t: np.ndarray, width_mm: float,
