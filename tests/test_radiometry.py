@@ -212,12 +212,18 @@ def test_capture_with_card_needs_its_radiometry(vignetted, tmp_path):
     with pytest.raises(RadiometryError, match="radiometry.json: missing; the capture has"):
         radiometry_for(load_capture(cap), tmp_path / "elsewhere")
     doc = yaml.safe_load((cap / "capture.yaml").read_text())
-    doc["colour_chart"]["chart"] = "SG140"
     bad = tmp_path / "bad"
     bad.mkdir()
-    (bad / "capture.yaml").write_text(yaml.safe_dump(doc))
-    with pytest.raises(CaptureError, match="colour_chart.chart: must be MCC24"):
-        load_capture(bad)
+    for change, message in (
+            (lambda d: d["colour_chart"].update(chart="SG140"),
+             "colour_chart.chart: must be MCC24"),
+            (lambda d: d["flatfield"].update(views=d["flatfield"]["views"][:1]),
+             "flatfield.views: must list at least two of the card's views")):
+        broken = yaml.safe_load(yaml.safe_dump(doc))
+        change(broken)
+        (bad / "capture.yaml").write_text(yaml.safe_dump(broken))
+        with pytest.raises(CaptureError, match=message):
+            load_capture(bad)
 
 
 def test_relightable_map_puts_the_fall_off_back(vignetted):
