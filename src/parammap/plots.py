@@ -270,6 +270,20 @@ def plot_light_rays(rays: dict, lights: list[dict], path: str | Path,
     return save_figure(fig, path)
 
 
+def _label(ax, title: str, xlabel: str, ylabel: str, legend: bool = True) -> None:
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if legend:
+        ax.legend(fontsize=8)
+    ax.set_title(title)
+
+
+def _note(ax, text: str) -> None:
+    """A panel that says what is not there instead of a plot."""
+    ax.axis("off")
+    ax.text(0.5, 0.5, text, ha="center", va="center")
+
+
 def plot_radiometry(vignetting: np.ndarray | None, field_max: float | None,
                     irradiance: np.ndarray | None, delta_e: list[float] | None,
                     width_mm: float, height_mm: float, path: str | Path,
@@ -288,36 +302,24 @@ def plot_radiometry(vignetting: np.ndarray | None, field_max: float | None,
         v = np.exp(lnv)
         ax.plot(rho[inside], v[inside], "k-")
         ax.plot(rho[~inside], v[~inside], "k--", label="held beyond the card")
-        ax.set_xlabel("field radius (tan of the field angle)")
-        ax.set_ylabel("relative illumination V")
-        ax.legend(fontsize=8)
-        ax.set_title("lens vignetting")
+        _label(ax, "lens vignetting", "field radius (tan of the field angle)",
+               "relative illumination V")
     else:
-        ax.axis("off")
-        ax.text(0.5, 0.5, "no white card:\nno vignetting or light fall-off\ndivided out",
-                ha="center", va="center")
+        _note(ax, "no white card:\nno vignetting or light fall-off\ndivided out")
     ax = axes[1]
     if irradiance is not None:
         im = ax.imshow(irradiance, extent=(0, width_mm, 0, height_mm), cmap="magma")
         fig.colorbar(im, ax=ax, shrink=0.8, label="G (mean 1)")
-        ax.set_xlabel("x (mm)")
-        ax.set_ylabel("y (mm)")
-        ax.set_title("the light's relative irradiance")
+        _label(ax, "the light's relative irradiance", "x (mm)", "y (mm)", legend=False)
     else:
-        ax.axis("off")
-        ax.text(0.5, 0.5, "light fall-off not divided out", ha="center", va="center")
+        _note(ax, "light fall-off not divided out")
     ax = axes[2]
     if delta_e is not None:
         ax.bar(np.arange(1, len(delta_e) + 1), delta_e, color="0.4")
         ax.axhline(float(np.mean(delta_e)), color="C3", lw=1,
                    label=f"mean {np.mean(delta_e):.2f}")
-        ax.set_xlabel("chart patch")
-        ax.set_ylabel("CIEDE2000 after correction")
-        ax.legend(fontsize=8)
-        ax.set_title("colour chart")
+        _label(ax, "colour chart", "chart patch", "CIEDE2000 after correction")
     else:
-        ax.axis("off")
-        ax.text(0.5, 0.5, "no colour chart:\ncamera RGB as merged", ha="center",
-                va="center")
+        _note(ax, "no colour chart:\ncamera RGB as merged")
     fig.suptitle(title, y=1.04)
     return save_figure(fig, path)
