@@ -8,25 +8,35 @@ import json
 from pathlib import Path
 
 import numpy as np
+import OpenEXR
 import pytest
 import yaml
 
 from parammap.cli import main
 from parammap.conventions import LUMINANCE, MH_KD, SV_KD, FitArray, FitStatus
 from parammap.geometry import look_at, texel_centres, unit
-from parammap.models.colour import chart_patch_means, chart_reference, fit_colour_matrix
+from parammap.models.colour import (
+    COLOUR_SPACES,
+    chart_patch_means,
+    chart_reference,
+    fit_colour_matrix,
+)
 from parammap.models.radiometry import (
+    COLOUR_INTEROP_IDS,
     IrradianceGrid,
     Radiometry,
     apply_colour,
+    describe_radiometry,
     fit_flatfield,
     irradiance_at,
     vignetting,
 )
 from parammap.models.svbrdf import svbrdf_eval
 from parammap.stores.capture import CaptureError, load_capture
+from parammap.stores.exr import read_exr
 from parammap.stores.fit import open_fit, open_mh_source
 from parammap.stores.lights import light_doc, parse_light_doc
+from parammap.stores.params import ParamMap, read_param_map, write_param_map
 from parammap.stores.radiometry import (
     RadiometryError,
     radiometry_for,
@@ -136,6 +146,27 @@ def test_radiometry_file_round_trip_and_errors(tmp_path):
         read_radiometry(tmp_path / "junk.json")
 
 
+@pytest.mark.parametrize("space", sorted(COLOUR_SPACES))
+def test_parameter_map_header_names_its_colour_space(space, tmp_path):
+    """A map made from colour-corrected frames says so in its header, with OpenEXR's
+    own colorInteropID for the space (consistent colour metadata by OpenEXR's check);
+    one from camera RGB claims no colour space."""
+    assert set(COLOUR_INTEROP_IDS) == set(COLOUR_SPACES)
+    params = np.zeros((2, 3, 3), np.float32)
+    corrected = Radiometry(np.array([-0.3, 0.0, 0.0]), np.ones((2, 2)), np.eye(3), space,
+                           0.2, "linear")
+    for rad, interop in ((corrected, COLOUR_INTEROP_IDS[space]), (Radiometry(), None)):
+        desc = describe_radiometry(rad)
+        path = write_param_map(tmp_path / "d.exr",
+                               ParamMap("diffuse", params, 10, 5, attrs=desc))
+        _, header = read_exr(path)
+        assert header.get("colorInteropID") == interop
+        assert OpenEXR.checkColorMetadata(header) == OpenEXR.ColorMetadataWarning.OK
+        back = read_param_map(path).attrs
+        assert {k: back[k] for k in desc} == desc
+    assert back["flatfield"].startswith("none") and back["colour"].startswith("camera RGB")
+
+
 @pytest.fixture(scope="module")
 def vignetted(tmp_path_factory):
     """The tiny preset with a 30 % vignetting lens, a light gradient of 30 % across the
@@ -181,6 +212,8 @@ def test_flatfield_flattens_kd(vignetted):
     the lens and the light tilt it by several per cent."""
     cap, truth, out = vignetted
     flat = _kd_trend(cap, out, truth, "radiometry.colour=false")
+    said = open_fit(out / "fit" / "mh-1.zarr").describe()
+    assert said["flatfield"].startswith("lens vignetting") and "colour_space" not in said
     rad = read_radiometry(out / "camera" / "radiometry.json")
     assert rad.vignetting is not None and rad.irradiance is not None
     metrics = json.loads((out / "metrics" / "radiometry.json").read_text())["flatfield"]
@@ -199,6 +232,11 @@ def test_chart_in_a_capture(vignetted):
     assert rad.colour_matrix.shape == (3, 6) and rad.colour_space == "srgb-linear"
     colour = json.loads((out / "metrics" / "radiometry.json").read_text())["colour"]
     assert colour["patches"] == 24 and colour["delta_e_mean"] < 2.0, colour
+    # merged frames are camera RGB, and say how they are corrected when read
+    _, header = read_exr(out / "hdr" / f"{load_capture(cap).views[0].id}.exr")
+    assert header["parammap_flatfield"].startswith("not applied: divided out as")
+    assert header["parammap_colour"].startswith("camera RGB: corrected as")
+    assert "colorInteropID" not in header
     figs = out / "figures"
     assert main(["figures", "radiometry", str(cap), "--out", str(out), "--figures",
                  str(figs)]) == 0

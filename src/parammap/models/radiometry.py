@@ -31,8 +31,9 @@ import numpy as np
 
 from ..geometry import Intrinsics, pixel_to_plane
 
-__all__ = ["COLOUR_MODELS", "VIGNETTING_TERMS", "IrradianceGrid", "Radiometry",
-           "apply_colour", "colour_terms", "correct_frame", "field_radius2", "fit_flatfield",
+__all__ = ["COLOUR_INTEROP_IDS", "COLOUR_MODELS", "RADIOMETRY_KEYS", "VIGNETTING_TERMS",
+           "IrradianceGrid", "Radiometry", "apply_colour", "colour_terms", "correct_frame",
+           "describe_radiometry", "field_radius2", "fit_flatfield",
            "frame_gain", "irradiance_at", "smooth_irradiance", "vignetting"]
 
 #: terms of the vignetting polynomial ``ln V = sum_k b_k rho^(2k)`` (rho^2, rho^4, rho^6)
@@ -42,6 +43,12 @@ VIGNETTING_TERMS = 3
 #: sensitivities are not a linear transform of the eye's (``docs/models.md`` gives the
 #: measured difference); ``linear`` is the plain 3 x 3
 COLOUR_MODELS = ("root-polynomial", "linear")
+#: the OpenEXR ``colorInteropID`` (the Color Interop Forum's name) of each scene-linear
+#: space a colour correction maps to (:data:`parammap.models.colour.COLOUR_SPACES`),
+#: which an EXR of radiance in it carries so that other tools know its primaries
+COLOUR_INTEROP_IDS = {"srgb-linear": "lin_rec709_scene", "acescg": "lin_ap1_scene"}
+#: the keys of :func:`describe_radiometry`, which headers and attributes carry
+RADIOMETRY_KEYS = ("flatfield", "colour", "colour_space")
 #: pixels whose colour terms are made at once (their memory, not the frame's)
 COLOUR_STRIP = 1 << 20
 #: the gain is evaluated every GAIN_STRIDE pixels and interpolated between: the
@@ -76,6 +83,29 @@ class Radiometry:
         """Nothing measured: frames are read as merged."""
         return (self.vignetting is None and self.irradiance is None
                 and self.colour_matrix is None)
+
+
+def describe_radiometry(rad: Radiometry) -> dict[str, str]:
+    """What a correction divided out of the radiance, in words, for the headers and
+    attributes of what is made from corrected frames: ``flatfield``, ``colour`` and,
+    where a colour matrix was applied, ``colour_space`` (its scene-linear space's name).
+    """
+    parts = []
+    if rad.vignetting is not None:
+        parts.append(f"lens vignetting ({VIGNETTING_TERMS} terms in rho^2, held beyond "
+                     f"rho^2 = {rad.field_max:.4g})")
+    if rad.irradiance is not None:
+        ny, nx = np.shape(rad.irradiance)
+        parts.append(f"light irradiance over the surface ({ny} x {nx} grid, mean 1)")
+    out = {"flatfield": " and ".join(parts) + " divided out (white card)" if parts
+           else "none (no white card, or the flat-field turned off)"}
+    if rad.colour_matrix is None:
+        out["colour"] = "camera RGB (no colour chart, or the colour turned off)"
+    else:
+        out["colour"] = (f"scene-linear {rad.colour_space} via a {rad.colour_model} "
+                         "colour correction (colour chart)")
+        out["colour_space"] = str(rad.colour_space)
+    return out
 
 
 @dataclass(frozen=True)

@@ -408,7 +408,8 @@ def run_best(source: str | Path, processed: str | Path, config: dict[str, Any], 
     choice, partner = resolve(cands, chosen)
     any_map = next(iter(maps.values()))
     pm = ParamMap("best", np.stack([choice, partner], -1).astype(np.float32),
-                  any_map.width_mm, any_map.height_mm, attrs={"candidates": " ".join(maps)})
+                  any_map.width_mm, any_map.height_mm,
+                  attrs={"candidates": " ".join(maps), **any_map.radiometry})
     write_param_map(proc.params(BEST_MODEL), pm)
     stored = np.array([_stored(m) for m in maps.values()], float)
     per = values_stored(maps)

@@ -35,6 +35,7 @@ from ..stores.hdr import (
 from ..stores.images import ImageReadError, read_image
 from ..stores.metrics import digest, write_metrics
 from ..stores.paths import Processed
+from ..stores.radiometry import merged_frame_radiometry
 
 logger = logging.getLogger(__name__)
 
@@ -670,7 +671,8 @@ def run_hdr(cap: Capture, processed: str | Path, config: dict[str, Any], *,
     g = None if cap.response == "linear" else load_response(response or out.response_csv)
     views = ([cap.view(v) for v in view_ids] if view_ids
              else [*cap.views, *cap.radiometry_views])
-    prov = hdr_provenance(digest(cfg), "linear" if g is None else digest(g))
+    prov = hdr_provenance(digest(cfg), "linear" if g is None else digest(g),
+                          merged_frame_radiometry(cap))
     jobs = [(v, g, out.hdr(v.id), cfg["low"], cfg["high"], prov, out.hdr_stats(v.id))
             for v in views]
     stats = []

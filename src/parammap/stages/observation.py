@@ -63,7 +63,7 @@ import numpy as np
 from .. import __version__
 from ..config import default
 from ..geometry import Intrinsics, sample_image, unit
-from ..models.radiometry import correct_frame
+from ..models.radiometry import correct_frame, describe_radiometry
 from ..parallel import executor, progress
 from ..stores.camera import PosesError, kept_poses, load_intrinsics, read_poses
 from ..stores.capture import Capture
@@ -527,7 +527,8 @@ def build_observation_map(
                   "max_zenith_deg": max_zenith_deg, "max_blend_sd": max_blend,
                   "texel_px": texel_px, "blend_check": bool(max_blend is not None
                                                             and resolved)},
-        marker_texels=int(marker.sum()), surface_id=cap.surface_id, config=config or {})
+        marker_texels=int(marker.sum()), surface_id=cap.surface_id, config=config or {},
+        radiometry=describe_radiometry(radiometry or Radiometry()))
     written = {r0: int((marks / f"band-{r0}").read_text()) for r0 in range(0, T, tile)
                if (marks / f"band-{r0}").is_file()}
     cols = band_columns(S, tile, N, tile, max_band_mib)

@@ -20,7 +20,7 @@ import zarr
 
 from ..conventions import FitArray, FitStatus
 from ..errors import InputError
-from ..models.radiometry import IrradianceGrid
+from ..models.radiometry import RADIOMETRY_KEYS, IrradianceGrid
 from .common import (
     COMPLETE_ATTR,
     HEIGHT_ATTR,
@@ -123,11 +123,12 @@ def svbrdf_attrs(lights_mm: np.ndarray, weights: np.ndarray,
 
 
 def grid_attrs(obs: ObservationMap, tile: int, provenance: bool = True) -> dict[str, Any]:
-    """The map's grid, copied from the observation map the fit read, its tile and (with
-    ``provenance``) the version that wrote the store."""
+    """The map's grid and the flat-field and colour of its radiance, copied from the
+    observation map the fit read, its tile and (with ``provenance``) the version that
+    wrote the store."""
     return {S_ATTR: obs.S, T_ATTR: obs.T, TILE_ATTR: tile, WIDTH_ATTR: obs.width_mm,
             HEIGHT_ATTR: obs.height_mm, "observation_views": len(obs.view_ids),
-            **({SOFTWARE_ATTR: software()} if provenance else {})}
+            **obs.radiometry, **({SOFTWARE_ATTR: software()} if provenance else {})}
 
 
 # ---------------------------------------------------------------------------------
@@ -206,7 +207,7 @@ class FitStore(MapStore):
     def describe(self) -> dict[str, Any]:
         """The model settings a parameter map carries into its EXR header."""
         keys = ("lobes", "K_max", FitArray.BANDS, "coefficients", "regularisation",
-                "shrunk_to_mean", "robust_refit")
+                "shrunk_to_mean", "robust_refit", *RADIOMETRY_KEYS)
         out = {k: self.group.attrs[k] for k in keys if self.group.attrs.get(k) is not None}
         if _LIGHTS in self.group.attrs:  # an EXR header holds strings, not mappings
             out[_LIGHTS] = json.dumps(self.group.attrs[_LIGHTS])

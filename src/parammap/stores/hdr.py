@@ -40,11 +40,15 @@ def read_rgb(path: str | Path) -> np.ndarray:
     return np.stack([ch[c] for c in RGB], -1)
 
 
-def hdr_provenance(config_digest: str, response_digest: str) -> dict[str, str]:
-    """Header attributes that say what made a frame: the software, and digests of the hdr
-    config and of the response (``linear`` for linear input)."""
+def hdr_provenance(config_digest: str, response_digest: str,
+                   radiometry: dict[str, str] | None = None) -> dict[str, str]:
+    """Header attributes that say what made a frame: the software, digests of the hdr
+    config and of the response (``linear`` for linear input), and what ``radiometry``
+    says of its flat-field and colour (``parammap_flatfield``, ``parammap_colour``;
+    :func:`parammap.stores.radiometry.merged_frame_radiometry`)."""
     return {SOFTWARE_ATTR: software(), "config_digest": config_digest,
-            "response_digest": response_digest}
+            "response_digest": response_digest,
+            **{f"parammap_{k}": v for k, v in (radiometry or {}).items()}}
 
 
 def write_hdr(path: str | Path, radiance: np.ndarray, saturated: np.ndarray,

@@ -64,6 +64,8 @@ logger = logging.getLogger(__name__)
 # the observations' noise is the merged frames' (one name for both)
 RADIANCE, DIRECTION, VALID, NOISE = "radiance", "direction", "valid", NOISE_CHANNEL
 _REQUIRED = (RADIANCE, DIRECTION, VALID)
+#: the attribute recording the flat-field and colour correction of the map's radiance
+RADIOMETRY_ATTR = "radiometry"
 
 
 class ObservationError(InputError):
@@ -261,6 +263,13 @@ class ObservationMap(MapStore):
     @property
     def view_ids(self) -> list[str]:
         return list(self.group.attrs["view_ids"])
+
+    @property
+    def radiometry(self) -> dict[str, str]:
+        """What the frames' flat-field and colour correction did to the radiance
+        (:func:`parammap.models.radiometry.describe_radiometry`); empty for maps built
+        before it was recorded."""
+        return dict(self.group.attrs.get(RADIOMETRY_ATTR) or {})
 
     def tiles(self) -> list[tuple[slice, slice]]:
         """(rows, cols) of every chunk tile, row by row."""
@@ -476,9 +485,12 @@ def write_band(final: str | Path, r0: int, r1: int, radiance: np.ndarray,
 def set_build_attrs(final: str | Path, *, width_mm: float, height_mm: float, S: int, T: int,
                     tile: int, view_ids: list[str], held_out_view_ids: list[str],
                     camera_centres_mm: list, calibration: dict, sampling: dict,
-                    marker_texels: int, surface_id: str, config: dict) -> None:
+                    marker_texels: int, surface_id: str, config: dict,
+                    radiometry: dict[str, str] | None = None) -> None:
     """The attributes of a map being built: its grid, views, camera, sampling settings
-    and figures, the units of its arrays and the software that built it."""
+    and figures, the flat-field and colour its radiance carries (``radiometry``,
+    :func:`parammap.models.radiometry.describe_radiometry`), the units of its arrays
+    and the software that built it."""
     zarr.open_group(final, mode="r+").attrs.update({
         WIDTH_ATTR: width_mm, HEIGHT_ATTR: height_mm, S_ATTR: S, T_ATTR: T, TILE_ATTR: tile,
         "view_ids": view_ids, "held_out_view_ids": held_out_view_ids,
@@ -488,7 +500,7 @@ def set_build_attrs(final: str | Path, *, width_mm: float, height_mm: float, S: 
                   DIRECTION: "unit vector toward the camera, surface frame",
                   "lengths": "mm"},
         "sampling": sampling, "marker_texels": marker_texels, "surface_id": surface_id,
-        SOFTWARE_ATTR: software(), "config": config,
+        SOFTWARE_ATTR: software(), "config": config, RADIOMETRY_ATTR: radiometry or {},
     })
 
 

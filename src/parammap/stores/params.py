@@ -13,7 +13,10 @@ Rows as in the texel convention (row 0 at the top edge), float32 by default (hal
 request), ZIP compression. Header: ``parammap_model`` (mh, sh, svbrdf or diffuse),
 ``parammap_model_version``, ``parammap_layout`` (the channel names, space separated),
 ``parammap_hemisphere`` (SH), ``parammap_radiance_scale`` (a normalisation already
-undone: 1), ``width_mm``, ``height_mm``, ``S``, ``T`` and ``software``. An MH or SH map
+undone: 1), ``parammap_flatfield`` and ``parammap_colour`` (what the capture's white
+card and colour chart divided out, :func:`parammap.models.radiometry.describe_radiometry`;
+with a chart also ``parammap_colour_space`` and OpenEXR's ``colorInteropID``),
+``width_mm``, ``height_mm``, ``S``, ``T`` and ``software``. An MH or SH map
 may carry the per-texel standard deviations of its fit as extra channels (MH ``sd.Kd.R
 ... sd.m sd.lobek.Ks.R ... sd.lobek.d_deg``, SH ``sd.sh.R.00 ...``;
 ``parammap_sd_layout`` names them, :func:`parammap.conventions.sd_channels`).
@@ -40,11 +43,13 @@ from ..conventions import (
     sh_bands,
     sh_channels,
 )
+from ..models.radiometry import RADIOMETRY_KEYS
 from .common import HEIGHT_ATTR, S_ATTR, SOFTWARE_ATTR, T_ATTR, WIDTH_ATTR, software
 from .exr import ExrError, read_exr, write_exr
 from .fit import open_fit
 from .lights import light_doc, parse_light_doc
 from .observation import open_observation_map
+from .radiometry import colour_interop
 
 __all__ = ["MODELS", "ParamMap", "best_shares", "channel_names", "param_map_from_fit",
            "read_param_map", "write_param_map"]
@@ -116,6 +121,13 @@ class ParamMap:
                                     "lights": json.dumps(light_doc(position_mm, intensity))})
 
     @property
+    def radiometry(self) -> dict[str, str]:
+        """What the capture's white card and colour chart divided out of the radiance
+        the map was fitted to (:func:`parammap.models.radiometry.describe_radiometry`);
+        empty for maps from before it was recorded."""
+        return {k: self.attrs[k] for k in RADIOMETRY_KEYS if k in self.attrs}
+
+    @property
     def lights(self) -> tuple | None:
         """An svbrdf map's lights: positions (J, 3) mm and relative RGB intensities
         (J, 3), from its header (``parammap_lights``), and the flat-field's irradiance
@@ -138,6 +150,7 @@ def write_param_map(path: str | Path, pm: ParamMap, half: bool = False) -> Path:
         attrs["parammap_hemisphere"] = pm.hemisphere
     for k, v in pm.attrs.items():
         attrs[f"parammap_{k}"] = v
+    attrs |= colour_interop(pm.attrs)
     chans = {n: pm.params[..., i] for i, n in enumerate(names)}
     if pm.sd is not None:
         sd_names = sd_channels(pm.model, pm.params.shape[-1])
@@ -214,4 +227,5 @@ def diffuse_map(obs_path: str | Path) -> ParamMap:
     """The diffuse-only baseline: each texel's mean radiance over its valid
     observations (tile by tile)."""
     g = open_observation_map(obs_path)
-    return ParamMap("diffuse", g.mean_radiance(), g.width_mm, g.height_mm)
+    return ParamMap("diffuse", g.mean_radiance(), g.width_mm, g.height_mm,
+                    attrs=g.radiometry)

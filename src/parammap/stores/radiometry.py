@@ -15,18 +15,28 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from ..models.radiometry import VIGNETTING_TERMS, Radiometry
+from ..models.radiometry import (
+    COLOUR_INTEROP_IDS,
+    VIGNETTING_TERMS,
+    Radiometry,
+    describe_radiometry,
+)
 from .capture import Capture
 from .common import read_document
 from .paths import Processed
 
-__all__ = ["RADIOMETRY_VERSION", "RadiometryError",
-           "radiometry_for", "read_radiometry", "write_radiometry"]
+__all__ = ["INTEROP_ATTR", "RADIOMETRY_VERSION", "RadiometryError", "colour_interop",
+           "describe_radiometry", "merged_frame_radiometry", "radiometry_for",
+           "read_radiometry", "write_radiometry"]
 
 RADIOMETRY_VERSION = 1
 
 _VIGNETTING, _IRRADIANCE, _MATRIX, _SPACE, _FIELD, _MODEL = (
     "vignetting", "irradiance", "colour_matrix", "colour_space", "field_max", "colour_model")
+
+
+#: the OpenEXR header attribute that names the colour space of an image's RGB
+INTEROP_ATTR = "colorInteropID"
 
 
 class RadiometryError(InputError):
@@ -92,3 +102,23 @@ def radiometry_for(cap: Capture, processed: str | Path | Processed) -> Radiometr
         raise RadiometryError(f"{path}: missing; the capture has a white card or a colour "
                                 "chart, run `parammap radiometry` first")
     return read_radiometry(path)
+
+
+def colour_interop(desc: dict[str, Any]) -> dict[str, str]:
+    """The EXR header's ``colorInteropID`` for radiance described by ``desc``
+    (:func:`describe_radiometry`): the colour space a chart's correction mapped it to;
+    nothing for camera RGB, whose primaries no one measured."""
+    space = desc.get("colour_space")
+    return {INTEROP_ATTR: COLOUR_INTEROP_IDS[space]} if space in COLOUR_INTEROP_IDS else {}
+
+
+def merged_frame_radiometry(cap: Capture) -> dict[str, str]:
+    """What a merged frame (``hdr/<view>.exr``) says of its flat-field and colour: a
+    frame is merged as the camera saw it (the card and the chart are measured from
+    merged frames), and the capture's correction is applied as frames are read."""
+    rec = "camera/radiometry.json"
+    return {
+        "flatfield": (f"not applied: divided out as the frame is read ({rec}, from the "
+                      "white card)" if cap.flatfield else "none (no white card)"),
+        "colour": (f"camera RGB: corrected as the frame is read ({rec}, from the colour "
+                   "chart)" if cap.chart else "camera RGB (no colour chart)")}
