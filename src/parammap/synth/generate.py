@@ -84,6 +84,12 @@ PRESETS = {
     "paper": Preset(texels=512, width_mm=300.0, height_mm=300.0, image_size=(1600, 1200),
                     focal_px=1400.0, scheme="icosahedron", scheme_args=(("level", 3),),
                     max_zenith_deg=88.0, holdout=8, supersample=1, calib_images=20),
+    # a lab's capture at its real scale (issue 47): 12 MP JPEGs of a 400 x 300 mm
+    # poster, 121 views and 6 held out, a benchmark's input (hours to run), not a test's
+    "lab": Preset(texels=512, width_mm=400.0, height_mm=300.0, image_size=(4000, 3000),
+                  focal_px=3300.0, dist=(-0.05, 0.02, 0.0004, -0.0003, 0.0),
+                  scheme="stratified", scheme_args=(("n_side", 11),), max_zenith_deg=70.0,
+                  holdout=6, calib_images=12, image_format="jpg"),
 }
 
 
