@@ -105,6 +105,11 @@ def main() -> int:
     for m in a.models:
         cmd, outs = _model_stage(m)
         plan.append((m, [*cmd, "--out", str(proc), *common], [proc / o for o in outs]))
+    named = [x for m in [*a.models, "diffuse"] for x in ("--model", m)]
+    plan.append(("export", ["export", "--out", str(proc), *named, *common],
+                 [proc / "params" / f"{m}.exr" for m in [*a.models, "diffuse"]]))
+    plan.append(("holdout", ["holdout", str(cap), "--out", str(proc), *named, *common],
+                 [proc / "metrics" / "holdout.json"]))
     for name, cmd, outs in plan:
         if name in res["stages"] and all(p.exists() for p in outs):
             print(f"{name:>18}: done before ({res['stages'][name]['seconds']:.1f} s)")
@@ -121,6 +126,14 @@ def main() -> int:
         save()
         print(f"observation map: {m.get('S')} x {m.get('T')} texels, {m.get('views')} views, "
               f"{m['bytes_on_disk'] / (m['texels'] * m['views']):.2f} bytes per texel and view")
+    held = proc / "metrics" / "holdout.json"
+    if held.is_file():
+        views = json.loads(held.read_text())["views"]
+        res["held_out"] = {m: sum(v["models"][m]["mean_diff_8bit"] for v in views.values())
+                           / len(views) for m in [*a.models, "diffuse"]}
+        save()
+        print("held out, mean 8-bit difference: " + ", ".join(
+            f"{m} {v:.3f}" for m, v in res["held_out"].items()))
     return 0
 
 

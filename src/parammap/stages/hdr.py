@@ -41,7 +41,8 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["HdrError", "fit_sensor_noise", "hat_weights", "load_response", "merge_bracket",
            "merge_linear", "merge_view", "recover_response", "reexposure_error", "run_hdr",
-           "run_response", "sample_pixels", "save_response", "solve_debevec"]
+           "run_response", "sample_pixels", "save_response", "smooth_candidates",
+           "solve_debevec"]
 
 
 def hat_weights(low: int = default("hdr.low"), high: int = default("hdr.high")) -> np.ndarray:
@@ -64,6 +65,41 @@ SAMPLE_SHIFT_PX = 0.1
 SAMPLE_MAX_GRADIENT = 4.0 / SAMPLE_SHIFT_PX
 
 
+def _draws(n: int, brackets: int) -> int:
+    """Pixels drawn at random from each of ``brackets`` brackets for ``n`` samples."""
+    return 6 * n // max(brackets, 1) + 50
+
+
+def smooth_candidates(stack: np.ndarray, draws: int, rng: np.random.Generator,
+                      low: int = default("hdr.low"), high: int = default("hdr.high"),
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pixels of one bracket that may serve as response samples: ``draws`` drawn at
+    random (``rng``), kept where smooth (a misaligned bracket or an edge would tie two
+    radiances) and within the working range in some exposure.
+
+    All the response needs of a bracket: a capture's brackets are reduced to these as
+    they are read, so the response stage's memory does not grow with the photos' size.
+
+    Parameters
+    ----------
+    stack : (P, H, W, 3) uint8 bracket.
+
+    Returns
+    -------
+    (P, 1, k, 3) uint8 the k candidates' levels (a one-row image of them), (k,) their
+    rows and (k,) their columns in the bracket.
+    """
+    mid = stack[len(stack) // 2].astype(np.float32).mean(axis=2)
+    grad = cv2.morphologyEx(mid, cv2.MORPH_GRADIENT, np.ones((5, 5), np.uint8))
+    H, W = mid.shape
+    rr = rng.integers(4, H - 4, draws)
+    cc = rng.integers(4, W - 4, rr.size)
+    keep = grad[rr, cc] < SAMPLE_MAX_GRADIENT
+    z = stack[:, rr, cc, :]
+    keep &= ((z > low) & (z < high)).all(axis=2).any(axis=0)
+    return np.ascontiguousarray(z[:, None, keep]), rr[keep], cc[keep]
+
+
 def sample_pixels(
     brackets: list[np.ndarray], n: int, seed: int = 0, low: int = default("hdr.low"),
     high: int = default("hdr.high")
@@ -82,25 +118,24 @@ def sample_pixels(
     (n, 3) int array of (bracket index, row, col).
     """
     rng = np.random.default_rng(seed)
-    cands = []
-    for b, stack in enumerate(brackets):
-        mid = stack[len(stack) // 2].astype(np.float32).mean(axis=2)
-        # Smooth pixels only: a misaligned bracket or an edge would tie two radiances.
-        grad = cv2.morphologyEx(mid, cv2.MORPH_GRADIENT, np.ones((5, 5), np.uint8))
-        H, W = mid.shape
-        rr = rng.integers(4, H - 4, 6 * n // len(brackets) + 50)
-        cc = rng.integers(4, W - 4, rr.size)
-        keep = grad[rr, cc] < SAMPLE_MAX_GRADIENT
-        # Need a level in the working range somewhere in the bracket.
-        z = stack[:, rr, cc, :]
-        keep &= ((z > low) & (z < high)).all(axis=2).any(axis=0)
-        cands.append(np.stack([np.full(keep.sum(), b), rr[keep], cc[keep]], 1))
-    cands = np.concatenate(cands)
+    cands = [smooth_candidates(b, _draws(n, len(brackets)), rng, low, high)
+             for b in brackets]
+    idx = _choose_samples([c[0] for c in cands], n, low, high)
+    return np.array([(b, cands[b][1][j], cands[b][2][j]) for b, _, j in idx], int
+                    ).reshape(-1, 3)
+
+
+def _choose_samples(candidates: list[np.ndarray], n: int, low: int, high: int) -> np.ndarray:
+    """(n, 3) (bracket, 0, candidate) of the samples chosen among the brackets'
+    candidates ((P, 1, k, 3) each, :func:`smooth_candidates`)."""
+    cands = np.concatenate([np.stack([np.full(c.shape[2], b), np.zeros(c.shape[2], int),
+                                      np.arange(c.shape[2])], 1)
+                            for b, c in enumerate(candidates)])
     if len(cands) < 20:
         raise HdrError("too few smooth, well-exposed pixels to recover the response")
     # Spread over the levels: in every exposure, every band of levels gets its share,
     # so the ends of the curve are pinned by data, not only by smoothness.
-    lv = np.stack([brackets[b][:, r, c, :].mean(axis=1) for b, r, c in cands])  # (N, P)
+    lv = np.stack([candidates[b][:, r, c, :].mean(axis=1) for b, r, c in cands])  # (N, P)
     # Distinct radiances pin the curve; repeats of one radiance add little.
     _, first = np.unique(np.round(lv / 2), axis=0, return_index=True)
     first = np.sort(first)
@@ -117,7 +152,7 @@ def sample_pixels(
             chosen.extend(idx.tolist())
     rest = np.flatnonzero(~taken)
     chosen.extend(rest[: max(0, n - len(chosen))].tolist())
-    return cands[np.sort(np.array(chosen[:n] if len(chosen) > n else chosen))]
+    return cands[np.sort(np.array(chosen[:n] if len(chosen) > n else chosen, int))]
 
 
 def solve_debevec(
@@ -167,13 +202,15 @@ def recover_response(
     brackets: list[np.ndarray], times: list[np.ndarray], method: str = default("hdr.method"),
     samples: int = default("hdr.samples"), smoothness: float = default("hdr.smoothness"),
     seed: int = 0, low: int = default("hdr.low"),
-    high: int = default("hdr.high"),
+    high: int = default("hdr.high"), candidates: bool = False,
 ) -> np.ndarray:
     """Recover the response from the brackets of one or more views.
 
     Parameters
     ----------
-    brackets : list of (P_v, H, W, 3) uint8 stacks.
+    brackets : list of (P_v, H, W, 3) uint8 stacks, or with ``candidates`` each
+        bracket's candidate samples already drawn (:func:`smooth_candidates`, drawn
+        with ``default_rng(seed)`` in the brackets' order).
     times : list of (P_v,) exposure times in seconds.
     method : ``debevec`` (this module's solver, zero weight at black and saturated
         levels) or ``robertson`` (OpenCV's, on the same samples).
@@ -188,7 +225,11 @@ def recover_response(
         raise HdrError("every bracket has a single exposure; the response needs two or more")
     brackets = [b for b in brackets if len(b) >= 2]
     times = [np.asarray(t, float) for t in times if len(t) >= 2]
-    idx = sample_pixels(brackets, samples, seed, low, high)
+    if not candidates:
+        rng = np.random.default_rng(seed)
+        brackets = [smooth_candidates(b, _draws(samples, len(brackets)), rng, low, high)[0]
+                    for b in brackets]
+    idx = _choose_samples(brackets, samples, low, high)
     w = hat_weights(low, high)
     g = np.zeros((256, 3))
     if method == "debevec":
@@ -605,8 +646,12 @@ def response_for_capture(
         return load_response(cap.response), {"response": "file", "path": cap.response}
     views = cap.views
     pick = np.unique(np.linspace(0, len(views) - 1, min(max_views, len(views))).round().astype(int))
+    # each bracket is reduced to its candidate samples as it is read: memory is one
+    # bracket's, not the views'
+    rng = np.random.default_rng(cfg["seed"])
+    draws = _draws(cfg["samples"], len(pick))
     brackets, times, used = [], [], []
-    for k in pick:
+    for n, k in enumerate(pick):
         v = views[k]
         try:
             stack, t = load_bracket(v)
@@ -615,11 +660,14 @@ def response_for_capture(
             continue
         if len(t) < 2:
             continue
-        brackets.append(stack)
+        brackets.append(smooth_candidates(stack, draws, rng, cfg["low"], cfg["high"])[0])
         times.append(t)
         used.append(v.id)
+        del stack
+        if (n + 1) % 8 == 0:
+            logger.info(f"response: read {n + 1}/{len(pick)} brackets")
     g = recover_response(brackets, times, cfg["method"], cfg["samples"], cfg["smoothness"],
-                         cfg["seed"], cfg["low"], cfg["high"])
+                         cfg["seed"], cfg["low"], cfg["high"], candidates=True)
     return g, {"response": cfg["method"], "views_used": used,
                "samples": cfg["samples"], "seconds": time.perf_counter() - t0}
 
