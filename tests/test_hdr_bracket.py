@@ -130,3 +130,35 @@ def test_a_bracket_merged_in_strips_is_the_bracket_merged_whole(tiny_copy, tmp_p
     ra, rb = whole["reexposure"], strips["reexposure"]
     assert ra["pixels"] == rb["pixels"] and rb["mean_levels"] == pytest.approx(ra["mean_levels"])
     assert abs(rb["p95_levels"] - ra["p95_levels"]) <= rb["bin_levels"]
+
+
+def test_response_from_brackets_read_one_at_a_time_is_the_whole_sets(tiny_capture):
+    """Issue 47: the response stage keeps only each bracket's candidate samples as it
+    reads it (memory of one bracket, not of every view's); the curve is the one
+    recovered from every bracket held at once, and the samples are the same pixels."""
+    from parammap.config import validate_config
+    from parammap.stages.hdr import (
+        load_bracket,
+        recover_response,
+        response_for_capture,
+        sample_pixels,
+        smooth_candidates,
+    )
+    from parammap.stores.capture import load_capture
+
+    cap = load_capture(tiny_capture[0])
+    cfg = validate_config({"captures": {"x": "."}})["hdr"]
+    streamed, meta = response_for_capture(cap, cfg)
+    loaded = [load_bracket(cap.view(v)) for v in meta["views_used"]]
+    whole = recover_response([s for s, _ in loaded], [t for _, t in loaded], cfg["method"],
+                             cfg["samples"], cfg["smoothness"], cfg["seed"], cfg["low"],
+                             cfg["high"])
+    np.testing.assert_array_equal(streamed, whole)
+    # the samples' coordinates are those of the pixels their levels were read from
+    stack = loaded[0][0]
+    idx = sample_pixels([stack], 200)
+    levels, rows, cols = smooth_candidates(stack, 500, np.random.default_rng(0))
+    np.testing.assert_array_equal(levels[:, 0], stack[:, rows, cols])
+    z = stack[:, idx[:, 1], idx[:, 2]]
+    assert len(idx) > 20
+    assert ((z > cfg["low"]) & (z < cfg["high"])).all(-1).any(0).all()
