@@ -34,6 +34,10 @@ __all__ = ["bilinear_corners", "evaluate", "evaluate_bilinear", "lookup_bilinear
            "reproject_frame", "surface_points", "tone_map"]
 
 
+#: pixels a render evaluates at once (its memory, not the photo's)
+RENDER_CHUNK = 1 << 18
+
+
 def bilinear_corners(shape: tuple[int, int], row: np.ndarray, col: np.ndarray,
                      ) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[np.ndarray]]:
     """The four texels around continuous texel coordinates (texel centres at integer +
@@ -139,17 +143,26 @@ def render(pm: ParamMap, intr: Intrinsics, R: np.ndarray, t: np.ndarray,
     P, inside = surface_points(intr, R, t, pm.width_mm, pm.height_mm, size)
     T, S = pm.shape
     out = np.full(P.shape[:2] + (3,), np.nan, np.float32)
-    Pi = P[inside]
-    row, col = plane_to_texel(Pi[:, 0], Pi[:, 1], S, T, pm.width_mm, pm.height_mm)
-    d = unit(camera_centre(R, t)[None] - Pi)
-    if pm.model == "best":
-        out[inside] = _render_best(pm, row, col, d, interpolation, Pi)
-        return out, inside
-    if interpolation == "nearest":
-        prm = pm.params[np.clip(row.astype(int), 0, T - 1), np.clip(col.astype(int), 0, S - 1)]
-        out[inside] = evaluate(pm.model, prm, d, Pi, pm.lights)
-    else:
-        out[inside] = evaluate_bilinear(pm.model, pm.params, row, col, d, Pi, pm.lights)
+    flat = np.flatnonzero(inside)
+    res = np.empty((len(flat), 3), np.float32)
+    C = camera_centre(R, t)[None]
+    Pf = P.reshape(-1, 3)
+    # a chunk of pixels at a time: a 12 MP photo's pixels times an SH map's coefficients
+    # would otherwise be gigabytes
+    for s0 in range(0, len(flat), RENDER_CHUNK):
+        Pi = Pf[flat[s0:s0 + RENDER_CHUNK]]
+        row, col = plane_to_texel(Pi[:, 0], Pi[:, 1], S, T, pm.width_mm, pm.height_mm)
+        d = unit(C - Pi)
+        if pm.model == "best":
+            res[s0:s0 + len(Pi)] = _render_best(pm, row, col, d, interpolation, Pi)
+        elif interpolation == "nearest":
+            prm = pm.params[np.clip(row.astype(int), 0, T - 1),
+                            np.clip(col.astype(int), 0, S - 1)]
+            res[s0:s0 + len(Pi)] = evaluate(pm.model, prm, d, Pi, pm.lights)
+        else:
+            res[s0:s0 + len(Pi)] = evaluate_bilinear(pm.model, pm.params, row, col, d, Pi,
+                                                     pm.lights)
+    out.reshape(-1, 3)[flat] = res
     return out, inside
 
 
