@@ -120,8 +120,14 @@ def surface_points(
     points : (H, W, 3) surface-frame points (mm); inside : (H, W) bool.
     """
     W, H = size or intr.image_size
-    u, v = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
-    P, hit = pixel_to_plane(np.stack([u, v], -1), intr.K, intr.dist, R, t)
+    P = np.empty((H, W, 3))
+    hit = np.empty((H, W), bool)
+    step = max(1, RENDER_CHUNK // W)  # rows at once: the undistortion's temporaries
+    for r0 in range(0, H, step):
+        u, v = np.meshgrid(np.arange(W, dtype=float), np.arange(r0, min(r0 + step, H),
+                                                                dtype=float))
+        P[r0:r0 + step], hit[r0:r0 + step] = pixel_to_plane(np.stack([u, v], -1), intr.K,
+                                                            intr.dist, R, t)
     inside = hit & (P[..., 0] >= 0) & (P[..., 0] <= width_mm) & (P[..., 1] >= 0) \
         & (P[..., 1] <= height_mm)
     return P, inside
@@ -129,18 +135,21 @@ def surface_points(
 
 def render(pm: ParamMap, intr: Intrinsics, R: np.ndarray, t: np.ndarray,
            size: tuple[int, int] | None = None, interpolation: str = "bilinear",
+           surface: tuple[np.ndarray, np.ndarray] | None = None,
            ) -> tuple[np.ndarray, np.ndarray]:
     """Render a parameter map into a camera.
 
     ``interpolation`` is ``bilinear`` (between texel centres, the default) or
-    ``nearest`` (piecewise constant texels).
+    ``nearest`` (piecewise constant texels). ``surface``: this camera's
+    :func:`surface_points` where the caller has them (several maps rendered into one
+    view undistort its pixels once).
 
     Returns
     -------
     image : (H, W, 3) float32 linear radiance, NaN outside the sampled region.
     inside : (H, W) bool.
     """
-    P, inside = surface_points(intr, R, t, pm.width_mm, pm.height_mm, size)
+    P, inside = surface or surface_points(intr, R, t, pm.width_mm, pm.height_mm, size)
     T, S = pm.shape
     out = np.full(P.shape[:2] + (3,), np.nan, np.float32)
     flat = np.flatnonzero(inside)
@@ -199,7 +208,11 @@ def reproject_frame(frame: np.ndarray, intr: Intrinsics, R_src: np.ndarray,
     """Sample another view's frame (H', W', 3) at surface points (H, W, 3): the
     nearest-captured-view baseline (004 ch. 3.5). NaN where the point falls outside it."""
     out = np.full(points.shape[:2] + (3,), np.nan, np.float32)
-    uv = project_points(points[mask], intr.K, intr.dist, R_src, t_src)
-    vals = sample_image(np.asarray(frame, np.float32), uv[:, 0], uv[:, 1])
-    out[mask] = vals
+    flat = np.flatnonzero(mask)
+    pf, of = points.reshape(-1, 3), out.reshape(-1, 3)
+    frame = np.asarray(frame, np.float32)
+    for s0 in range(0, len(flat), RENDER_CHUNK):
+        at = flat[s0:s0 + RENDER_CHUNK]
+        uv = project_points(pf[at], intr.K, intr.dist, R_src, t_src)
+        of[at] = sample_image(frame, uv[:, 0], uv[:, 1])
     return out

@@ -82,7 +82,8 @@ def exp_holdout(capture: str | Path, processed: str | Path, workers: int = defau
         size = (photo.shape[1], photo.shape[0])
         P, inside = surface_points(intr, R, t, cap.width_mm, cap.height_mm, size)
         mask = inside & ~sat & ~marker_pixels(cap, P)
-        renders = {name: render(pm, intr, R, t, size)[0] for name, pm in maps.items()}
+        renders = {name: render(pm, intr, R, t, surface=(P, inside))[0]
+                   for name, pm in maps.items()}
         # 004's gammas (500, 100) assume its radiance units: on ours every pixel of
         # photo and render saturates, so the comparison uses our choice (median
         # radiance to mid-grey), stated per view

@@ -110,13 +110,17 @@ def pixel_regions(labels: np.ndarray, points: np.ndarray, inside: np.ndarray,
     return out
 
 
+def _diff8(photo: np.ndarray, image: np.ndarray, gamma: float) -> np.ndarray:
+    """(H, W, 3) int16 absolute difference of the two images' 8-bit tone maps."""
+    return np.abs(tone_map(photo, gamma).astype(np.int16) - tone_map(image, gamma))
+
+
 def region_errors(photo: np.ndarray, image: np.ndarray, mask: np.ndarray, gamma: float,
                   regions: np.ndarray) -> dict[str, dict[str, float]]:
     """Mean absolute 8-bit difference per region label (``regions``: (H, W) ints, -1
     ignored), with the pixel count of each: ``{label: {mean_diff_8bit, pixels}}``."""
     ok = mask & np.isfinite(image).all(-1) & (regions >= 0)
-    d = np.abs(tone_map(photo, gamma).astype(int) - tone_map(image, gamma).astype(int))
-    d = d.mean(-1)[ok]
+    d = _diff8(photo, image, gamma).mean(-1, dtype=float)[ok]
     lab = regions[ok]
     out = {}
     for j in np.unique(lab):
@@ -144,9 +148,7 @@ def marker_pixels(cap: Capture, points: np.ndarray, margin_mm: float = 1.0) -> n
 def compare(photo: np.ndarray, image: np.ndarray, mask: np.ndarray, gamma: float) -> dict:
     """Figures of one render against the photo inside ``mask``."""
     ok = mask & np.isfinite(image).all(-1)
-    a = tone_map(photo, gamma).astype(int)
-    b = tone_map(image, gamma).astype(int)
-    diff = np.abs(a - b)[ok]
+    diff = _diff8(photo, image, gamma)[ok]
     lin = (image[ok] - photo[ok]).astype(float)
     peak = float(np.percentile(photo[mask], 99)) if mask.any() else 1.0
     mse = float(np.mean(lin ** 2)) if lin.size else float("nan")
@@ -198,7 +200,7 @@ def holdout_comparison(
         gamma = choose_gamma(photo, mask)
         C = np.asarray(r["centre_mm"], float)
         near = kept[int(np.argmax(kdir @ ((C - centre) / np.linalg.norm(C - centre))))]
-        renders = {name: render(pm, intr, R, t, (photo.shape[1], photo.shape[0]))[0]
+        renders = {name: render(pm, intr, R, t, surface=(P, inside))[0]
                    for name, pm in maps.items()}
         renders["nearest-view"] = reproject_frame(frame(near.id, near.R, near.t)[0], intr,
                                                   near.R, near.t, P, inside)
@@ -214,7 +216,7 @@ def holdout_comparison(
             row["regions"][name] = region_errors(photo, img, mask, gamma, px_regions)
             img8 = tone_map(np.where(inside[..., None], img, 0), gamma)
             write_image_atomic(out_dir / f"{vid}_{name}.png", img8)
-            d = np.abs(img8.astype(int) - photo8.astype(int)).mean(-1)
+            d = np.abs(img8.astype(np.int16) - photo8).mean(-1)
             d = np.where(mask, d, 0)
             write_image_atomic(out_dir / f"{vid}_{name}_diff.png",
                                np.repeat(np.clip(d, 0, 255).astype(np.uint8)[..., None], 3, -1))

@@ -215,8 +215,8 @@ def _held_out_renders(cap, truth: str | Path, processed: str | Path, models: lis
         ok = mask[..., None] & (clean > 0) & (photo > 0)
         scale = float(np.median(photo[ok] / clean[ok]))
         clean = scale * (read_rgb(Path(truth) / "relit" / f"{r['id']}.exr") if relit else clean)
-        size = (photo.shape[1], photo.shape[0])
-        images = {name: render(pm, intr, R, t, size)[0] for name, pm in maps.items()}
+        images = {name: render(pm, intr, R, t, surface=(P, inside))[0]
+                  for name, pm in maps.items()}
         yield r["id"], clean, images, mask, choose_gamma(photo, mask), P, inside
 
 
