@@ -37,7 +37,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("processed")
     ap.add_argument("--model", nargs="+", default=["mh-1", "mh-2", "sh-rlsop-36"])
-    ap.add_argument("--size", type=int, nargs="+", default=[512])
+    ap.add_argument("--size", type=int, nargs="+", default=[512],
+                    help="texels across (0: each map at its own size, not resampled)")
     ap.add_argument("--chromium", default="/usr/bin/chromium")
     ap.add_argument("--repeat", action="store_true",
                     help="copies of each map side by side, not nearest resampling")
@@ -57,8 +58,10 @@ def main() -> None:
             write_viewer(tmp, "bench", maps, intr, views, 1.0)
             written = time.perf_counter() - t0
             man = json.loads((Path(tmp) / "manifest.json").read_text())
-            print(f"{size}x{size} payload bytes per texel (the page loads): " + ", ".join(
-                f"{m['name']} {m['bytes_per_texel']:.2f} ({m['bytes_loaded'] / size ** 2:.2f})"
+            T, S = maps[names[0]].shape
+            label = f"{S}x{T}"
+            print(f"{label} payload bytes per texel (the page loads): " + ", ".join(
+                f"{m['name']} {m['bytes_per_texel']:.2f} ({m['bytes_loaded'] / (S * T):.2f})"
                 for m in man["models"]))
             browser = p.chromium.launch(executable_path=a.chromium, args=ARGS)
             page = browser.new_page()
@@ -67,7 +70,7 @@ def main() -> None:
             opened = time.perf_counter() - t0
             page.wait_for_function("window.viewer && window.viewer.ready", timeout=60000)
             ready = time.perf_counter() - t0
-            print(f"{size}x{size} texels: payloads written in {written:.1f} s, page open in "
+            print(f"{label} texels: payloads written in {written:.1f} s, page open in "
                   f"{opened:.2f} s, controls ready in {ready:.2f} s (float-linear filtering: "
                   f"{page.evaluate('viewer.floatLinear')})")
             base = {}
@@ -110,6 +113,9 @@ class _Resampled(Mapping):
     def __getitem__(self, name: str) -> ParamMap:
         pm = read_param_map(self.proc / "params" / f"{name}.exr")
         T, S = pm.shape
+        if not self.size:
+            return ParamMap(pm.model, pm.params.astype(np.float32), pm.width_mm,
+                            pm.height_mm, pm.hemisphere)
         if self.repeat:
             r = (np.arange(self.size) % T)[:, None]
             c = (np.arange(self.size) % S)[None, :]
