@@ -200,10 +200,6 @@ def holdout_comparison(
         gamma = choose_gamma(photo, mask)
         C = np.asarray(r["centre_mm"], float)
         near = kept[int(np.argmax(kdir @ ((C - centre) / np.linalg.norm(C - centre))))]
-        renders = {name: render(pm, intr, R, t, surface=(P, inside))[0]
-                   for name, pm in maps.items()}
-        renders["nearest-view"] = reproject_frame(frame(near.id, near.R, near.t)[0], intr,
-                                                  near.R, near.t, P, inside)
         row = {"gamma": gamma, "nearest_view": near.id, "models": {}, "regions": {}}
         px_regions = pixel_regions(labels, P, inside, cap.width_mm, cap.height_mm)
         if r.get("warning"):  # the pose policy would have dropped a fitted view like it
@@ -211,7 +207,10 @@ def holdout_comparison(
             logger.info(f"holdout: {vid}: poor pose, compared all the same: {r['warning']}")
         photo8 = tone_map(np.where(inside[..., None], photo, 0), gamma)
         write_image_atomic(out_dir / f"{vid}_photo.png", photo8)
-        for name, img in renders.items():
+        for name in [*maps, "nearest-view"]:  # one render at a time: a 12 MP frame each
+            img = (render(maps[name], intr, R, t, surface=(P, inside))[0] if name in maps
+                   else reproject_frame(frame(near.id, near.R, near.t)[0], intr, near.R,
+                                        near.t, P, inside))
             row["models"][name] = compare(photo, img, mask, gamma)
             row["regions"][name] = region_errors(photo, img, mask, gamma, px_regions)
             img8 = tone_map(np.where(inside[..., None], img, 0), gamma)
