@@ -46,8 +46,18 @@ def _cpu_children() -> float:
     return r.ru_utime + r.ru_stime
 
 
+#: the default config's models, fitted in this order (each after what it reads)
+DEFAULT_MODELS = ["mh-1", "mh-2", "mh-auto", "mh-materials", "sh-lsop-16", "sh-rlsop-36",
+                  "sh-wls-36", "svbrdf-ggx"]
+
+
 def _model_stage(model: str) -> tuple[list[str], list[str]]:
     """The fit command of a model and its outputs."""
+    if model == "mh-materials":
+        return (["materials", "--set", "materials.source=mh-auto"],
+                ["fit/mh-materials.zarr"])
+    if model == "svbrdf-ggx":
+        return ["fit-svbrdf"], ["fit/svbrdf-ggx.zarr"]
     if model.startswith("mh-"):
         return ["fit-mh", "--lobes", model.split("-", 1)[1]], [f"fit/{model}.zarr"]
     if model.startswith("sh-"):
@@ -73,11 +83,16 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--root", default="data/bench/lab-run")
     ap.add_argument("--preset", default="lab")
-    ap.add_argument("--models", nargs="*", default=["mh-1"])
+    ap.add_argument("--models", nargs="*", default=["mh-1"],
+                    help="models to fit, or 'default' for the default config's, with the "
+                         "lights they need and the best map")
     ap.add_argument("--texels", type=int, help="observation map this many texels across "
                     "(default: the photos' own resolution)")
     ap.add_argument("--workers", type=int, default=2)
     a = ap.parse_args()
+    with_best = a.models == ["default"]
+    if with_best:
+        a.models = DEFAULT_MODELS
     root = Path(a.root)
     cap, proc = root / a.preset, root / f"{a.preset}.proc"
     if a.texels:
@@ -103,11 +118,22 @@ def main() -> int:
         plan.append((name, [name, *([str(cap)] if on_capture else []), "--out", str(proc),
                             *common, *extra], [proc / o for o in outs]))
     for m in a.models:
+        if m == "svbrdf-ggx":
+            plan.append(("lights", ["lights", "--out", str(proc), "--capture", str(cap),
+                                    "--figures", str(root / "reports"), "--set",
+                                    "lights.source=mh-auto", *common],
+                         [proc / "camera" / "lights.yaml"]))
         cmd, outs = _model_stage(m)
         plan.append((m, [*cmd, "--out", str(proc), *common], [proc / o for o in outs]))
-    named = [x for m in [*a.models, "diffuse"] for x in ("--model", m)]
+    maps = [*a.models, "diffuse"]
+    named = [x for m in maps for x in ("--model", m)]
     plan.append(("export", ["export", "--out", str(proc), *named, *common],
-                 [proc / "params" / f"{m}.exr" for m in [*a.models, "diffuse"]]))
+                 [proc / "params" / f"{m}.exr" for m in maps]))
+    if with_best:
+        plan.append(("best", ["best", "--out", str(proc), *named, "--figures",
+                              str(root / "reports"), *common], [proc / "params" / "best.exr"]))
+        maps = [*maps, "best"]
+        named = [x for m in maps for x in ("--model", m)]
     plan.append(("holdout", ["holdout", str(cap), "--out", str(proc), *named, *common],
                  [proc / "metrics" / "holdout.json"]))
     for name, cmd, outs in plan:
@@ -130,7 +156,7 @@ def main() -> int:
     if held.is_file():
         views = json.loads(held.read_text())["views"]
         res["held_out"] = {m: sum(v["models"][m]["mean_diff_8bit"] for v in views.values())
-                           / len(views) for m in [*a.models, "diffuse"]}
+                           / len(views) for m in maps}
         save()
         print("held out, mean 8-bit difference: " + ", ".join(
             f"{m} {v:.3f}" for m, v in res["held_out"].items()))
