@@ -32,7 +32,7 @@ from ..weights import noise_weights, reduced_chi2
 from .model import bic, mh_eval
 from .optim import MhFitConfig, fit_texel, refine_batch
 from .starts import rescaled_batch
-from .uncertainty import parameter_sd
+from .uncertainty import loo_error, parameter_sd
 
 # A texel whose RMSE exceeds this many times the median of its neighbourhood is refit
 # from its neighbours' parameters (the texels of one material share a minimum; a poor
@@ -47,17 +47,19 @@ REPAIR_ROUNDS = 32  # a stain wider than the neighbourhood is repaired from its 
 RANK_ITERS = 20
 # Shininess pooled from the neighbours (:func:`_pool_shininess`): a refit with m held
 # at the pooled value is taken while its likelihood ratio against the texel's own fit
-# stays below chi-square(1 dof) at 99 %; pulls below POOL_MIN_SHIFT in ln m (5 % in m)
-# are not refitted; a window needs POOL_MIN_NEIGHBOURS texels with a lobe to say
-# anything; no texel's sd of ln m counts below POOL_SD_FLOOR (a weight, not infinity).
+# stays below chi-square(1 dof) at 99 %, or where it predicts the texel's views left
+# out at least as well; pulls below POOL_MIN_SHIFT in ln m (5 % in m) are not refitted;
+# a window needs POOL_MIN_NEIGHBOURS texels with a lobe to say anything; no texel's sd
+# of ln m counts below POOL_SD_FLOOR (a weight, not infinity).
 POOL_LR = float(chi2.ppf(0.99, 1))
 POOL_MIN_SHIFT = 0.05
 POOL_MIN_NEIGHBOURS = 5
 POOL_SD_FLOOR = 1e-3
-# Lobe directions are pooled on texels of one lobe: where a texel takes more, its lobes
-# together draw a highlight that is not a Phong lobe and one lobe's direction is not
-# the light's (on the demo, pooling them too cost mh-auto 2 % of its held-out error)
-POOL_MAX_LOBES = 1
+# A lobe's direction is pooled only where it draws a highlight of its own: its peak
+# farther from every other lobe of the texel than this many half widths at half maximum
+# (their half-maximum regions apart). Lobes nearer together draw one highlight that is
+# not a Phong lobe, and no one of their directions is the light's.
+POOL_LOBE_SEPARATION = 2.0
 
 
 def _neighbourhood_median(e: np.ndarray, radius: int, strip_elements: int = 1 << 22,
@@ -383,8 +385,14 @@ def _pool_shininess(params: np.ndarray, sd: np.ndarray, kused: np.ndarray,
     takes the neighbours'. Where that moves m by more than :data:`POOL_MIN_SHIFT`, the
     texel is refit with m held there (where the move is also more than twice the sd of
     what the neighbours say), and the refit is taken only where its own data
-    do not reject it (likelihood ratio of one parameter fixed below :data:`POOL_LR`,
-    99 %): a prior that would bias a texel whose data are good is never applied.
+    do not reject it: its likelihood ratio of one parameter fixed below
+    :data:`POOL_LR` (99 %), or its leave-one-view-out error (PRESS) no larger than the
+    texel's own fit's. The second is needed where a Phong lobe is fitted to a
+    microfacet highlight: the few views near it carry the misfit, so the texel's own
+    data always "prefer" their own m by the likelihood ratio, while the neighbours' m
+    predicts each of its views left out as well or better (the texel's own fit must
+    not rest on a view that alone determines it, whose PRESS is infinite). A prior
+    that would bias a texel whose data are good is never applied.
     Returns (t, u) bool: the texels changed (``take(i, j, params, lobes)`` applied).
     """
     oy, ox = offset
@@ -428,16 +436,44 @@ def _pool_shininess(params: np.ndarray, sd: np.ndarray, kused: np.ndarray,
         except Exception:  # noqa: BLE001 - the texel keeps its own fit
             continue
         out[FitArray.EVALS][i, j] += r.evals
-        if r.status != FitStatus.OK or not (3 * len(V) * math.log(max(r.rss, 1e-300)
-                                                               / max(rss0, 1e-300)) < POOL_LR):
+        if r.status != FitStatus.OK:
             continue
         p = np.zeros(mh_size(Kmax))
         p[: mh_size(lobes)] = r.params
         for extra in range(lobes, Kmax):
             p[mh_dir_z(extra)] = 1.0
+        lr = 3 * len(V) * math.log(max(r.rss, 1e-300) / max(rss0, 1e-300))
+        if not (lr < POOL_LR or _predicts_better(params[i + oy, j + ox], p, V, L, wt)):
+            continue
         take(i, j, p, lobes)
         changed[i, j] = True
     return changed
+
+
+def _predicts_better(own: np.ndarray, pooled: np.ndarray, V: np.ndarray, L: np.ndarray,
+                     wt: np.ndarray) -> bool:
+    """Whether a texel's refit with m held at the neighbours' predicts each of its views
+    left out (PRESS) at least as well as its own fit does, where neither view alone
+    determines a parameter of its own fit."""
+    one = np.ones((1, len(V)), bool)
+    e_own, e_new = (loo_error(np.asarray(q, float)[None], V[None], L[None], one, wt[None],
+                              fixed_m=f)[0] for q, f in ((own, False), (pooled, True)))
+    return bool(np.isfinite(e_own) and e_new <= e_own)
+
+
+def _separate_lobes(params: np.ndarray, kused: np.ndarray) -> np.ndarray:
+    """(H, W, Kmax) bool: lobe k of each texel draws a highlight of its own, its direction
+    more than :data:`POOL_LOBE_SEPARATION` half widths at half maximum (``acos(2^(-1/m))``
+    for the texel's shininess m) from each other lobe the texel uses."""
+    Kmax = mh_lobes(params.shape[-1])
+    m = np.maximum(np.nan_to_num(params[..., MH_M].astype(float)), 1.0)
+    hwhm = np.arccos(np.power(0.5, 1.0 / m))
+    d = np.stack([np.nan_to_num(params[..., mh_dir(k)].astype(float)) for k in range(Kmax)], -2)
+    cos = np.clip(np.einsum("...kc,...lc->...kl", d, d), -1.0, 1.0)
+    near = np.arccos(cos) <= POOL_LOBE_SEPARATION * hwhm[..., None, None]
+    used = np.arange(Kmax) < kused[..., None]
+    near &= used[..., None, :] & ~np.eye(Kmax, dtype=bool)
+    return used & ~near.any(-1)
 
 
 def _pool_lobes(params: np.ndarray, sd: np.ndarray, kused: np.ndarray,
@@ -455,8 +491,9 @@ def _pool_lobes(params: np.ndarray, sd: np.ndarray, kused: np.ndarray,
     reject the neighbours' (their angle within the 99 % Wald bound of the two
     uncertainties, chi-square with 2 dof) and it moves the lobe by more than twice the
     neighbours' own sd and enough to change the lobe's value at its half width by
-    :data:`POOL_MIN_SHIFT`; Kd, Ks and m stay the texel's. Only texels of one lobe
-    (:data:`POOL_MAX_LOBES`). Returns (t, u) bool: the texels changed.
+    :data:`POOL_MIN_SHIFT`; Kd, Ks and m stay the texel's. Only lobes that draw a
+    highlight of their own (:func:`_separate_lobes`). Returns (t, u) bool: the texels
+    changed.
 
     Ks was pooled alike and not kept: without m moving with it (the two trade off
     where one view sees the highlight) the renders of pbr-tiny got worse.
@@ -471,14 +508,15 @@ def _pool_lobes(params: np.ndarray, sd: np.ndarray, kused: np.ndarray,
     wald = math.sqrt(float(chi2.ppf(0.99, 2)))
     # lobe k of a texel is compared with lobe k of the neighbours with as many lobes
     # (lobes are ordered by strength; with another count, the order means another lobe)
-    counts = [(k, K) for K in range(1, min(Kmax, POOL_MAX_LOBES) + 1) for k in range(K)
+    counts = [(k, K) for K in range(1, Kmax + 1) for k in range(K)
               if mh_sd_dir(k) < sd.shape[-1]]
+    alone = _separate_lobes(params, kused)
     for k, K in counts:
         ks = np.nan_to_num(params[..., mh_ks(k)].astype(float)).sum(-1)
         d = params[..., mh_dir(k)].astype(float)
         s_d = np.radians(sd[..., mh_sd_dir(k)].astype(float))
-        use = ok & (kused == K) & (ks > 0) & np.isfinite(d).all(-1) & np.isfinite(s_d) \
-            & (s_d > 0)
+        use = ok & (kused == K) & alone[..., k] & (ks > 0) & np.isfinite(d).all(-1) \
+            & np.isfinite(s_d) & (s_d > 0)
         ci, cj = np.nonzero(use[oy:oy + t, ox:ox + u])
         if len(ci) == 0:
             continue

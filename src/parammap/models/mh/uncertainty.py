@@ -187,17 +187,24 @@ def _loo(J, r, w, free, A, W, Ai=None) -> tuple[np.ndarray, np.ndarray]:
 
 
 def loo_error(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
-              weights: np.ndarray | None = None) -> np.ndarray:
+              weights: np.ndarray | None = None, fixed_m: bool = False) -> np.ndarray:
     """Leave-one-view-out prediction error of fitted MH parameters, per texel: the sum
     of the squared (weighted) leave-one-out residuals of :func:`loo_residuals`, PRESS,
     which estimates how the texel's fit does in directions no view of it saw, at the
-    cost of one Jacobian.
+    cost of one Jacobian. ``fixed_m``: of a fit with m held (not a free parameter).
 
     Returns
     -------
     (n,) weighted PRESS (inf where a view's leave-one-out system is singular).
     """
-    loo, bad = loo_residuals(P, V, L, W, weights)
+    if fixed_m:
+        J, _, r, w, free, A, _ = _linearised(np.asarray(P, float), V, L, W, weights)
+        free[:, MHX_LNM] = False
+        A[:, MHX_LNM, :] = A[:, :, MHX_LNM] = 0.0
+        A[:, MHX_LNM, MHX_LNM] = 1.0
+        loo, bad = _loo(J, r, w, free, A, W)
+    else:
+        loo, bad = loo_residuals(P, V, L, W, weights)
     w = (np.ones(W.shape) if weights is None else np.asarray(weights, float)) * W
     return np.where(bad, np.inf, (w[..., None] * loo ** 2).sum((1, 2)))
 
@@ -249,3 +256,4 @@ def parameter_sd(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray,
         ang = np.sqrt(sd_x[:, mhx_theta(k)] ** 2 + (np.sin(th) * sd_x[:, mhx_phi(k)]) ** 2)
         out[:, mh_sd_dir(k)] = np.degrees(ang)
     return out
+
