@@ -141,11 +141,13 @@ def test_param_map_round_trip_and_render(tmp_path):
 
 def test_stage_on_the_tiny_capture(tiny_processed, tmp_path):
     """``parammap lights`` then ``parammap fit-svbrdf`` on the tiny capture (two point
-    lights; Phong, Blinn and GGX patches): the lights refined under the microfacet
-    model lower its pilot residual and stay within 15 % of the truth (this generator's
-    lights do not fall off with distance and its lobes are mostly Phong ones, which no
-    physical microfacet lobe under a point light matches: they land 7-12 % off; on the
-    physically based presets within 0.2-4 %, ``test_pbr_capture.py``),
+    lights; Phong, Blinn and GGX patches): the lights found from mh-auto's lobes lie
+    within 2 % of the truth (issue 48's bound); refined under the microfacet model they
+    lower its pilot residual and stay within 25 % (this generator's lights do not fall
+    off with distance and its lobes are mostly Phong ones, which no physical microfacet
+    lobe under a point light matches: the residual is nearly flat along each light's
+    distance, and they land 7-21 % off, depending on the MH fit they start from; on
+    the physically based presets within 0.2-4 %, ``test_pbr_capture.py``),
     every texel fitted, the map exported and its
     held-out renders better than diffuse on every held-out view; without lights.yaml
     the stage says which file it lacks; with no light in it, a nominal one overhead."""
@@ -167,9 +169,11 @@ def test_stage_on_the_tiny_capture(tiny_processed, tmp_path):
     scene = load_scene(truth / "scene.npz")
     found = np.array(m["light_positions"]["refined_mm"])
     centre = np.array([scene.width_mm / 2, scene.height_mm / 2, 0.0])
+    start = np.array(m["light_positions"]["found_mm"])
     for L in scene.light_pos:
-        err = np.linalg.norm(found - L, axis=1).min()
-        assert err < 0.15 * np.linalg.norm(L - centre), (found, L)
+        scale = np.linalg.norm(L - centre)
+        assert np.linalg.norm(start - L, axis=1).min() < 0.02 * scale, (start, L)
+        assert np.linalg.norm(found - L, axis=1).min() < 0.25 * scale, (found, L)
     assert m["light_positions"]["final"] < m["light_positions"]["start"]
     models = ["svbrdf-ggx", "diffuse"]
     assert main(["export", "--out", str(work), *[x for k in models for x in ("--model", k)]]) == 0
