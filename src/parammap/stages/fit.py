@@ -36,6 +36,7 @@ from typing import Any
 import dask
 import dask.array as da
 import numpy as np
+from dask.callbacks import Callback
 
 from .. import __version__
 from ..config import default
@@ -203,6 +204,28 @@ def _show_progress() -> bool:
     return sys.stderr.isatty() and logger.isEnabledFor(logging.INFO)
 
 
+class _LogProgress(Callback):
+    """A log line at every tenth of a pass's tasks done, where no terminal shows a bar
+    (a batch job's log: a lab map's SH fit runs for half an hour)."""
+
+    def __init__(self, after_s: float = 10.0):
+        super().__init__()
+        self.after_s = after_s  # a shorter pass says nothing
+
+    def _start(self, dsk):
+        self._t0, self._shown = time.perf_counter(), 0
+
+    def _posttask(self, key, result, dsk, state, worker_id):
+        done = len(state["finished"])
+        total = done + sum(len(state[k]) for k in ("ready", "waiting", "running"))
+        tenth = 10 * done // max(total, 1)
+        elapsed = time.perf_counter() - self._t0
+        if tenth > self._shown and elapsed >= self.after_s:
+            self._shown = tenth
+            logger.info(f"fit: {10 * tenth} % of the pass ({done}/{total} tasks, "
+                        f"{elapsed:.0f} s)")
+
+
 START_METHODS = ("auto", "fork", "forkserver", "spawn")
 
 
@@ -261,7 +284,7 @@ def _compute(x, scheduler: str, workers: int, pool=None):
     if scheduler not in kw:
         raise FitError(f"fit.scheduler: unknown scheduler {scheduler!r} (processes, threads, "
                        "synchronous or a tcp:// address)")
-    bar = contextlib.nullcontext()
+    bar = _LogProgress() if logger.isEnabledFor(logging.INFO) else contextlib.nullcontext()
     if _show_progress():
         from dask.diagnostics import ProgressBar
 
