@@ -130,3 +130,28 @@ def test_mh_interpolates_radiance_not_lobes():
     want = mh_eval(a[None], v[None])[0]
     np.testing.assert_allclose(got, want, rtol=1e-12)
     assert got[0, 0] > 1.0  # the lobes survive (interpolated parameters lose them)
+
+
+def test_maps_read_without_their_sds_or_one_at_a_time(tmp_path):
+    """A stage that holds many maps of a lab capture reads them without their standard
+    deviations (half their memory), or from their files as each is needed
+    (``ParamMapFiles``: nothing kept); a missing map is named before any work."""
+    from parammap.stores.params import ParamMapFiles
+
+    rng = np.random.default_rng(0)
+    params = rng.uniform(0.1, 1.0, (6, 8, 10)).astype(np.float32)
+    params[..., 7:10] = [0.0, 0.0, 1.0]
+    sd = rng.uniform(0.0, 0.1, (6, 8, 8)).astype(np.float32)
+    write_param_map(tmp_path / "mh-1.exr", ParamMap("mh", params, 20.0, 15.0, sd=sd))
+    full = read_param_map(tmp_path / "mh-1.exr")
+    lean = read_param_map(tmp_path / "mh-1.exr", with_sd=False)
+    np.testing.assert_array_equal(full.sd, sd)
+    assert lean.sd is None
+    np.testing.assert_array_equal(lean.params, full.params)
+    files = ParamMapFiles({"mh-1": tmp_path / "mh-1.exr"})
+    assert list(files) == ["mh-1"] and len(files) == 1 and "mh-1" in files
+    a, b = files["mh-1"], files["mh-1"]
+    assert a is not b and a.sd is None
+    np.testing.assert_array_equal(a.params, full.params)
+    with pytest.raises(ParamMapError, match="sh-rlsop-36.exr"):
+        ParamMapFiles({"mh-1": tmp_path / "mh-1.exr", "sh": tmp_path / "sh-rlsop-36.exr"})

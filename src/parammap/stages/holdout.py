@@ -22,6 +22,7 @@ from __future__ import annotations
 import logging
 import math
 import warnings
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -39,7 +40,7 @@ from ..stores.hdr import read_hdr
 from ..stores.images import write_image_atomic
 from ..stores.metrics import write_metrics
 from ..stores.observation import open_observation_map
-from ..stores.params import ParamMap, read_param_map
+from ..stores.params import ParamMap, ParamMapFiles
 from ..stores.paths import Processed
 from ..stores.radiometry import radiometry_for
 
@@ -159,11 +160,12 @@ def compare(photo: np.ndarray, image: np.ndarray, mask: np.ndarray, gamma: float
 
 
 def holdout_comparison(
-    cap: Capture, intr: Intrinsics, processed: str | Path, maps: dict[str, ParamMap],
+    cap: Capture, intr: Intrinsics, processed: str | Path, maps: Mapping[str, ParamMap],
     out_dir: str | Path, regions: tuple[np.ndarray, list[dict]] | None = None,
 ) -> dict[str, Any]:
-    """Compare every model in ``maps`` (name -> map; include the ``diffuse`` baseline
-    from :func:`diffuse_map`) and the nearest-view baseline with every held-out view.
+    """Compare every model in ``maps`` (name -> map, a dict or maps read as each is
+    needed, :class:`~parammap.stores.params.ParamMapFiles`; include the ``diffuse``
+    baseline from :func:`diffuse_map`) and the nearest-view baseline with every held-out view.
 
     ``regions``: (T, S) labels and their descriptions (default :func:`texel_regions` of
     the observation map); every comparison is also broken down by region.
@@ -231,7 +233,9 @@ def run_holdout(cap: Capture, processed: str | Path, config: dict[str, Any], *,
     in every held-out view and compare (images under ``holdout/``, figures in
     ``metrics/holdout.json``, also returned)."""
     proc = Processed(processed)
-    maps = {name: read_param_map(proc.params(name)) for name in models}
+    # each map read when its turn comes in a view (a lab capture's ten maps at once:
+    # several GB)
+    maps = ParamMapFiles({name: proc.params(name) for name in models})
     res = holdout_comparison(cap, load_intrinsics(proc.intrinsics), proc.root, maps,
                              proc.holdout_dir)
     write_metrics(proc.metrics("holdout"), res)

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -51,8 +52,8 @@ from .lights import light_doc, parse_light_doc
 from .observation import open_observation_map
 from .radiometry import colour_interop
 
-__all__ = ["MODELS", "ParamMap", "best_shares", "channel_names", "param_map_from_fit",
-           "read_param_map", "write_param_map"]
+__all__ = ["MODELS", "ParamMap", "ParamMapFiles", "best_shares", "channel_names",
+           "param_map_from_fit", "read_param_map", "write_param_map"]
 
 logger = logging.getLogger(__name__)
 
@@ -159,8 +160,10 @@ def write_param_map(path: str | Path, pm: ParamMap, half: bool = False) -> Path:
     return write_exr(path, chans, attrs, half)
 
 
-def read_param_map(path: str | Path) -> ParamMap:
-    """Read a parameter map EXR written by :func:`write_param_map`.
+def read_param_map(path: str | Path, with_sd: bool = True) -> ParamMap:
+    """Read a parameter map EXR written by :func:`write_param_map`; ``with_sd=False``
+    leaves its standard deviations out (``sd`` None: about half a map's memory, which a
+    stage that holds many maps of a lab capture at once needs).
 
     Raises
     ------
@@ -188,21 +191,45 @@ def read_param_map(path: str | Path) -> ParamMap:
     if layout != expected or set(chans) != set(layout) | set(sd_layout):
         raise ParamMapError(f"{path}: channels do not follow the {model} layout "
                             f"(expected {expected[:6]}...)")
-    params = np.stack([chans[n] for n in layout], -1).astype(np.float32)
+    params = np.stack([chans.pop(n) for n in layout], -1).astype(np.float32)
     if params.shape[:2] != (int(h.get(T_ATTR, -1)), int(h.get(S_ATTR, -1))):
         raise ParamMapError(f"{path}: image size does not match S, T in the header")
     extra = {k[len("parammap_"):]: v for k, v in h.items() if k.startswith("parammap_")
              and k not in ("parammap_model", "parammap_model_version", "parammap_layout",
                            "parammap_hemisphere", "parammap_sd_layout")}
-    sd = np.stack([chans[n] for n in sd_layout], -1).astype(np.float32) if sd_layout else None
+    sd = np.stack([chans.pop(n) for n in sd_layout], -1).astype(np.float32) \
+        if sd_layout and with_sd else None
+    del chans
     parts = None
     if model == "best":  # the candidates' own maps, beside this one
         names = str(extra.get("candidates", "")).split()
         if not names:
             raise ParamMapError(f"{path}: a best map names no candidates")
-        parts = {n: read_param_map(Path(path).parent / f"{n}.exr") for n in names}
+        parts = {n: read_param_map(Path(path).parent / f"{n}.exr", with_sd) for n in names}
     return ParamMap(model, params, float(h[WIDTH_ATTR]), float(h[HEIGHT_ATTR]),
                     h.get("parammap_hemisphere"), extra, sd, parts)
+
+
+class ParamMapFiles(Mapping):
+    """Parameter maps by name, each read from its file when asked for and not kept
+    (without its standard deviations): a stage that uses one map at a time holds one,
+    where the ten maps of a lab capture's default config (and a best map's copies of
+    them) are several GB."""
+
+    def __init__(self, paths: dict[str, Path]):
+        missing = [str(p) for p in paths.values() if not Path(p).is_file()]
+        if missing:
+            raise ParamMapError(f"no such parameter map: {', '.join(missing)}")
+        self._paths = dict(paths)
+
+    def __getitem__(self, name: str) -> ParamMap:
+        return read_param_map(self._paths[name], with_sd=False)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._paths)
+
+    def __len__(self) -> int:
+        return len(self._paths)
 
 
 def best_shares(params: np.ndarray, n_candidates: int) -> np.ndarray:
