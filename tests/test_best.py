@@ -96,7 +96,9 @@ def test_best_map_renders_each_texel_with_its_own_models(tmp_path):
         write_param_map(tmp_path / "bad.exr", ParamMap("best", cp[..., :1], 90.0, 90.0))
 
 
-def test_best_stage_keeps_the_lobe_where_the_views_need_it(tmp_path):
+def test_best_stage_keeps_the_lobe_where_the_views_need_it(tmp_path, monkeypatch):
+    import parammap.stages.best as best_stage
+
     case, label = patches_case(texels=12, noise=0.01, seed=2)
     write_observation_arrays(tmp_path / "observation.zarr", case.radiance, case.direction,
                              case.valid, 1000.0, 1000.0, tile=6)
@@ -127,6 +129,15 @@ def test_best_stage_keeps_the_lobe_where_the_views_need_it(tmp_path):
     assert (tmp_path / "figs" / "best_choice.png").is_file()
     with pytest.raises(InputError, match="at least two"):
         run_best(tmp_path, tmp_path, cfg, models=["mh-1"])
+    # the same map from two worker processes, and with the sampled tiles' per-view
+    # errors computed again rather than kept (a map bigger than the sample)
+    run_best(tmp_path, tmp_path, cfg, models=["mh-1", "diffuse"], workers=2)
+    assert np.array_equal(read_param_map(tmp_path / "params" / "best.exr").params,
+                          best.params)
+    monkeypatch.setattr(best_stage, "KEEP_BYTES", 0)
+    assert run_best(tmp_path, tmp_path, cfg, models=["mh-1", "diffuse"]) == m
+    assert np.array_equal(read_param_map(tmp_path / "params" / "best.exr").params,
+                          best.params)
 
 
 def test_choice_leaves_the_default_only_for_a_significant_gain():

@@ -300,7 +300,8 @@ def _lights(a: argparse.Namespace) -> int:
 def _best(a: argparse.Namespace) -> int:
     from .stages.best import run_best
 
-    run_best(_source(a), a.out, _stage_config(a), models=a.model, figures=a.figures)
+    run_best(_source(a), a.out, _stage_config(a), models=a.model, figures=a.figures,
+             workers=a.workers)
     return 0
 
 
@@ -520,7 +521,7 @@ def _parser() -> argparse.ArgumentParser:
         if name in ("poses", "observe", "fit-mh", "fit-sh", "fit-svbrdf", "materials", "advise",
                     "lights", "best"):
             s.add_argument("--figures", help="report folder for the figures")
-        if name in ("calibrate", "poses", "observe", "fit-mh", "fit-sh", "fit-svbrdf"):
+        if name in ("calibrate", "poses", "observe", "fit-mh", "fit-sh", "fit-svbrdf", "best"):
             s.add_argument("--workers", type=int, help="processes (default: config workers)")
         if name == "fit-mh":
             s.add_argument("--lobes", default="1", help="lobes K, or auto (default 1)")

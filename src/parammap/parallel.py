@@ -5,15 +5,16 @@ from __future__ import annotations
 
 import ctypes
 import logging
+import multiprocessing
 import os
 import signal
 import sys
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from functools import partial
-from typing import TextIO, TypeVar
+from typing import Any, TextIO, TypeVar
 
-__all__ = ["die_with_parent", "executor", "progress", "worker_initializer"]
+__all__ = ["die_with_parent", "executor", "map_shared", "progress", "worker_initializer"]
 
 T = TypeVar("T")
 
@@ -56,6 +57,37 @@ def executor(workers: int):
     or in-process execution for one worker."""
     return ProcessPoolExecutor(workers, initializer=worker_initializer()) if workers > 1 \
         else _Serial()
+
+
+_SHARED: Any = None  # a worker's copy of what map_shared hands every job
+
+
+def _init_shared(parent: int, shared: Any) -> None:
+    global _SHARED
+    die_with_parent(parent)
+    _SHARED = shared
+
+
+def _call_shared(fn: Callable, job: Any) -> Any:
+    return fn(_SHARED, job)
+
+
+def map_shared(fn: Callable[[Any, Any], T], jobs: Iterable, workers: int, shared: Any,
+               ) -> Iterator[T]:
+    """Yield ``fn(shared, job)`` for each job, in order, over ``workers`` processes.
+
+    ``shared`` (large read-only inputs: a stage's parameter maps) reaches each worker
+    once, not with every job: on Linux the workers are forked and inherit it without a
+    copy (pages are shared until written); elsewhere it is pickled once per worker.
+    ``fn`` must be a module-level function. One worker: in this process."""
+    if workers <= 1:
+        for job in jobs:
+            yield fn(shared, job)
+        return
+    ctx = multiprocessing.get_context("fork") if sys.platform.startswith("linux") else None
+    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_shared,
+                             initargs=(os.getpid(), shared)) as pool:
+        yield from pool.map(partial(_call_shared, fn), jobs)
 
 
 def progress(items: Iterable[T], total: int, label: str, log: logging.Logger,

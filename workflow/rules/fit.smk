@@ -171,13 +171,14 @@ rule best:
         out=lambda wc: f"{PROC}/{wc.sid}",
         figures=lambda wc: f"{REPORTS}/{wc.sid}",
         models=" ".join(f"--model {m}" for m in models() + ["diffuse"]),
+    threads: WORKERS
     log:
         "logs/fit/{sid}/best.log",
     conda:
         "../envs/parammap.yaml"
     shell:
         "{params.cli} best --out {params.out} {params.models}"
-        " --figures {params.figures} {params.cfg} 2> {log}"
+        " --figures {params.figures} {params.cfg} --workers {threads} 2> {log}"
 
 
 rule holdout:

@@ -86,6 +86,7 @@ from ..models.selection import (
     view_errors,
 )
 from ..models.sh import fit_sh_tile
+from ..parallel import map_shared, progress
 from ..stores.fit import MATERIALS_MODEL, open_fit
 from ..stores.metrics import write_metrics
 from ..stores.observation import open_observation_map, tile_observations
@@ -102,6 +103,8 @@ BEST_MODEL = "best"
 CRITERIA = ("display", "press")
 #: tiles of the sample that picks the default candidate
 DEFAULT_SAMPLE_TILES = 16
+#: most bytes of per-view errors a map no bigger than the sample keeps for the full pass
+KEEP_BYTES = 512 * 2 ** 20
 #: one-sided tail of one standard error of a normal difference
 ONE_SE_TAIL = float(norm.sf(1.0))
 
@@ -125,11 +128,6 @@ def loo(name: str, model: str, p: np.ndarray, V: np.ndarray, L: np.ndarray,
     else:
         e, bad = loo_residuals(np.nan_to_num(p), V, L, W, w)
     return e, bad | ~np.isfinite(p).all(1)
-
-
-def _tiles(T: int, S: int, tile: int) -> list[tuple[slice, slice]]:
-    return [(slice(r, min(r + tile, T)), slice(c, min(c + tile, S)))
-            for r in range(0, T, tile) for c in range(0, S, tile)]
 
 
 def candidates(J: int, blend: bool = default("best.blend")) -> list[tuple[int, int]]:
@@ -213,12 +211,15 @@ def error_table(proc: Processed, maps: dict[str, ParamMap], obs,
 
 def tile_errors(proc: Processed, maps: dict[str, ParamMap], obs, criterion: str,
                 cands: list[tuple[int, int]], default: int | None = None,
-                tiles: list[tuple[slice, slice]] | None = None):
+                tiles: list[tuple[slice, slice]] | None = None, workers: int = 1,
+                keep: bool = False):
     """:func:`error_table` a tile at a time: yields (row-major texel indices (n,), B
-    (n, C), SE (n, C) or None), so that a big map's stage holds one tile's table."""
+    (n, C), SE (n, C) or None), so that a big map's stage holds one tile's table;
+    ``workers`` processes share the tiles (each inherits ``maps``). With ``keep``,
+    each also carries the tile's per-view errors (:func:`_view_errors`) to aggregate
+    again with another default."""
     if criterion not in CRITERIA:
         raise InputError(f"best.criterion: {criterion!r} is not one of {', '.join(CRITERIA)}")
-    T, S, _ = obs.shape
     stores = {name: _fit_store(proc.fit(name)) for name, pm in maps.items()
               if pm.model == "sh"}
     for name, g in stores.items():
@@ -227,31 +228,54 @@ def tile_errors(proc: Processed, maps: dict[str, ParamMap], obs, criterion: str,
                            f"coefficients ({proc.fit(name)}: no fit store on the sampled "
                            "cap to rerun), which overstates its error at the cap's edge")
     gamma = obs.display_gamma() if criterion == "display" else None
-    flat_of = np.arange(T * S).reshape(T, S)
-    for rows, cols in tiles or _tiles(T, S, obs.tile):
-        flat = flat_of[rows, cols].ravel()
-        V, L, W, w = tile_observations(obs, rows, cols)
-        pts = texel_centres(S, T, obs.width_mm, obs.height_mm, np.arange(T)[rows],
-                            np.arange(S)[cols]).reshape(-1, 3)
-        res = []
-        swayed = np.zeros(W.shape, bool)
-        for name, pm in maps.items():
-            p = pm.params.reshape(T * S, -1)[flat].astype(float)
-            e = _sh_loo(stores[name], obs, rows, cols) if stores.get(name) else None
-            if e is None:
-                e = loo(name, pm.model, p, V, L, W, w, pts, pm.lights)
-            r = np.where(W[..., None], predict(pm.model, p, V, pts, pm.lights) - L, 0.0)
-            swayed |= influential(e[0], r, W) & ~e[1][:, None]
-            res.append(e)
-        # every candidate is judged on the same views: those no fit leans on (module
-        # docstring)
-        Wc = W & ~swayed
-        E = np.empty((len(flat), len(cands), W.shape[1]), np.float32)
-        for c, (a, b) in enumerate(cands):
-            e = res[a] if a == b else (0.5 * (res[a][0] + res[b][0]), res[a][1] | res[b][1])
-            E[:, c] = view_errors(e, L, Wc, gamma)
-        b, se = _aggregate(E, Wc, w, criterion, default)
-        yield flat, b.astype(np.float32), None if se is None else se.astype(np.float32)
+    shared = (maps, obs, stores, gamma, criterion, cands, default, keep)
+    yield from map_shared(_tile_job, tiles or obs.tiles(), workers, shared)
+
+
+def _tile_job(shared: tuple, tile: tuple[slice, slice]) -> tuple:
+    """One tile of :func:`tile_errors` (a worker's job)."""
+    maps, obs, stores, gamma, criterion, cands, default, keep = shared
+    flat, E, Wc, w = _view_errors(maps, obs, stores, gamma, cands, *tile)
+    b, se = _aggregate(E, Wc, w, criterion, default)
+    return (flat, b.astype(np.float32), None if se is None else se.astype(np.float32)) \
+        + ((E, Wc, w) if keep else ())
+
+
+def _view_errors(maps: dict[str, ParamMap], obs, stores: dict, gamma: float | None,
+                 cands: list[tuple[int, int]], rows: slice, cols: slice,
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Row-major texel indices (n,) of a tile, each candidate's left-out error at each
+    of their views E (n, C, N) float32, the views judged Wc (n, N) and their weights w
+    (n, N)."""
+    T, S, _ = obs.shape
+    flat = (np.arange(T)[rows, None] * S + np.arange(S)[None, cols]).ravel()
+    V, L, W, w = tile_observations(obs, rows, cols)
+    pts = texel_centres(S, T, obs.width_mm, obs.height_mm, np.arange(T)[rows],
+                        np.arange(S)[cols]).reshape(-1, 3)
+    res = []
+    swayed = np.zeros(W.shape, bool)
+    for name, pm in maps.items():
+        p = pm.params.reshape(T * S, -1)[flat].astype(float)
+        e = _sh_loo(stores[name], obs, rows, cols) if stores.get(name) else None
+        if e is None:
+            e = loo(name, pm.model, p, V, L, W, w, pts, pm.lights)
+        r = np.where(W[..., None], predict(pm.model, p, V, pts, pm.lights) - L, 0.0)
+        swayed |= influential(e[0], r, W) & ~e[1][:, None]
+        res.append(e)
+    # every candidate is judged on the same views: those no fit leans on (module
+    # docstring)
+    Wc = W & ~swayed
+    E = np.empty((len(flat), len(cands), W.shape[1]), np.float32)
+    for c, (a, b) in enumerate(cands):
+        e = res[a] if a == b else (0.5 * (res[a][0] + res[b][0]), res[a][1] | res[b][1])
+        E[:, c] = view_errors(e, L, Wc, gamma)
+    return flat, E, Wc, w
+
+
+def _reaggregate(kept: tuple, criterion: str, default: int) -> tuple:
+    """A tile of :func:`tile_errors` run with ``keep``, as it would be with ``default``."""
+    flat, b, _, E, Wc, w = kept
+    return flat, b, _aggregate(E, Wc, w, criterion, default)[1].astype(np.float32)
 
 
 def _aggregate(E: np.ndarray, W: np.ndarray, w: np.ndarray, criterion: str,
@@ -362,10 +386,12 @@ def _label(names: list[str], a: int, b: int) -> str:
 
 
 def run_best(source: str | Path, processed: str | Path, config: dict[str, Any], *,
-             models: list[str], figures: str | Path | None = None) -> dict[str, Any]:
+             models: list[str], figures: str | Path | None = None,
+             workers: int | None = None) -> dict[str, Any]:
     """The best-model stage (module docstring) over the exported maps of ``models``;
-    ``config`` the validated workflow config (section ``best``). Returns what
-    ``metrics/best.json`` holds."""
+    ``config`` the validated workflow config (section ``best``; ``workers`` processes
+    unless given). Returns what ``metrics/best.json`` holds."""
+    workers = workers or config["workers"]
     if len(models) < 2:
         raise InputError(f"best: needs at least two candidate models (got {models})")
     src, proc = Processed(source), Processed(processed)
@@ -390,8 +416,13 @@ def run_best(source: str | Path, processed: str | Path, config: dict[str, Any], 
     labels = [_label(names, a, b) for a, b in cands]
     # the default from a sample of tiles (16 x 1024 texels pin the map's mean), so that
     # the full pass keeps each candidate's difference from it alone
-    B0, _ = error_table(src, maps, obs, criterion, cands,
-                        tiles=obs.sample_tiles(DEFAULT_SAMPLE_TILES))
+    sample = obs.sample_tiles(DEFAULT_SAMPLE_TILES)
+    tiles = obs.tiles()
+    # a map no bigger than the sample: its per-view errors are kept, not computed again
+    keep = len(sample) == len(tiles) and T * S * len(cands) * N * 4 <= KEEP_BYTES
+    first = list(tile_errors(src, maps, obs, criterion, cands, tiles=sample,
+                             workers=workers, keep=keep))
+    B0 = np.concatenate([t[1] for t in first])
     fin0 = np.isfinite(B0).all(1)
     default = int(np.argmin(B0[fin0].mean(0))) if fin0.any() else 0
     logger.info(f"best: default {labels[default]} (least mean leave-one-out error of "
@@ -401,7 +432,9 @@ def run_best(source: str | Path, processed: str | Path, config: dict[str, Any], 
     # a tile at a time: each texel's own choice, its error and each model's alone
     own = np.zeros(T * S, np.int64)
     B = np.full((T * S, len(maps) + 1), np.inf, np.float32)
-    for flat, b, se in tile_errors(src, maps, obs, criterion, cands, default):
+    done = (_reaggregate(t, criterion, default) for t in first) if keep else \
+        tile_errors(src, maps, obs, criterion, cands, default, workers=workers)
+    for flat, b, se in progress(done, len(tiles), "best: tiles", logger):
         own[flat] = _own_choice(b, se if significance else None, default, z or 1.0)
         B[flat, :-1] = b[:, :len(maps)]
         B[flat, -1] = b[np.arange(len(flat)), own[flat]]

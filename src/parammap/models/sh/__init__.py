@@ -52,6 +52,7 @@ from .cap import (
     GUARD_STEPS,
     ROBUST_ROUNDS,
     SampledCap,
+    batch_cap,
     coefficient_sd,
     guarded_project,
     hemisphere_grid,
@@ -145,8 +146,9 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
                     * NW[sel][:, w]
                 Y = sh_basis(v, n)
                 if sampled_cap and hemisphere in SH_CAP_AWARE:
+                    cap = batch_cap(v, n)[1]  # one per batch: the robust refits share it
                     c, lam, esc, bands, M, om = guarded_project(y, v, omega, n, hemisphere,
-                                                                reg, Y, system=True)
+                                                                reg, Y, system=True, cap=cap)
                     flat[FitArray.REG][sel], flat[FitArray.GUARD][sel] = lam, esc
                     flat[FitArray.BANDS][sel] = bands
                     sigma = None if NZ is None else NZ[sel][:, w][..., None] * np.abs(y)
@@ -158,7 +160,7 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
                         for _ in range(ROBUST_ROUNDS):
                             u = robust_weights(y, Yk @ (Sr @ y))
                             *_, Mr, omr = guarded_project(y, v, omega * u, n, hemisphere,
-                                                          reg, Y, system=True)
+                                                          reg, Y, system=True, cap=cap)
                             Sr = smoother(Mr, Yk, omr)
                         Sm, a, e = stack_smoothers(y, Yk, Sm, Sr, om)
                         flat[FitArray.ROBUST][sel] = 1 - a

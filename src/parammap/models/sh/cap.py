@@ -72,7 +72,7 @@ class SampledCap:
     A grid direction is *sampled* when a view direction lies within ``rho`` of it
     (:func:`cap_radius`); farther from every view, nothing was looked at. Attributes:
 
-    - ``rho`` : radius (radians);
+    - ``rho`` : radius (radians); ``bands`` : n;
     - ``fraction`` : (N,) part of each sample's Voronoi cell inside the cap, so that
       cells next to an unsampled region stay bounded (a sample at 72 deg no longer
       stands for the whole ring out to the equator);
@@ -90,6 +90,7 @@ class SampledCap:
         ref = np.asarray(reference, float)
         ref = ref / np.linalg.norm(ref, axis=-1, keepdims=True)
         self.rho = cap_radius(ref) if rho is None else float(rho)
+        self.bands = int(n)
         g, w = hemisphere_grid()
         c = g @ ref.T  # (G, N)
         near = c.argmax(1)
@@ -114,14 +115,17 @@ def roughness(n: int) -> np.ndarray:
     return np.diag((l_ * (l_ + 1.0) / top) ** 2)
 
 
-def _loo_score(Y, y, omega, M, rhs):
-    """Coefficients and the weighted leave-one-out error of a linear projection
-    ``c = M^-1 Y^T diag(omega) y`` (exact for linear smoothers: r_i / (1 - H_ii))."""
-    c = np.linalg.solve(M, rhs)  # (B, n2, 3)
-    Z = np.linalg.solve(M, np.swapaxes(Y, 1, 2))  # (B, n2, N)
-    h = omega * np.einsum("bik,bki->bi", Y, Z)
+def _loo_scores(Y, y, omega, Ms, rhs):
+    """Coefficients (G, B, n2, 3) and weighted leave-one-out errors (G, B) of the
+    linear projections ``c = M^-1 Y^T diag(omega) y`` for G matrices Ms (G, B, n2, n2)
+    of the same views (exact for linear smoothers: r_i / (1 - H_ii)); one solve for
+    the coefficients and the hat matrix of every M (small systems: the calls cost more
+    than the arithmetic)."""
+    X = np.linalg.solve(Ms, np.concatenate([rhs, np.swapaxes(Y, 1, 2)], -1)[None])
+    c, Z = X[..., :3], X[..., 3:]  # (G, B, n2, 3), (G, B, n2, N)
+    h = omega * np.einsum("bik,gbki->gbi", Y, Z)
     r = (y - Y @ c) / np.maximum(1 - h, 1e-3)[..., None]
-    return c, np.sum(omega[..., None] * r * r, axis=(1, 2))
+    return c, np.sum(omega[..., None] * r * r, axis=(2, 3))
 
 
 def project_cap(
@@ -181,13 +185,12 @@ def project_cap(
         return (np.swapaxes(c, 1, 2), lam) + ((M,) if system else ())
     if reg != "auto":
         raise InputError(f"regularisation must be a number or 'auto' (got {reg!r})")
-    best_score = np.full(B, np.inf)
-    best_c = np.empty((B, n * n, 3))
-    lam = np.zeros(B)
-    for g in [0.0] + [10.0 ** k for k in range(-5, 1)]:
-        c, score = _loo_score(Y, radiance, omega, A + g * scale * D, rhs)
-        better = score < best_score
-        best_score[better], best_c[better], lam[better] = score[better], c[better], g
+    grid = np.array([0.0] + [10.0 ** k for k in range(-5, 1)])
+    c, score = _loo_scores(Y, radiance, omega,
+                           A[None] + grid[:, None, None, None] * scale[None] * D, rhs)
+    pick = np.nan_to_num(score, nan=np.inf).argmin(0)  # the least; ties: the weakest
+    lam = grid[pick]
+    best_c = c[pick, np.arange(B)]
     out = (np.swapaxes(best_c, 1, 2), lam)
     return out + ((A + (lam[:, None, None] * scale) * D,) if system else ())
 
@@ -238,7 +241,7 @@ GUARD_TOLERANCE = 0.1  # of the texel's observed range
 def guarded_project(
     radiance: np.ndarray, directions: np.ndarray, weights: np.ndarray, n: int,
     hemisphere: str, reg: float | str = "auto", basis: np.ndarray | None = None,
-    system: bool = False,
+    system: bool = False, cap: SampledCap | None = None,
 ) -> tuple:
     """:func:`project_cap` with the batch's :class:`SampledCap`, and a guard: a texel
     whose reconstruction at any unsampled direction leaves the range of its own
@@ -258,12 +261,13 @@ def guarded_project(
     bands (:func:`project_cap`) and the (B, N) observation weights they were built
     with (``weights`` times the cap's cell fractions): together the linear smoother
     ``c = M^-1 Y^T diag(omega) y`` of :func:`smoother`.
+
+    cap : the batch's :class:`SampledCap` (:func:`batch_cap`), when the caller holds it
+        already (refits of the same views with other weights).
     """
-    ref = directions.mean(0)
     full = n
-    n = resolvable_bands(ref, n)
+    n, cap = batch_cap(directions, n) if cap is None else (cap.bands, cap)
     Y = sh_basis(directions, n) if basis is None else basis[..., : n * n]
-    cap = SampledCap(ref, n)
     mu = prior_strength(radiance, Y, weights * cap.fraction,
                         project_cap(radiance, directions, weights, n, hemisphere, cap, 0.0,
                                     Y, prior_scale=np.full(len(Y), PRIOR_FLOOR))[0])
@@ -292,6 +296,15 @@ def guarded_project(
                                         hemisphere, cap, lam[sel], Y[sel],
                                         prior_scale=mu[sel] * 10.0 ** esc[sel], system=True)
     return (pad_bands(c, full), lam, esc, n) + ((M, omega) if system else ())
+
+
+def batch_cap(directions: np.ndarray, n: int) -> tuple[int, SampledCap]:
+    """The bands the views of a batch (B, N, 3) resolve (:func:`resolvable_bands`, at
+    most ``n``) and the batch's :class:`SampledCap`, both from the batch's mean view
+    directions."""
+    ref = directions.mean(0)
+    k = resolvable_bands(ref, n)
+    return k, SampledCap(ref, k)
 
 
 def smoother(M: np.ndarray, Y: np.ndarray, omega: np.ndarray) -> np.ndarray:
@@ -377,7 +390,7 @@ def robust_weights(y: np.ndarray, fitted: np.ndarray) -> np.ndarray:
 def _loo(S: np.ndarray, Y: np.ndarray, y: np.ndarray) -> np.ndarray:
     """(B, N, 3) leave-one-out prediction minus observation of a linear smoother,
     ``h_ii`` held below 1 - 1e-3 (a view that alone determines the fit gets a large
-    finite error, as in :func:`_loo_score`)."""
+    finite error, as in :func:`_loo_scores`)."""
     h = np.einsum("bnk,bkn->bn", Y, S)
     r = Y @ (S @ y) - y
     return r / np.maximum(1 - h, 1e-3)[..., None]
