@@ -10,7 +10,9 @@ again (its figures are kept from that run), so the benchmark resumes where it st
     python benchmarks/lab_run.py --root data/bench/lab-run --models mh-1
 
 ``--texels N`` builds the observation map N texels across instead of the photos' own
-resolution (the auto default). Writes ``<root>/lab_run.json`` after every stage and
+resolution (the auto default), in its own folder, which starts from the auto-resolution
+run's response, HDR frames and camera when that run is there (they do not depend on the
+map's size). Writes ``<root>/lab_run.json`` after every stage and
 prints the per-stage table.
 """
 
@@ -65,6 +67,18 @@ def _model_stage(model: str) -> tuple[list[str], list[str]]:
     raise SystemExit(f"--models: {model!r} is not an mh-K or sh-<hemisphere>-<n> model")
 
 
+def _link_photo_stages(full: Path, proc: Path) -> None:
+    """A smaller map's folder starts from the auto-resolution run's response, HDR frames
+    and camera (hard links): they do not depend on the map's size."""
+    import os
+
+    for f in full.rglob("*"):
+        rel = f.relative_to(full)
+        if f.is_file() and rel.parts[0] in ("hdr", "camera") and rel.name != "lights.yaml":
+            (proc / rel).parent.mkdir(parents=True, exist_ok=True)
+            os.link(f, proc / rel)
+
+
 def run_stage(name: str, cmd: list[str], outputs: list[Path], log: Path) -> dict:
     """One stage in its own process: wall, CPU, peak RSS, bytes of its outputs."""
     cpu0 = _cpu_children()
@@ -112,7 +126,13 @@ def main() -> int:
     if not (cap / "capture.yaml").is_file():
         plan.append(("synth", ["synth", "--preset", a.preset, "--out", str(cap), "--workers",
                                str(a.workers)], [cap]))
+    full = root / f"{a.preset}.proc"
+    if a.texels and (full / "camera" / "poses.yaml").is_file() and not proc.exists():
+        _link_photo_stages(full, proc)
     for name, (on_capture, outs) in STAGES.items():
+        if a.texels and name != "observe" and name not in res["stages"] \
+                and all((proc / o).exists() for o in outs):
+            res["stages"][name] = {"shared_with": str(full)}  # its figures: the full run's
         extra = (["--set", f"observation.texels_x={a.texels}"]
                  if name == "observe" and a.texels else [])
         plan.append((name, [name, *([str(cap)] if on_capture else []), "--out", str(proc),
@@ -138,7 +158,9 @@ def main() -> int:
                  [proc / "metrics" / "holdout.json"]))
     for name, cmd, outs in plan:
         if name in res["stages"] and all(p.exists() for p in outs):
-            print(f"{name:>18}: done before ({res['stages'][name]['seconds']:.1f} s)")
+            was = res["stages"][name]
+            print(f"{name:>18}: " + (f"done before ({was['seconds']:.1f} s)" if "seconds"
+                                     in was else f"shared with {was['shared_with']}"))
             continue
         t = time.strftime("%H:%M:%S")
         print(f"{name:>18}: starting at {t}", flush=True)

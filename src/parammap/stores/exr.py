@@ -53,7 +53,8 @@ def read_exr(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         # into one multi-channel array
         with OpenEXR.File(str(path), separate_channels=True) as f:
             header = dict(f.header())
-            chans = {k: np.array(v.pixels) for k, v in f.channels().items()}
+            # the binding's arrays own their pixels: a copy would double the peak
+            chans = {k: np.asarray(v.pixels) for k, v in f.channels().items()}
     except Exception as exc:  # the binding raises bare RuntimeError/OSError variants
         raise ExrError(f"{path}: not a readable EXR file ({exc})") from None
     return chans, header

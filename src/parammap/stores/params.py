@@ -191,13 +191,16 @@ def read_param_map(path: str | Path, with_sd: bool = True) -> ParamMap:
     if layout != expected or set(chans) != set(layout) | set(sd_layout):
         raise ParamMapError(f"{path}: channels do not follow the {model} layout "
                             f"(expected {expected[:6]}...)")
-    params = np.stack([chans.pop(n) for n in layout], -1).astype(np.float32)
+    if not with_sd:  # freed before the parameters are stacked: a lower peak
+        for n in sd_layout:
+            chans.pop(n, None)
+    params = np.stack([chans.pop(n) for n in layout], -1).astype(np.float32, copy=False)
     if params.shape[:2] != (int(h.get(T_ATTR, -1)), int(h.get(S_ATTR, -1))):
         raise ParamMapError(f"{path}: image size does not match S, T in the header")
     extra = {k[len("parammap_"):]: v for k, v in h.items() if k.startswith("parammap_")
              and k not in ("parammap_model", "parammap_model_version", "parammap_layout",
                            "parammap_hemisphere", "parammap_sd_layout")}
-    sd = np.stack([chans.pop(n) for n in sd_layout], -1).astype(np.float32) \
+    sd = np.stack([chans.pop(n) for n in sd_layout], -1).astype(np.float32, copy=False) \
         if sd_layout and with_sd else None
     del chans
     parts = None
