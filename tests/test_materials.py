@@ -69,6 +69,22 @@ def test_materials_match_the_bands_and_recover_shininess(materials_run):
     assert np.allclose(w.sum(-1), 1, atol=1e-6) and w.shape[-1] == len(MATERIALS) + 1
 
 
+def test_materials_on_two_workers_match_one(materials_run, tmp_path):
+    import shutil
+
+    _, _, proc, m = materials_run
+    shutil.copytree(proc / "observation.zarr", tmp_path / "observation.zarr")
+    shutil.copytree(proc / "fit" / "mh-1.zarr", tmp_path / "fit" / "mh-1.zarr")
+    cfg = validate_config({"captures": {"x": "."},
+                           "materials": {"source": "mh-1", "count": "auto"}})
+    m2 = run_materials(tmp_path, tmp_path, cfg, workers=2)
+    assert m2["materials"] == m["materials"]
+    one = open_fit(proc / "fit" / f"{MATERIALS_MODEL}.zarr")
+    two = open_fit(tmp_path / "fit" / f"{MATERIALS_MODEL}.zarr")
+    for k in ("params", "label", "weights", "rmse"):
+        assert np.array_equal(one[k][:], two[k][:], equal_nan=True), k
+
+
 def test_material_map_predicts_the_truth(materials_run):
     case, label, proc, _ = materials_run
     T, S, N, _ = case.radiance.shape

@@ -270,7 +270,7 @@ def _material(a: argparse.Namespace) -> int:
 def _materials(a: argparse.Namespace) -> int:
     from .stages.materials import run_materials
 
-    m = run_materials(_source(a), a.out, _stage_config(a))
+    m = run_materials(_source(a), a.out, _stage_config(a), workers=a.workers)
     _model_figures(a, m["model"], None)
     return 0
 
@@ -521,7 +521,8 @@ def _parser() -> argparse.ArgumentParser:
         if name in ("poses", "observe", "fit-mh", "fit-sh", "fit-svbrdf", "materials", "advise",
                     "lights", "best"):
             s.add_argument("--figures", help="report folder for the figures")
-        if name in ("calibrate", "poses", "observe", "fit-mh", "fit-sh", "fit-svbrdf", "best"):
+        if name in ("calibrate", "poses", "observe", "fit-mh", "fit-sh", "fit-svbrdf", "best",
+                    "materials"):
             s.add_argument("--workers", type=int, help="processes (default: config workers)")
         if name == "fit-mh":
             s.add_argument("--lobes", default="1", help="lobes K, or auto (default 1)")

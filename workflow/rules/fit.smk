@@ -88,6 +88,7 @@ rule materials:
         cfg=config_arg("materials"),
         source=lambda wc: mh_source("materials"),
         out=lambda wc: f"{PROC}/{wc.sid}",
+    threads: WORKERS
     log:
         "logs/fit/{sid}/mh-materials.log",
     benchmark:
@@ -96,7 +97,7 @@ rule materials:
         "../envs/parammap.yaml"
     shell:
         "{params.cli} materials --out {params.out} {params.cfg}"
-        " --set materials.source={params.source} 2> {log}"
+        " --set materials.source={params.source} --workers {threads} 2> {log}"
 
 
 rule export_params:

@@ -10,8 +10,8 @@ read it unchanged) plus ``label`` (T, S) (0: diffuse only, j: basis material j) 
 ``weights`` (T, S, 1 + M) (the BIC weight of each candidate), with the materials in
 the store's ``materials`` attribute; and ``metrics/fit-mh-materials.json``.
 
-The map is read tile by tile (one tile of the observation map at a time), so memory
-is bounded by the tile and the per-material samples, not the map.
+The map is read tile by tile (one tile of the observation map at a time per worker
+process), so memory is bounded by the tile and the per-material samples, not the map.
 """
 
 from __future__ import annotations
@@ -37,6 +37,7 @@ from ..models.materials import (
 )
 from ..models.mh.model import mh_eval
 from ..models.residuals import mean_percentage_residual
+from ..parallel import map_shared, progress
 from ..stores.fit import (
     MATERIALS_MODEL,
     grid_attrs,
@@ -55,10 +56,39 @@ __all__ = ["MATERIALS_MODEL", "adjusted_rand_index", "run_materials"]
 CLUSTER_SAMPLE = 20000  # texels clustered at most (k-means and silhouettes need no more)
 
 
-def _tiles(T: int, S: int, tile: int):
-    for r0 in range(0, T, tile):
-        for c0 in range(0, S, tile):
-            yield slice(r0, min(r0 + tile, T)), slice(c0, min(c0 + tile, S))
+def _flat(obs: ObservationMap, rows: slice, cols: slice) -> np.ndarray:
+    """Row-major texel indices (n,) of a tile."""
+    return (np.arange(obs.T)[rows, None] * obs.S + np.arange(obs.S)[None, cols]).ravel()
+
+
+def _bic_job(shared: tuple, tile: tuple[slice, slice]) -> tuple[np.ndarray, np.ndarray]:
+    """A tile's BIC of every candidate (:func:`assign_materials`; a worker's job)."""
+    obs, Pb, basis = shared
+    flat = _flat(obs, *tile)
+    V, L, W, w = tile_observations(obs, *tile)
+    return flat, assign_materials(*_lobes(Pb[flat]), V, L, W, w, basis)["bic"]
+
+
+def _assign_job(shared: tuple, tile: tuple[slice, slice]) -> tuple:
+    """A tile's weights and MH rows under the labels (a worker's job)."""
+    obs, Pb, basis, label = shared
+    flat = _flat(obs, *tile)
+    V, L, W, w = tile_observations(obs, *tile)
+    dirs, present = _lobes(Pb[flat])
+    a = assign_materials(dirs, present, V, L, W, w, basis, label[flat])
+    return flat, a[FitArray.WEIGHTS], material_params(a["kd"], a["s"], a[FitArray.LABEL],
+                                                      dirs, basis)
+
+
+def _residual_job(shared: tuple, tile: tuple[slice, slice]) -> tuple:
+    """A tile's RMSE and mean percentage residual of the MH rows (a worker's job)."""
+    obs, params = shared
+    flat = _flat(obs, *tile)
+    V, L, W, _ = tile_observations(obs, *tile)
+    pred = mh_eval(params[flat], V)
+    n = np.maximum(W.sum(1), 1)[:, None]
+    return (flat, np.sqrt((np.where(W[..., None], pred - L, 0) ** 2).sum(1) / n),
+            mean_percentage_residual(L, pred, W))
 
 
 def _lobes(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -157,10 +187,13 @@ def _merge_materials(obs: ObservationMap, P: np.ndarray, label: np.ndarray,
     return label, basis
 
 
-def run_materials(source: str | Path, processed: str | Path,
-                  config: dict[str, Any]) -> dict[str, Any]:
+def run_materials(source: str | Path, processed: str | Path, config: dict[str, Any],
+                  workers: int | None = None) -> dict[str, Any]:
     """The materials stage (module docstring); ``config`` the validated workflow config
-    (section ``materials``). Returns the figures written to ``metrics/fit-mh-materials.json``."""
+    (section ``materials``); its passes over the map's tiles on ``workers`` processes
+    (default the config's ``workers``). Returns the figures written to
+    ``metrics/fit-mh-materials.json``."""
+    workers = workers or config["workers"]
     src, proc = Processed(source), Processed(processed)
     cfg = config["materials"]
     _, obs, P, ok = open_mh_source(src.root, cfg["source"], "materials.source")
@@ -194,7 +227,6 @@ def run_materials(source: str | Path, processed: str | Path,
     if cfg["count"] == "auto" and count > 1:
         label, basis = _merge_materials(obs, P, label, basis, S, tile, int(cfg["sample"]), rng)
         count = len(basis)
-    flat_of = np.arange(T * S).reshape(T, S)
     pool = 2 * int(cfg["pool_radius"]) + 1
     for rnd in range(int(cfg["rounds"]) + 1):
         # BIC of every candidate at every texel; each texel then takes the choice most
@@ -202,10 +234,10 @@ def run_materials(source: str | Path, processed: str | Path,
         # texel's evidence is noisy (a vote, not a sum: a strong highlight next door
         # must not outvote a diffuse texel's own weak evidence)
         B = np.zeros((T * S, count + 1))
-        for rows, cols in _tiles(T, S, tile):
-            flat = flat_of[rows, cols].ravel()
-            V, L, W, w = tile_observations(obs, rows, cols)
-            B[flat] = assign_materials(*_lobes(Pb[flat]), V, L, W, w, basis)["bic"]
+        for flat, bic in progress(map_shared(_bic_job, obs.tiles(), workers, (obs, Pb, basis)),
+                                  len(obs.tiles()), f"materials: round {rnd + 1}, choices",
+                                  logger):
+            B[flat] = bic
         own = np.where(ok, np.argmin(B, 1), -1)
         votes = np.stack([uniform_filter((own == j).reshape(T, S).astype(float), pool,
                                          mode="constant").ravel() for j in range(count + 1)], 1)
@@ -224,21 +256,19 @@ def run_materials(source: str | Path, processed: str | Path,
             count = len(used)
         out = {FitArray.LABEL: label, FitArray.WEIGHTS: np.zeros((T * S, count + 1)),
                FitArray.PARAMS: np.full((T * S, mh_size(K)), np.nan)}
-        for rows, cols in _tiles(T, S, tile):
-            flat = flat_of[rows, cols].ravel()
-            V, L, W, w = tile_observations(obs, rows, cols)
-            dirs, present = _lobes(Pb[flat])
-            a = assign_materials(dirs, present, V, L, W, w, basis, label[flat])
-            out[FitArray.WEIGHTS][flat] = a[FitArray.WEIGHTS]
-            out[FitArray.PARAMS][flat] = material_params(a["kd"], a["s"], a[FitArray.LABEL], dirs,
-                                                         basis)
+        for flat, wts, params in progress(
+                map_shared(_assign_job, obs.tiles(), workers, (obs, Pb, basis, label)),
+                len(obs.tiles()), f"materials: round {rnd + 1}, amplitudes", logger):
+            out[FitArray.WEIGHTS][flat] = wts
+            out[FitArray.PARAMS][flat] = params
         logger.info(f"materials: round {rnd + 1}: " + ", ".join(
             f"material {j + 1} m {m:.1f} ({int((label == j + 1).sum())} texels)"
             for j, (m, _) in enumerate(basis)) + f"; diffuse only {int((label == 0).sum())}")
         if rnd < int(cfg["rounds"]):
             basis = _fit_bases(obs, P, label, count, S, tile, [m for m, _ in basis],
                                int(cfg["sample"]), rng)
-    m = _write_store(proc.fit(MATERIALS_MODEL), obs, out, ok, basis, cfg, T, S, tile, K)
+    m = _write_store(proc.fit(MATERIALS_MODEL), obs, out, ok, basis, cfg, T, S, tile, K,
+                     workers)
     seconds = time.perf_counter() - t0
     m.update(seconds=seconds, texels_per_second=T * S / seconds, source=cfg["source"],
              model=MATERIALS_MODEL, count=count,
@@ -251,18 +281,15 @@ def run_materials(source: str | Path, processed: str | Path,
 
 
 def _write_store(path: Path, obs: ObservationMap, out: dict, ok: np.ndarray, basis: list,
-                 cfg: dict, T: int, S: int, tile: int, K: int) -> dict[str, Any]:
+                 cfg: dict, T: int, S: int, tile: int, K: int, workers: int,
+                 ) -> dict[str, Any]:
     """Write the MH fit store of the material map (temporary name, then renamed) and
     return its residual figures."""
     rmse = np.full((T * S, 3), np.nan)
     mpr = np.full((T * S, 3), np.nan)
-    for rows, cols in _tiles(T, S, tile):
-        flat = (np.arange(T * S).reshape(T, S)[rows, cols]).ravel()
-        V, L, W, _ = tile_observations(obs, rows, cols)
-        pred = mh_eval(out[FitArray.PARAMS][flat], V)
-        n = np.maximum(W.sum(1), 1)[:, None]
-        rmse[flat] = np.sqrt((np.where(W[..., None], pred - L, 0) ** 2).sum(1) / n)
-        mpr[flat] = mean_percentage_residual(L, pred, W)
+    for flat, r, q in map_shared(_residual_job, obs.tiles(), workers,
+                                 (obs, out[FitArray.PARAMS])):
+        rmse[flat], mpr[flat] = r, q
     status = np.where(ok, FitStatus.OK, FitStatus.NOT_FITTED).astype(np.int8)
     out[FitArray.PARAMS][~ok] = np.nan
     rmse[~ok] = mpr[~ok] = np.nan
