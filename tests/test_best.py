@@ -87,6 +87,10 @@ def test_best_map_renders_each_texel_with_its_own_models(tmp_path):
     write_param_map(tmp_path / "b.exr", b)
     img, inside = render(read_param_map(tmp_path / "best.exr"), intr, R, t)
     assert 1.0 - 1e-5 < img[inside].min() and img[inside].max() < 2.0 + 1e-5
+    # its candidates read from their files as the render needs them: the same image
+    lazy = read_param_map(tmp_path / "best.exr", with_sd=False)
+    assert not isinstance(lazy.parts, dict)
+    assert np.array_equal(render(lazy, intr, R, t)[0], img, equal_nan=True)
     near, _ = render(read_param_map(tmp_path / "best.exr"), intr, R, t, interpolation="nearest")
     assert set(np.unique(np.round(near[inside], 4))) == {1.0, 1.5, 2.0}
     write_param_map(tmp_path / "bad.exr", ParamMap("best", cp, 90.0, 90.0))

@@ -153,18 +153,19 @@ def render(pm: ParamMap, intr: Intrinsics, R: np.ndarray, t: np.ndarray,
     T, S = pm.shape
     out = np.full(P.shape[:2] + (3,), np.nan, np.float32)
     flat = np.flatnonzero(inside)
-    res = np.empty((len(flat), 3), np.float32)
     C = camera_centre(R, t)[None]
     Pf = P.reshape(-1, 3)
+    if pm.model == "best":
+        out.reshape(-1, 3)[flat] = _render_best(pm, Pf[flat], C, interpolation)
+        return out, inside
+    res = np.empty((len(flat), 3), np.float32)
     # a chunk of pixels at a time: a 12 MP photo's pixels times an SH map's coefficients
     # would otherwise be gigabytes
     for s0 in range(0, len(flat), RENDER_CHUNK):
         Pi = Pf[flat[s0:s0 + RENDER_CHUNK]]
         row, col = plane_to_texel(Pi[:, 0], Pi[:, 1], S, T, pm.width_mm, pm.height_mm)
         d = unit(C - Pi)
-        if pm.model == "best":
-            res[s0:s0 + len(Pi)] = _render_best(pm, row, col, d, interpolation, Pi)
-        elif interpolation == "nearest":
+        if interpolation == "nearest":
             prm = pm.params[np.clip(row.astype(int), 0, T - 1),
                             np.clip(col.astype(int), 0, S - 1)]
             res[s0:s0 + len(Pi)] = evaluate(pm.model, prm, d, Pi, pm.lights)
@@ -175,31 +176,41 @@ def render(pm: ParamMap, intr: Intrinsics, R: np.ndarray, t: np.ndarray,
     return out, inside
 
 
-def _render_best(pm: ParamMap, row: np.ndarray, col: np.ndarray, d: np.ndarray,
-                 interpolation: str, points: np.ndarray) -> np.ndarray:
-    """Radiance (M, 3) of a best map at continuous texel coordinates, seen from
-    directions d (M, 3): each texel's radiance is the mean of its (one or two)
+def _render_best(pm: ParamMap, points: np.ndarray, C: np.ndarray,
+                 interpolation: str) -> np.ndarray:
+    """Radiance (M, 3) of a best map at surface points (M, 3) seen from the
+    camera centre C (1, 3): each texel's radiance is the mean of its (one or two)
     candidates' radiance at that texel, and the texels' radiance is interpolated as for
     any map. (A candidate's whole render weighted by its interpolated share would mix a
     texel's model with its neighbour's parameters: next to a texel that kept its lobe, a
-    diffuse texel's share would draw that neighbour's mean radiance.)"""
-    parts = list((pm.parts or {}).values())
+    diffuse texel's share would draw that neighbour's mean radiance.) One candidate at a
+    time, over every pixel: a best map's candidates may be read from their files when
+    used (:class:`parammap.stores.params.ParamMapFiles`), and a lab map's nine are
+    gigabytes together."""
+    parts = pm.parts or {}
     T, S = pm.shape
     shares = best_shares(pm.params, len(parts))
-    if interpolation == "nearest":
-        idx = [(np.clip(row.astype(int), 0, T - 1), np.clip(col.astype(int), 0, S - 1))]
-        wts = [np.ones(len(row))]
-    else:
-        idx, wts = bilinear_corners((T, S), row, col)
-    acc = np.zeros((len(row), 3))
-    for (r, c), w in zip(idx, wts, strict=True):
-        for j, part in enumerate(parts):
-            wj = w * shares[r, c, j]
-            on = wj > 0
-            if on.any():
-                acc[on] += wj[on, None] * np.nan_to_num(
-                    evaluate(part.model, part.params[r[on], c[on]], d[on], points[on],
-                             part.lights))
+    acc = np.zeros((len(points), 3))
+    for j, name in enumerate(parts):
+        part = parts[name]
+        for s0 in range(0, len(points), RENDER_CHUNK):
+            Pi = points[s0:s0 + RENDER_CHUNK]
+            row, col = plane_to_texel(Pi[:, 0], Pi[:, 1], S, T, pm.width_mm, pm.height_mm)
+            if interpolation == "nearest":
+                idx = [(np.clip(row.astype(int), 0, T - 1), np.clip(col.astype(int), 0, S - 1))]
+                wts = [np.ones(len(row))]
+            else:
+                idx, wts = bilinear_corners((T, S), row, col)
+            d = unit(C - Pi)
+            a = acc[s0:s0 + RENDER_CHUNK]
+            for (r, c), w in zip(idx, wts, strict=True):
+                wj = w * shares[r, c, j]
+                on = wj > 0
+                if on.any():
+                    a[on] += wj[on, None] * np.nan_to_num(
+                        evaluate(part.model, part.params[r[on], c[on]], d[on], Pi[on],
+                                 part.lights))
+        del part
     return acc
 
 

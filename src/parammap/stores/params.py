@@ -163,7 +163,9 @@ def write_param_map(path: str | Path, pm: ParamMap, half: bool = False) -> Path:
 def read_param_map(path: str | Path, with_sd: bool = True) -> ParamMap:
     """Read a parameter map EXR written by :func:`write_param_map`; ``with_sd=False``
     leaves its standard deviations out (``sd`` None: about half a map's memory, which a
-    stage that holds many maps of a lab capture at once needs).
+    stage that holds many maps of a lab capture at once needs), and a best map's
+    candidates (``parts``) are then read from their files when used
+    (:class:`ParamMapFiles`) rather than all at once.
 
     Raises
     ------
@@ -208,7 +210,10 @@ def read_param_map(path: str | Path, with_sd: bool = True) -> ParamMap:
         names = str(extra.get("candidates", "")).split()
         if not names:
             raise ParamMapError(f"{path}: a best map names no candidates")
-        parts = {n: read_param_map(Path(path).parent / f"{n}.exr", with_sd) for n in names}
+        paths = {n: Path(path).parent / f"{n}.exr" for n in names}
+        # without sds (a stage holding many maps): each read from its file when used
+        parts = ParamMapFiles(paths) if not with_sd else {
+            n: read_param_map(p, with_sd) for n, p in paths.items()}
     return ParamMap(model, params, float(h[WIDTH_ATTR]), float(h[HEIGHT_ATTR]),
                     h.get("parammap_hemisphere"), extra, sd, parts)
 
