@@ -202,6 +202,10 @@ def test_sh_is_judged_by_its_own_projection_not_a_plain_refit(tmp_path):
     exact, se = error_table(proc, maps, obs, default=1)
     assert np.isfinite(exact).all() and se.shape == (144, 2) and (se[:, 1] == 0).all()
     assert np.isfinite(se).all() and (se[:, 0] > 0).all()
+    # the stage reads such a map's coefficients from its store a tile at a time (not
+    # held whole): the same errors as from the EXR
+    m = run_best(tmp_path, tmp_path, cfg, models=["sh-rlsop-16", "diffuse"])
+    assert m["loo_error_median"]["sh-rlsop-16"] == pytest.approx(float(np.median(exact[:, 0])))
     shutil.rmtree(tmp_path / "fit")
     plain, none = error_table(proc, maps, obs)
     assert none is None

@@ -12,7 +12,8 @@ view's leave-one-view-out prediction of its fit, linearised, with the noise weig
   shared by thousands of texels;
 - SH: the projection's own leave-one-out prediction, exact for a linear smoother with
   its prior and regularisation held (the projection rerun as its fit store records
-  it, :func:`parammap.models.sh.fit_sh_tile` with ``loo``); the published projections
+  it, :func:`parammap.models.sh.fit_sh_tile` with ``loo``, its coefficients read from
+  the store a tile at a time rather than held whole); the published projections
   (``sampled_cap: false``) by a plain least-squares refit of the coefficients used;
 - diffuse: Kd.
 
@@ -64,6 +65,7 @@ model.
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -255,9 +257,12 @@ def _view_errors(maps: dict[str, ParamMap], obs, stores: dict, gamma: float | No
     res = []
     swayed = np.zeros(W.shape, bool)
     for name, pm in maps.items():
-        p = pm.params.reshape(T * S, -1)[flat].astype(float)
-        e = _sh_loo(stores[name], obs, rows, cols) if stores.get(name) else None
-        if e is None:
+        g = stores.get(name)
+        e = _sh_loo(g, obs, rows, cols) if g else None
+        if e is not None:  # the map's coefficients are its fit store's
+            p = np.asarray(g[FitArray.COEFFS][rows, cols], float).reshape(len(flat), -1)
+        else:
+            p = pm.params.reshape(T * S, -1)[flat].astype(float)
             e = loo(name, pm.model, p, V, L, W, w, pts, pm.lights)
         r = np.where(W[..., None], predict(pm.model, p, V, pts, pm.lights) - L, 0.0)
         swayed |= influential(e[0], r, W) & ~e[1][:, None]
@@ -400,9 +405,16 @@ def run_best(source: str | Path, processed: str | Path, config: dict[str, Any], 
         if not src.params(name).is_file():
             raise InputError(f"best: {src.params(name)} is missing (export {name} first)")
         # without their sds: nine maps of a 1.1-million-texel lab map held 3.6 GB
-        maps[name] = read_param_map(src.params(name), with_sd=False)
-        if maps[name].model == "best":
+        pm = read_param_map(src.params(name), with_sd=False)
+        if pm.model == "best":
             raise InputError(f"best: {name} is itself a best map")
+        g = _fit_store(src.fit(name)) if pm.model == "sh" else None
+        if g is not None and g.sampled_cap \
+                and tuple(g[FitArray.COEFFS].shape) == pm.params.shape:
+            # judged tile by tile from its fit store, which holds its coefficients: not
+            # held whole (a lab map's three SH maps are 1.2 GB of its nine's 1.6)
+            pm = replace(pm, params=np.broadcast_to(np.float32(np.nan), pm.params.shape))
+        maps[name] = pm
     obs = open_observation_map(src.observation)
     T, S, N = obs.shape
     for name, pm in maps.items():
