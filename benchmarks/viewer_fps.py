@@ -83,6 +83,7 @@ def main() -> None:
                 print(f"  {name}: first frame {ready + loaded:.2f} s after the page was "
                       f"opened ({man_bytes(man, name) / 1e6:.1f} MB of payload; JS heap "
                       f"{heap / 1e6 if heap else float('nan'):.0f} MB)")
+                _streaming(page, man, name, ready + loaded)
                 note = page.inner_text("#msg").strip()
                 if note:
                     print(f"  {name}: {note}")
@@ -95,6 +96,32 @@ def main() -> None:
                           f"{fps / base[label]:.2f} x diffuse")
                 print(f"  {name}: orbit by dragging changes the image: {_orbits(page)}")
             browser.close()
+
+
+def _streaming(page, man: dict, name: str, first: float) -> None:
+    """A streamed map (tiles and mip levels): the time from the page's opening to the
+    full detail of the default orbit view (every tile on screen of the level it asks
+    for), then to that of a view zoomed in on the surface's centre, the tiles each
+    loaded and the JS heap."""
+    m = next(x for x in man["models"] if x["name"] == name)
+    if "mips" not in m["compact"]:
+        return
+    top = m["compact"]["mips"][-1]
+    print(f"  {name}: streamed; its first frame from the 1/{top['f']} level "
+          f"({top['S']}x{top['T']})")
+    for label, js in (("default orbit", "viewer.orbit(0.6, 0.9, 2.2)"),
+                      ("zoomed in (0.15 sizes away)", "viewer.orbit(0.6, 1.4, 0.15)")):
+        t0 = time.perf_counter()
+        st = page.evaluate(f"(async () => {{ {js}; return viewer.settle(); }})()")
+        took = time.perf_counter() - t0
+        first += took
+        heap = page.evaluate("performance.memory ? performance.memory.usedJSHeapSize : null")
+        tiles = ", ".join(f"1/{lv['f']}: {len(lv['have'])} of {lv['tiles']}"
+                          for lv in st["levels"])
+        print(f"  {name}: {label}: level 1/{st['wanted']} in full {took:.2f} s later "
+              f"({first:.2f} s after opening); tiles loaded {tiles}; JS heap "
+              f"{heap / 1e6 if heap else float('nan'):.0f} MB")
+    page.evaluate("viewer.orbit(0.6, 0.9, 2.2)")
 
 
 def man_bytes(man: dict, name: str) -> float:

@@ -169,12 +169,95 @@ def test_page_assembles_tiles_and_reduces_sh_tile_by_tile(viewer_dir, tiled_view
             page.goto(d.joinpath("index.html").as_uri())
             page.wait_for_function("window.viewer && window.viewer.ready", timeout=30000)
             page.evaluate(f"(async () => {{ await viewer.setModel('mh-2');"
-                          f" viewer.setView('{held}'); viewer.setGamma(2); viewer.draw(); }})()")
+                          f" viewer.setView('{held}'); viewer.setGamma(2);"
+                          " await viewer.settle(); viewer.draw(); })()")
             shots.append(_canvas(page))
         assert shots[0].max() > 0
         np.testing.assert_array_equal(shots[0], shots[1])
         browser.close()
     assert not errors, errors
+
+
+STREAM_UP = 16  # the streaming test's map: the tiny mh-2 map, each texel 16 x 16
+STREAM_TILE = 64
+
+
+def test_page_streams_the_tiles_on_screen_at_the_zoom_level(viewer_dir, tmp_path, chromium):
+    """A map in tiles is streamed: shown first from its coarsest mip level (one tile,
+    nothing else loaded). Far away the page asks for the level whose texels match the
+    canvas's pixels and loads none of the map; the map resolution control asks for a
+    coarser one; zoomed in, it loads the map's tiles on screen and no others, and draws
+    what a page holding the whole map in one payload draws. A mip level's Kd is the
+    map's block average within the two quantisations."""
+    import json
+    from dataclasses import replace
+
+    from parammap.stores.camera import read_poses
+    from parammap.viewer import write_viewer
+    from parammap.viewer.compact import decode_layers
+
+    _, out, _ = viewer_dir
+    pm = read_param_map(out / "params" / "mh-2.exr")
+    big = replace(pm, sd=None, params=np.repeat(np.repeat(pm.params, STREAM_UP, 0), STREAM_UP, 1))
+    views = [r for r in read_poses(out / "camera" / "poses.yaml")["views"] if r["kept"]]
+    intr = load_intrinsics(out / "camera" / "intrinsics.yaml")
+    dirs = {}
+    for tile in (STREAM_TILE, 4096):
+        dirs[tile] = tmp_path / f"t{tile}"
+        write_viewer(dirs[tile], "stream", {"mh-2": big}, intr, views, 2.0, tile=tile)
+    m = json.loads((dirs[STREAM_TILE] / "manifest.json").read_text())["models"][0]
+    L, T, S = m["nlayers"], m["T"], m["S"]
+    mips = m["compact"]["mips"]
+    assert [x["f"] for x in mips] == [2 ** (k + 1) for k in range(len(mips))]
+    assert len(mips) >= 3 and len(mips[-1]["tiles"]) == 1 < len(mips[-2]["tiles"])
+    assert max(mips[-1]["T"], mips[-1]["S"]) <= STREAM_TILE < max(mips[-2]["T"], mips[-2]["S"])
+    assert "mips" not in json.loads((dirs[4096] / "manifest.json").read_text())["models"][0][
+        "compact"]
+    payloads = _payloads(dirs[STREAM_TILE], m)
+    full = decode_layers(m["compact"], payloads, (L, T, S))
+    for lv in mips:
+        f = lv["f"]
+        got = decode_layers(lv, payloads[lv["first"]:lv["first"] + len(lv["tiles"])],
+                            (L, lv["T"], lv["S"]))
+        assert (lv["T"], lv["S"]) == (-(-T // f), -(-S // f))
+        want = full[0, :T // f * f, :S // f * f, :3].reshape(T // f, f, S // f, f, 3).mean((1, 3))
+        step = [max((p["hi"] - p["lo"]) / 255 for p in e["planes"]
+                    if p.get("layer") == 0 and p.get("channel", 3) < 3 and "lo" in p)
+                for e in (m["compact"], lv)]
+        # sqrt transfer: a level's step moves a value v by about 2 sqrt(v) step / 2
+        tol = np.sqrt(want.max()) * sum(step) + sum(step) ** 2
+        assert np.abs(got[0, :T // f, :S // f, :3] - want).max() <= tol
+        d = got[2, ..., :3]  # lobe 1's direction: unit vectors
+        np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1, atol=1e-3)
+
+    # opened far away (the address keeps the orbit camera)
+    with _viewer_page(chromium, dirs[STREAM_TILE], "#model=mh-2&az=0.6&el=1.5&dist=10") \
+            as (page, errors):
+        first = page.evaluate("(async () => { await viewer.setModel('mh-2');"
+                              " return viewer.stream('mh-2'); })()")
+        assert len(first[-1]["have"]) == 1 and not any(x["have"] for x in first[:2])
+        far = page.evaluate("viewer.settle()")
+        # the surface is about 77 canvas pixels across at 10 sizes away
+        assert far["wanted"] == far["drawn"] == 4
+        assert far["levels"][0]["have"] == [] and far["levels"][1]["have"] == []
+        page.evaluate("viewer.setResolution(8)")
+        coarse = page.evaluate("viewer.settle()")
+        assert coarse["wanted"] == coarse["drawn"] == 8
+        page.evaluate("viewer.setResolution(1)")
+        near = page.evaluate("(async () => { viewer.orbit(0.6, 1.5, 0.1);"
+                             " return viewer.settle(); })()")
+        assert near["wanted"] == near["drawn"] == 1
+        have = near["levels"][0]["have"]
+        assert 0 < len(have) < near["levels"][0]["tiles"] // 4
+        shot = _canvas(page)
+        assert not errors, errors
+    with _viewer_page(chromium, dirs[4096]) as (page, errors):
+        page.evaluate("(async () => { await viewer.setModel('mh-2'); viewer.orbit(0.6, 1.5, 0.1);"
+                      " await viewer.settle(); })()")
+        whole = _canvas(page)
+        assert not errors, errors
+    assert shot.max() > 0
+    np.testing.assert_array_equal(shot, whole)
 
 
 def _canvas(page) -> np.ndarray:
@@ -186,15 +269,15 @@ def _canvas(page) -> np.ndarray:
 
 
 @contextlib.contextmanager
-def _viewer_page(browser, vdir):
-    """A fresh page of the shared Chromium on ``vdir``'s viewer, ready; yields (page,
-    the page errors seen) and closes it."""
+def _viewer_page(browser, vdir, address: str = ""):
+    """A fresh page of the shared Chromium on ``vdir``'s viewer (``address``: its
+    ``#...`` state), ready; yields (page, the page errors seen) and closes it."""
     with _shared(browser) as p:
         b = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
         page = b.new_page()
         errors = []
         page.on("pageerror", lambda e: errors.append(str(e)))
-        page.goto((vdir / "index.html").as_uri())
+        page.goto((vdir / "index.html").as_uri() + address)
         page.wait_for_function("window.viewer && window.viewer.ready", timeout=30000)
         yield page, errors
         b.close()

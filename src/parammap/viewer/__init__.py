@@ -4,9 +4,9 @@
 ``data.js`` (surface size, camera intrinsics, the pose of every captured and held-out
 view, and the manifest of the models), ``manifest.json`` (the same manifest), one
 ``payload-<model>.js`` per model (maps above 1024 texels a side: one
-``payload-<model>-<i>.js`` per tile of 1024 x 1024), which the page loads when the model
-is first shown, and ``inspect.js`` (:mod:`parammap.viewer.inspect`), loaded at the first click on a
-texel.
+``payload-<model>-<i>.js`` per tile of 1024 x 1024, and mip levels down to one tile),
+which the page loads when the model is first shown, and ``inspect.js``
+(:mod:`parammap.viewer.inspect`), loaded at the first click on a texel.
 All are plain scripts (not fetched), so the page opens from the file system with no
 server and works offline.
 
@@ -21,6 +21,12 @@ inflates them into RGBA layers of a 2-D texture array (texel row 0
   ``1 + 2k`` and (d.X, d.Y, d.Z, 0) at ``2 + 2k``;
 - SH: layer i = (sh.R.i, sh.G.i, sh.B.i, 0) for coefficient i (docs/reference/conventions.md basis);
 - diffuse: layer 0 = (Kd.R, Kd.G, Kd.B, 0).
+
+A map in tiles (other than SH and a best map's choices) is streamed: the page loads its
+coarsest mip level (one tile) and shows it, then, frame by frame, the tiles on screen
+of the level whose texels are nearest the canvas's pixels (never coarser than the
+"map resolution" control asks), and draws from the finest level whose tiles on screen
+have all arrived. An SH map and a best map's candidates are loaded whole.
 
 The fragment shader casts each pixel's ray exactly as :func:`parammap.render.render`
 does (OpenCV intrinsics and distortion, bilinear texel lookup, the model evaluated in the
@@ -147,9 +153,11 @@ def write_viewer(out_dir: str | Path, surface_id: str, maps: dict[str, ParamMap]
 
     Each model's texture layers travel in 8 bits per plane
     (:func:`parammap.viewer.compact.encode_map`) in ``payload-<model>.js`` (maps wider
-    or taller than ``tile`` texels: one ``payload-<model>-<i>.js`` per tile), which the
-    page loads when the model is first shown (scripts, so that the page also works
-    from the file system). ``manifest.json`` (also inside ``data.js``) describes the
+    or taller than ``tile`` texels: one ``payload-<model>-<i>.js`` per tile, and their
+    mip levels, ``payload-<model>-m<f>[-<i>].js``, :func:`parammap.viewer.compact.mip_levels`),
+    which the page loads when the model is first shown (a tiled map: its coarsest level,
+    then the tiles on screen of the level the zoom asks for; scripts, so that the page
+    also works from the file system). ``manifest.json`` (also inside ``data.js``) describes the
     surface, the models, their planes, tiles and quantisation, payload sizes and, where
     ``error_poses`` are given, the quantisation error (mean 8-bit levels) per model.
 
@@ -178,10 +186,15 @@ def write_viewer(out_dir: str | Path, surface_id: str, maps: dict[str, ParamMap]
         info, nlayers = layer_info(pm)
         entry, payloads = encode_map(pm, gamma, tile or TILE, budget_mb)
         files, sizes, n = [], [], len(entry["tiles"])
+        # payload groups: the map's tiles, then SH's stored level or the mip levels
+        groups = [(f"payload-{name}", 0, n)]
+        if "level" in entry:
+            groups.append((f"payload-{name}-f{entry['level']['f']}", n, len(payloads) - n))
+        groups += [(f"payload-{name}-m{m['f']}", m["first"], len(m["tiles"]))
+                   for m in entry.get("mips", [])]
         for i, payload in enumerate(payloads):
-            stem = f"payload-{name}" if i < n else f"payload-{name}-f{entry['level']['f']}"
-            count = n if i < n else len(payloads) - n
-            files.append(f"{stem}.js" if count == 1 else f"{stem}-{i if i < n else i - n}.js")
+            stem, first, count = next(g for g in groups if g[1] <= i < g[1] + g[2])
+            files.append(f"{stem}.js" if count == 1 else f"{stem}-{i - first}.js")
             text = payload_script("(window.PARAMMAP_PAYLOAD = window.PARAMMAP_PAYLOAD || {})"
                                   f"[{json.dumps(f'{name}#{i}')}]", payload)
             _write_atomic(out_dir / files[-1], text)
@@ -196,6 +209,8 @@ def write_viewer(out_dir: str | Path, surface_id: str, maps: dict[str, ParamMap]
         shown = sum(sizes[n:]) if "level" in entry else size
         models.append({"name": name, "S": S, "T": T, "nlayers": nlayers, "files": files,
                        "bytes": size, "bytes_per_texel": size / (S * T),
+                       "bytes_mips": sum(sum(sizes[m["first"]:m["first"] + len(m["tiles"])])
+                                         for m in entry.get("mips", [])),
                        "bytes_loaded": shown,
                        "quantisation_error_8bit": err, "compact": entry, **info})
     manifest = {"surface": {"id": surface_id, "width_mm": any_map.width_mm,

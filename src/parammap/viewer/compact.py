@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import math
 import zlib
+from collections.abc import Iterator
 from dataclasses import replace
 from typing import Any
 
@@ -57,7 +58,7 @@ from .layers import (
 )
 
 __all__ = ["FLOAT_LAYER_BUDGET_MB", "SH_ERROR_LEVELS", "TILE", "decode_layers",
-           "encode_layers", "encode_map", "layers_to_params", "page_reduction",
+           "encode_layers", "encode_map", "layers_to_params", "mip_levels", "page_reduction",
            "quantisation_error", "tile_grid"]
 
 LEVELS = 255  # 8 bits per plane
@@ -267,7 +268,52 @@ def encode_map(pm, gamma: float = 1.0, tile: int = TILE,
         perm = np.array([(i % 3) * nc + i // 3 for i in range(P)])
         return _encode_sh(pm.params, perm, gamma, tile, page_reduction(T, S, L, budget_mb))
     layers, info = viewer_layers(pm)
-    return encode_layers(layers, info, gamma, tile)
+    entry, payloads = encode_layers(layers, info, gamma, tile)
+    if info["model"] != "best" and len(entry["tiles"]) > 1:
+        entry["mips"] = []
+        for f, level in mip_levels(layers, info, tile):
+            mip, more = encode_layers(level, info, gamma, tile)
+            entry["mips"].append({**mip, "f": f, "T": level.shape[1], "S": level.shape[2],
+                                  "first": len(payloads)})
+            payloads += more
+    return entry, payloads
+
+
+def mip_levels(layers: np.ndarray, info: dict[str, Any], tile: int = TILE
+               ) -> Iterator[tuple[int, np.ndarray]]:
+    """The mip levels of a map's texture layers, for the page to show zoomed out.
+
+    Each level halves the last (area-weighted box average, sizes rounded up, so every
+    level covers the surface exactly), until one tile holds it; MH lobe directions are
+    renormalised. A level averages parameters, not radiance: what a texel renders at a
+    level is the look of the averaged material, enough where a screen pixel covers
+    ``f`` x ``f`` texels and the level's texels are the page's pixels.
+
+    Parameters
+    ----------
+    layers : (L, T, S, 4) float32 texture layers (:func:`parammap.viewer.viewer_layers`).
+    info : their model description.
+    tile : the payload tile size.
+
+    Yields
+    ------
+    (f, (L, ceil(T / f), ceil(S / f), 4) float32) for f = 2, 4, ...
+    """
+    import cv2
+
+    f, cur = 1, np.asarray(layers, np.float32)
+    while max(cur.shape[1:3]) > tile:
+        f *= 2
+        T, S = -(-layers.shape[1] // f), -(-layers.shape[2] // f)
+        cur = np.stack([cv2.resize(x, (S, T), interpolation=cv2.INTER_AREA)
+                        .reshape(T, S, 4) for x in cur])
+        if info["model"] == "mh":
+            for layer in range(cur.shape[0]):
+                if _mh_role(layer, 0) == "dir":
+                    d = cur[layer, ..., :3]
+                    n = np.linalg.norm(d, axis=-1, keepdims=True)
+                    cur[layer, ..., :3] = np.where(n > 0, d / np.maximum(n, 1e-30), d)
+        yield f, cur
 
 
 def encode_layers(layers: np.ndarray, info: dict[str, Any], gamma: float = 1.0,
