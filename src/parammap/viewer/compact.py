@@ -46,6 +46,7 @@ from collections.abc import Iterator
 from dataclasses import replace
 from typing import Any
 
+import cv2
 import numpy as np
 
 from ..conventions import MH_HEAD, mh_dir, mh_ks, mh_size
@@ -299,8 +300,6 @@ def mip_levels(layers: np.ndarray, info: dict[str, Any], tile: int = TILE
     ------
     (f, (L, ceil(T / f), ceil(S / f), 4) float32) for f = 2, 4, ...
     """
-    import cv2
-
     f, cur = 1, np.asarray(layers, np.float32)
     while max(cur.shape[1:3]) > tile:
         f *= 2
