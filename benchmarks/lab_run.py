@@ -13,7 +13,8 @@ again (its figures are kept from that run), so the benchmark resumes where it st
 resolution (the auto default), in its own folder, which starts from the auto-resolution
 run's response, HDR frames and camera when that run is there (they do not depend on the
 map's size). Writes ``<root>/lab_run.json`` after every stage and
-prints the per-stage table.
+prints the per-stage table; ``--first-frame`` then opens the viewer page the ``viewer``
+stage wrote in headless Chromium (each model's first frame and full detail).
 """
 
 from __future__ import annotations
@@ -103,6 +104,10 @@ def main() -> int:
     ap.add_argument("--texels", type=int, help="observation map this many texels across "
                     "(default: the photos' own resolution)")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--first-frame", action="store_true",
+                    help="open the viewer page in headless Chromium: each model's first "
+                         "frame, its full detail, the JS heap (benchmarks/viewer_fps.py)")
+    ap.add_argument("--chromium", default="/usr/bin/chromium")
     a = ap.parse_args()
     with_best = a.models == ["default"]
     if with_best:
@@ -156,6 +161,9 @@ def main() -> int:
         named = [x for m in maps for x in ("--model", m)]
     plan.append(("holdout", ["holdout", str(cap), "--out", str(proc), *named, *common],
                  [proc / "metrics" / "holdout.json"]))
+    page = root / "reports" / f"{proc.name}-viewer"
+    plan.append(("viewer", ["viewer", str(cap), "--out", str(proc), "--figures", str(page),
+                            *named], [page]))
     for name, cmd, outs in plan:
         if name in res["stages"] and all(p.exists() for p in outs):
             was = res["stages"][name]
@@ -174,6 +182,11 @@ def main() -> int:
         save()
         print(f"observation map: {m.get('S')} x {m.get('T')} texels, {m.get('views')} views, "
               f"{m['bytes_on_disk'] / (m['texels'] * m['views']):.2f} bytes per texel and view")
+    if a.first_frame and (page / "index.html").is_file():
+        from viewer_fps import first_frames
+
+        res["viewer_page"] = first_frames(page, maps, a.chromium)
+        save()
     held = proc / "metrics" / "holdout.json"
     if held.is_file():
         views = json.loads(held.read_text())["views"]

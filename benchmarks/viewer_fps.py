@@ -124,6 +124,44 @@ def _streaming(page, man: dict, name: str, first: float) -> None:
     page.evaluate("viewer.orbit(0.6, 0.9, 2.2)")
 
 
+def first_frames(page_dir: Path, models: list[str], chromium: str = "/usr/bin/chromium"
+                 ) -> dict:
+    """A viewer page as written: per model, the seconds from opening the page to its
+    first frame (a model shown first: the default orbit view), to the full detail of that
+    view and of one zoomed in on the surface's centre (streamed maps), and the JS heap."""
+    from playwright.sync_api import sync_playwright
+
+    man = json.loads((Path(page_dir) / "manifest.json").read_text())
+    out = {}
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=chromium, args=ARGS)
+        for name in models:
+            page = browser.new_page()
+            t0 = time.perf_counter()
+            page.goto((Path(page_dir) / "index.html").as_uri() + f"#model={name}")
+            page.wait_for_function("window.viewer && window.viewer.ready", timeout=60000)
+            page.evaluate(f"(async () => {{ await viewer.setModel('{name}'); viewer.draw(); }})()")
+            first = time.perf_counter() - t0
+            row = {"first_frame_s": first, "payload_mb": man_bytes(man, name) / 1e6}
+            m = next(x for x in man["models"] if x["name"] == name)
+            for label, js in (("orbit", "viewer.orbit(0.6, 0.9, 2.2)"),
+                              ("zoomed", "viewer.orbit(0.6, 1.4, 0.15)")):
+                st = page.evaluate(f"(async () => {{ {js}; return viewer.settle(); }})()")
+                row[f"{label}_full_s"] = time.perf_counter() - t0
+                row[f"{label}_level"] = st["wanted"]
+                row[f"{label}_tiles"] = [len(lv["have"]) for lv in st["levels"]]
+            row["js_heap_mb"] = page.evaluate(
+                "performance.memory ? performance.memory.usedJSHeapSize / 1e6 : null")
+            row["streamed"] = "mips" in m["compact"]
+            page.close()
+            out[name] = row
+            print(f"viewer {name}: first frame {first:.2f} s, full detail {row['orbit_full_s']:.2f}"
+                  f" s (level 1/{row['orbit_level']}), zoomed in {row['zoomed_full_s']:.2f} s "
+                  f"(tiles {row['zoomed_tiles']}), JS heap {row['js_heap_mb']:.0f} MB", flush=True)
+        browser.close()
+    return out
+
+
 def man_bytes(man: dict, name: str) -> float:
     """The bytes of a model's payload the page loads (from the manifest)."""
     return float(next(m["bytes_loaded"] for m in man["models"] if m["name"] == name))

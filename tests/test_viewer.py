@@ -197,22 +197,29 @@ def test_page_streams_the_tiles_on_screen_at_the_zoom_level(viewer_dir, tmp_path
     from parammap.viewer.compact import decode_layers
 
     _, out, _ = viewer_dir
-    pm = read_param_map(out / "params" / "mh-2.exr")
-    big = replace(pm, sd=None, params=np.repeat(np.repeat(pm.params, STREAM_UP, 0), STREAM_UP, 1))
+
+    def up(pm):
+        return replace(pm, sd=None, params=np.repeat(np.repeat(pm.params, STREAM_UP, 0),
+                                                     STREAM_UP, 1))
+
+    best = read_param_map(out / "params" / "best.exr")
+    maps = {n: up(p) for n, p in best.parts.items()}
+    maps["best"] = replace(up(best), parts=dict(maps))
     views = [r for r in read_poses(out / "camera" / "poses.yaml")["views"] if r["kept"]]
     intr = load_intrinsics(out / "camera" / "intrinsics.yaml")
     dirs = {}
     for tile in (STREAM_TILE, 4096):
         dirs[tile] = tmp_path / f"t{tile}"
-        write_viewer(dirs[tile], "stream", {"mh-2": big}, intr, views, 2.0, tile=tile)
-    m = json.loads((dirs[STREAM_TILE] / "manifest.json").read_text())["models"][0]
+        write_viewer(dirs[tile], "stream", maps, intr, views, 2.0, tile=tile)
+    m = next(x for x in json.loads((dirs[STREAM_TILE] / "manifest.json").read_text())["models"]
+             if x["name"] == "mh-2")
     L, T, S = m["nlayers"], m["T"], m["S"]
     mips = m["compact"]["mips"]
     assert [x["f"] for x in mips] == [2 ** (k + 1) for k in range(len(mips))]
     assert len(mips) >= 3 and len(mips[-1]["tiles"]) == 1 < len(mips[-2]["tiles"])
     assert max(mips[-1]["T"], mips[-1]["S"]) <= STREAM_TILE < max(mips[-2]["T"], mips[-2]["S"])
-    assert "mips" not in json.loads((dirs[4096] / "manifest.json").read_text())["models"][0][
-        "compact"]
+    assert not any("mips" in x["compact"] for x in
+                   json.loads((dirs[4096] / "manifest.json").read_text())["models"])
     payloads = _payloads(dirs[STREAM_TILE], m)
     full = decode_layers(m["compact"], payloads, (L, T, S))
     for lv in mips:
@@ -249,15 +256,21 @@ def test_page_streams_the_tiles_on_screen_at_the_zoom_level(viewer_dir, tmp_path
         assert near["wanted"] == near["drawn"] == 1
         have = near["levels"][0]["have"]
         assert 0 < len(have) < near["levels"][0]["tiles"] // 4
-        shot = _canvas(page)
+        shots = [_canvas(page)]
+        # the best map draws its streamed candidates from the levels on screen
+        page.evaluate("(async () => { await viewer.setModel('best'); await viewer.settle(); })()")
+        shots.append(_canvas(page))
         assert not errors, errors
     with _viewer_page(chromium, dirs[4096]) as (page, errors):
-        page.evaluate("(async () => { await viewer.setModel('mh-2'); viewer.orbit(0.6, 1.5, 0.1);"
-                      " await viewer.settle(); })()")
-        whole = _canvas(page)
+        whole = []
+        for name in ("mh-2", "best"):
+            page.evaluate(f"(async () => {{ await viewer.setModel('{name}');"
+                          " viewer.orbit(0.6, 1.5, 0.1); await viewer.settle(); })()")
+            whole.append(_canvas(page))
         assert not errors, errors
-    assert shot.max() > 0
-    np.testing.assert_array_equal(shot, whole)
+    for shot, want in zip(shots, whole, strict=True):
+        assert shot.max() > 0
+        np.testing.assert_array_equal(shot, want)
 
 
 def _canvas(page) -> np.ndarray:
