@@ -178,6 +178,54 @@ def test_decoding_every_nth_texel_matches_the_full_decoding():
                                       full[:, ::s, ::s])
 
 
+def test_decoding_in_row_blocks_matches_whole_tiles(monkeypatch):
+    """``decode_layers`` decodes a tile a block of rows at a time (its memory bounded
+    for a lab's SH tiles): with blocks of a few rows, every texel as with whole tiles,
+    for an SH map (PCA weights) and an MH map (planes and derived directions), also
+    at every s-th texel."""
+    from parammap.stores.params import ParamMap
+    from parammap.viewer import compact
+
+    rng = np.random.default_rng(5)
+    T, S = 37, 45
+    sh = ParamMap("sh", rng.normal(0, 1, (T, S, 27)).astype(np.float32), 90.0, 74.0)
+    mh = rng.uniform(0.1, 1, (T, S, 10)).astype(np.float32)
+    d = rng.normal(0, 1, (T, S, 3))
+    d[..., 2] = np.abs(d[..., 2]) + 0.5
+    mh[..., 7:10] = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    for pm in (sh, ParamMap("mh", mh, 90.0, 74.0)):
+        entry, payloads = compact.encode_map(pm, 1.0, tile=16)
+        L = compact.layer_info(pm)[1]
+        whole = [compact.decode_layers(entry, payloads, (L, T, S), s) for s in (1, 3)]
+        with monkeypatch.context() as mp:
+            mp.setattr(compact, "DECODE_BLOCK_VALUES", 3 * 16 * L * 4)  # 3 rows a block
+            for s, want in zip((1, 3), whole, strict=True):
+                np.testing.assert_array_equal(
+                    compact.decode_layers(entry, payloads, (L, T, S), s), want)
+
+
+def test_quantisation_error_camera_is_scaled_with_pixel_centres_kept():
+    """A camera above ERROR_PIXELS renders at a scale that fits, its pixel centres
+    where the full camera's fall: a point seen at pixel u is seen at (u + 0.5) / s -
+    0.5 (s per axis: the image's edges kept exactly)."""
+    import cv2
+
+    from parammap.geometry import Intrinsics
+    from parammap.viewer.compact import _scaled_camera
+
+    K = np.array([[3000.0, 0, 2011.3], [0, 3010.0, 1497.8], [0, 0, 1]])
+    intr = Intrinsics(K, np.array([0.05, -0.1, 0.001, 0.002, 0.0]), (4000, 3000))
+    small = _scaled_camera(intr, 1 << 20)
+    W, H = small.image_size
+    s = np.array([4000 / W, 3000 / H])
+    assert W * H <= 1 << 20 and abs(s[0] - s[1]) < 0.01
+    assert _scaled_camera(small, 1 << 20) is small
+    X = np.array([[10.0, -20.0, 300.0], [-50.0, 30.0, 250.0]])
+    uv = [cv2.projectPoints(X, np.zeros(3), np.zeros(3), c.K, c.dist)[0].reshape(-1, 2)
+          for c in (intr, small)]
+    np.testing.assert_allclose(uv[1], (uv[0] + 0.5) / s - 0.5, atol=1e-9)
+
+
 def test_sh_map_stores_the_level_the_page_shows():
     """An SH map whose float layers pass the page's budget also carries the page's
     reduction (:func:`page_reduction`), each block's mean weights quantised with the

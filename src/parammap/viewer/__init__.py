@@ -46,6 +46,7 @@ import json
 import logging
 import math
 import shutil
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -57,7 +58,7 @@ from ..stores.camera import load_intrinsics, read_poses
 from ..stores.capture import Capture
 from ..stores.metrics import read_metrics
 from ..stores.observation import open_observation_map
-from ..stores.params import ParamMap, read_param_map
+from ..stores.params import ParamMap, ParamMapFiles, read_param_map
 from ..stores.paths import Processed
 from .compact import FLOAT_LAYER_BUDGET_MB, TILE, encode_map, quantisation_error
 from .inspect import inspector_payload
@@ -143,7 +144,7 @@ logger = logging.getLogger(__name__)
 TEMPLATE = Path(__file__).with_name("index.html")
 
 
-def write_viewer(out_dir: str | Path, surface_id: str, maps: dict[str, ParamMap],
+def write_viewer(out_dir: str | Path, surface_id: str, maps: Mapping[str, ParamMap],
                  intr: Intrinsics, views: list[dict], gamma: float,
                  error_poses: list | None = None,
                  inspector: tuple[dict, bytes] | None = None, tile: int | None = None,
@@ -251,10 +252,13 @@ def write_surface_viewer(cap: Capture, processed: str | Path, models: list[str],
     ``models``, with every kept view's pose to snap to; the initial gamma is the
     median of the held-out comparison's (1 before that stage has run)."""
     proc = Processed(processed)
-    maps = {name: read_param_map(proc.params(name)) for name in models}
-    for pm in list(maps.values()):  # the best map's candidates are shown by it
-        for name, part in (pm.parts or {}).items():
-            maps.setdefault(name, part)
+    names = list(models)
+    for name in models:  # the best map's candidates are shown by it
+        names += [p for p in (read_param_map(proc.params(name), with_sd=False).parts or {})
+                  if p not in names]
+    # each map read when it is used, without its sds: a lab capture's ten maps held at
+    # once were 3 GB, with their sds (which the page does not show) 6
+    maps = ParamMapFiles({name: proc.params(name) for name in names})
     views = [r for r in read_poses(proc.poses)["views"] if r["kept"]]
     gamma = 1.0
     if proc.metrics("holdout").is_file():

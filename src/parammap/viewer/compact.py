@@ -107,6 +107,9 @@ TILE = 1024
 # reads it from data.js; ?budget=<MB> in the page's address overrides it)
 FLOAT_LAYER_BUDGET_MB = 512
 ERROR_TEXELS = 1 << 22  # texels on which quantisation_error renders at most
+ERROR_LAYER_BYTES = 1 << 28  # and the float32 layers it decodes for them
+ERROR_PIXELS = 1 << 20  # and the pixels of each render (a camera above: scaled down)
+DECODE_BLOCK_VALUES = 1 << 22  # values decode_layers makes at once
 FILTER_LEFT, FILTER_UP = 1, 2  # filter codes are bit sets: 3 = both (the plane predictor)
 FILTER_SAMPLE_BYTES = 1 << 18  # bytes of a plane on which its filter is chosen
 
@@ -522,30 +525,43 @@ def decode_layers(entry: dict, payloads: list[bytes], shape: tuple[int, int, int
                                                code).ravel()
         if "pca" in entry and pca is None:
             pca = _pca_tail(entry, raw, n)
-        x = _decode_tile(entry, raw, (L, h, w), pca)
         r0, c0 = -t["r"] % every, -t["c"] % every  # the tile's first kept row, column
-        x = x[:, r0::every, c0::every]
-        R, C = (t["r"] + r0) // every, (t["c"] + c0) // every
-        out[:, R:R + x.shape[1], C:C + x.shape[2]] = x
+        # in blocks of rows (of whole strides): a tile's float64 values at once would be
+        # over a GB for an SH-36 tile
+        step = max(1, DECODE_BLOCK_VALUES // (w * L * 4) // every) * every
+        for a in range(r0, h, step):
+            x = _decode_tile(entry, raw, (L, h, w), pca, (a, min(h, a + step)))
+            x = x[:, ::every, c0::every]
+            R, C = (t["r"] + a) // every, (t["c"] + c0) // every
+            out[:, R:R + x.shape[1], C:C + x.shape[2]] = x
     return out
 
 
 def _decode_tile(entry: dict, raw: np.ndarray, shape: tuple[int, int, int],
-                 pca: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+                 pca: tuple[np.ndarray, np.ndarray] | None, rows: tuple[int, int] | None = None,
+                 ) -> np.ndarray:
+    """(L, rows, S, 4) float32 layers of a tile's unfiltered planes ``raw`` (shape: L,
+    the tile's T and S), of its rows ``rows`` = (first, end) only where given."""
     L, T, S = shape
-    out = np.zeros((L, T, S, 4))
-    n, pos = T * S, 0
+    a, b = rows or (0, T)
+    h = b - a
+    out = np.zeros((L, h, S, 4), np.float32)
+    n, m, pos = T * S, h * S, 0
+
+    def plane(at: int) -> np.ndarray:  # the rows' part of the plane at byte ``at``
+        return raw[at + a * S:at + b * S]
+
     if pca is not None:
-        W = np.empty((n, len(entry["planes"])))
+        W = np.empty((m, len(entry["planes"])))
         for j, p in enumerate(entry["planes"]):
-            b = p.get("bits", 8)
-            q = raw[pos:pos + n].astype(np.int64)
-            if b == 16:
-                q = q * 256 + raw[pos + n:pos + 2 * n]
+            bits = p.get("bits", 8)
+            q = plane(pos).astype(np.int64)
+            if bits == 16:
+                q = q * 256 + plane(pos + n)
             W[:, j] = p["lo"] + q * p["step"]
-            pos += n * b // 8
+            pos += n * bits // 8
         X = pca[0] + W @ pca[1]
-        out[..., :3] = X.reshape(T, S, L, 3).transpose(2, 0, 1, 3)
+        out[..., :3] = X.reshape(h, S, L, 3).transpose(2, 0, 1, 3)
         return out
     derived = []
     for p in entry["planes"]:
@@ -554,12 +570,27 @@ def _decode_tile(entry: dict, raw: np.ndarray, shape: tuple[int, int, int],
         elif "const" in p:
             out[p["layer"], ..., p["channel"]] = p["const"]
         else:
-            y = _dequantise(raw[pos:pos + n], p["lo"], p["hi"]).reshape(T, S)
+            y = _dequantise(plane(pos), p["lo"], p["hi"]).reshape(h, S)
             out[p["layer"], ..., p["channel"]] = _inverse(y, p["transfer"])
             pos += n
     for p in derived:  # lobe directions from their hemi-octahedral coordinates
         out[p["layer"], ..., :3] = _from_hemioct(out[p["layer"], ..., :2])
     return out
+
+
+def _scaled_camera(intr, pixels: int):
+    """``intr`` with its image scaled to at most ``pixels`` (pixel centres kept: a pixel
+    at u maps to (u + 0.5) / s - 0.5); as it is where it has no more."""
+    W, H = intr.image_size
+    s = math.sqrt(W * H / pixels)
+    if s <= 1:
+        return intr
+    size = (max(1, math.floor(W / s)), max(1, math.floor(H / s)))
+    scale = np.array([W / size[0], H / size[1]])  # the image's edges kept exactly
+    K = np.array(intr.K, float)
+    K[:2] /= scale[:, None]
+    K[:2, 2] += 0.5 / scale - 0.5
+    return replace(intr, K=K, image_size=size)
 
 
 def layers_to_params(layers: np.ndarray, info: dict[str, Any]) -> np.ndarray:
@@ -587,15 +618,16 @@ def quantisation_error(pm, entry: dict, payloads: list[bytes], intr, poses,
                        gamma: float) -> float:
     """Mean 8-bit difference, at the report's tone mapping ``gamma``, of renders of the
     map from its compact payload (:func:`encode_map`) against renders of the float map,
-    over ``poses`` (R, t) pairs and the surface pixels of each (a map above
-    :data:`ERROR_TEXELS` texels: both maps' every s-th texel, s the smallest that fits)."""
-
-
+    over ``poses`` (R, t) pairs and the surface pixels of each. Bounded for a lab's map
+    and camera: a map above :data:`ERROR_TEXELS` texels or :data:`ERROR_LAYER_BYTES` of
+    decoded layers is judged on both maps' every s-th texel (s the smallest that fits),
+    and a camera above :data:`ERROR_PIXELS` renders at the largest scale that fits."""
     info, L = layer_info(pm)
     T, S = pm.shape
-    # a map above ERROR_TEXELS is judged on every s-th texel of it (both renders alike):
     # a 4096 x 4096 SH-64 map decoded whole would be a second 13 GB
-    every = max(1, math.ceil(math.sqrt(T * S / ERROR_TEXELS)))
+    most = min(ERROR_TEXELS, ERROR_LAYER_BYTES / (16 * L))
+    every = max(1, math.ceil(math.sqrt(T * S / most)))
+    intr = _scaled_camera(intr, ERROR_PIXELS)
     back = decode_layers(entry, payloads, (L, T, S), every)
     pm = replace(pm, params=pm.params[::every, ::every])
     q = replace(pm, params=layers_to_params(back, info))

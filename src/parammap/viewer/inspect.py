@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import zlib
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -32,9 +33,10 @@ __all__ = ["INSPECTOR_BYTES", "decode_inspector", "inspector_payload"]
 # the inspector's share of the page on disk before deflate: above it, texels are sampled
 # every k-th row and column (the click snaps to the nearest sampled texel)
 INSPECTOR_BYTES = 32 * 2 ** 20
+PREDICT_ROWS = 1 << 16  # observations whose prediction is evaluated at once
 
 
-def _per_texel_bytes(N: int, maps: dict[str, ParamMap]) -> int:
+def _per_texel_bytes(N: int, maps: Mapping[str, ParamMap]) -> int:
     return 4 * N + sum(2 * N + 4 * pm.params.shape[-1] for pm in maps.values())
 
 
@@ -45,7 +47,7 @@ def _take(a, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     return np.asarray(a)[np.ix_(rows, cols)]
 
 
-def inspector_payload(maps: dict[str, ParamMap], radiance: np.ndarray, direction: np.ndarray,
+def inspector_payload(maps: Mapping[str, ParamMap], radiance: np.ndarray, direction: np.ndarray,
                       valid: np.ndarray, budget: int = INSPECTOR_BYTES
                       ) -> tuple[dict[str, Any], bytes]:
     """The inspector's manifest entry and payload.
@@ -76,21 +78,33 @@ def inspector_payload(maps: dict[str, ParamMap], radiance: np.ndarray, direction
     first = next(iter(maps.values()))
     pts = texel_centres(S, T, first.width_mm, first.height_mm, rows, cols).reshape(-1, 3)
 
-    def predict(pm) -> np.ndarray:
-        P = np.nan_to_num(np.asarray(pm.params[sel], float))  # (t, s, P)
+    # predictions a block of sampled texels at a time: every sampled texel's views at
+    # once were GBs for a lab map's SH coefficients in float64
+    block = max(1, PREDICT_ROWS // N)
+
+    def predict(pm, P: np.ndarray) -> np.ndarray:
+        """Luminance (t s, N) that ``pm`` (parameters ``P`` (t s, P) at the sampled
+        texels) predicts for the observations."""
         if pm.model == "best":  # each texel's candidates, with their shares
-            parts = list((pm.parts or {}).values())
-            shares = best_shares(P, len(parts)).reshape(-1, len(parts))
-            return sum(np.repeat(shares[:, j:j + 1], N, axis=0) * predict(part)
-                       for j, part in enumerate(parts))
-        return evaluate(pm.model, np.repeat(P.reshape(t * s, -1), N, axis=0), dd,
-                        np.repeat(pts, N, axis=0), pm.lights)
+            parts = list((pm.parts or {}).items())
+            shares = best_shares(P, len(parts))
+            out = np.zeros((t * s, N))
+            for j, (_, part) in enumerate(parts):
+                Pj = np.nan_to_num(np.asarray(part.params[sel], float)).reshape(t * s, -1)
+                out += shares[:, j:j + 1] * predict(part, Pj)
+            return out
+        out = np.empty((t * s, N))
+        for a in range(0, t * s, block):
+            b = min(t * s, a + block)
+            out[a:b] = (evaluate(pm.model, np.repeat(P[a:b], N, axis=0), dd[a * N:b * N],
+                                 np.repeat(pts[a:b], N, axis=0), pm.lights)
+                        @ LUMINANCE).reshape(b - a, N)
+        return out
 
     for name, pm in maps.items():
         P = np.nan_to_num(np.asarray(pm.params[sel], float))  # (t, s, P)
-        pred = predict(pm)
-        arrays += [np.where(ok, (pred @ LUMINANCE).reshape(t, s, N), 0).astype("<f2"),
-                   P.astype("<f4")]
+        pred = predict(pm, P.reshape(t * s, -1))
+        arrays += [np.where(ok, pred.reshape(t, s, N), 0).astype("<f2"), P.astype("<f4")]
         models.append({"name": name, "params": channel_names(pm.model, P.shape[-1])})
     offsets, blob, pos = [], [], 0
     for a in arrays:
