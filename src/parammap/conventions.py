@@ -16,7 +16,7 @@ __all__ = [
     "BEST_CHANNELS", "DIFFUSE_CHANNELS", "LUMINANCE", "MHX_KD", "MHX_LNM",
     "MHX_LOBE", "MH_HEAD",
     "MH_KD", "MH_LOBE", "MH_M", "MH_SD_LOBE", "SH_CAP_AWARE", "SH_HEMISPHERES",
-    "SVBRDF_CHANNELS", "SVBRDF_MODEL", "SV_ALPHA", "SV_KD", "SV_KS", "SV_SIZE",
+    "SVBRDF_CHANNELS", "SVBRDF_MODEL", "SV_ALPHA", "SV_COAT", "SV_KD", "SV_KS", "SV_SIZE",
     "FitArray", "FitStatus", "mh_channels", "mh_dir", "mh_dir_z", "mh_ks", "mh_lobe", "mh_lobes",
     "mh_sd_channels", "mh_sd_dir", "mh_sd_size", "mh_size", "mhx_ks", "mhx_lobes", "mhx_phi",
     "mhx_size", "mhx_theta", "sd_channels", "sh_bands", "sh_channels", "sh_degree_order",
@@ -177,13 +177,16 @@ def mhx_phi(k: int) -> int:
 
 
 # --- Microfacet SVBRDF (svbrdf-ggx; parammap.models.svbrdf) ---
-#: ``Kd.R Kd.G Kd.B Ks.R Ks.G Ks.B alpha``: diffuse and specular amplitudes per unit
-#: irradiance factor of the first light, GGX roughness alpha (= perceptual roughness^2).
+#: ``Kd.R Kd.G Kd.B Ks.R Ks.G Ks.B alpha coat``: diffuse (at normal incidence) and
+#: specular amplitudes per unit irradiance factor of the first light, GGX roughness
+#: alpha (= perceptual roughness^2) and the share of the diffuse light that crosses a
+#: dielectric coating (0: matte, 1: a plastic's, attenuated toward grazing).
 SV_KD = slice(0, 3)
 SV_KS = slice(3, 6)
 SV_ALPHA = 6
-SV_SIZE = 7
-SVBRDF_CHANNELS = ("Kd.R", "Kd.G", "Kd.B", "Ks.R", "Ks.G", "Ks.B", "alpha")
+SV_COAT = 7
+SV_SIZE = 8
+SVBRDF_CHANNELS = ("Kd.R", "Kd.G", "Kd.B", "Ks.R", "Ks.G", "Ks.B", "alpha", "coat")
 #: The svbrdf model's name in the workflow (outputs.md), its map's model ``svbrdf``.
 SVBRDF_MODEL = "svbrdf-ggx"
 

@@ -19,11 +19,22 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..conventions import MH_KD, SV_ALPHA, SV_KD, SV_KS, mh_ks, mh_lobes, mhx_phi, mhx_theta
+from ..conventions import (
+    MH_KD,
+    SV_ALPHA,
+    SV_COAT,
+    SV_KD,
+    SV_KS,
+    SV_SIZE,
+    mh_ks,
+    mh_lobes,
+    mhx_phi,
+    mhx_theta,
+)
 from .mh.model import mh_eval
 from .mh.uncertainty import jacobian_x
 from .sh.basis import sh_basis, sh_eval
-from .svbrdf import light_terms, specular_basis, svbrdf_eval
+from .svbrdf import coat_transmittance, light_terms, specular_basis, svbrdf_eval
 
 __all__ = ["INFLUENCE", "display_error", "influential", "loo_amplitudes", "loo_diffuse",
            "loo_linear", "loo_sh", "loo_svbrdf", "predict", "press", "press_linear",
@@ -184,29 +195,35 @@ def predict(model: str, P: np.ndarray, V: np.ndarray, points: np.ndarray | None 
 
 def loo_svbrdf(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray, w: np.ndarray,
                points: np.ndarray, lights: tuple, rel_step: float = 1e-3) -> Loo:
-    """Leave-one-out residuals of an svbrdf map (:mod:`parammap.models.svbrdf`): Kd, Ks
-    and ln alpha refitted without the view, linearised at the fit. ``lights`` as
-    :attr:`parammap.stores.params.ParamMap.lights`: with a flat-field's irradiance its
-    radiance is divided by it, as the observations were."""
+    """Leave-one-out residuals of an svbrdf map (:mod:`parammap.models.svbrdf`): Kd, Ks,
+    ln alpha and the coat's share refitted without the view, linearised at the fit.
+    ``lights`` as :attr:`parammap.stores.params.ParamMap.lights`: with a flat-field's
+    irradiance its radiance is divided by it, as the observations were."""
     P = np.nan_to_num(np.asarray(P, float))
     n, N, _ = V.shape
     pos, wl = lights[:2]
     k = 1.0 / lights[2](points) if len(lights) > 2 else np.ones(n)
     l, e = light_terms(points, pos)
     alpha = np.clip(P[:, SV_ALPHA], 1e-6, None)
+    coat = np.clip(P[:, SV_COAT], 0, 1)[:, None, None]
 
     def spec(a):
         return specular_basis(l, e, V, a.reshape(-1, 1, 1)) @ wl  # (n, N, 3)
 
     S = spec(alpha)
     dS = (spec(alpha * np.exp(rel_step)) - spec(alpha * np.exp(-rel_step))) / (2 * rel_step)
-    J = np.zeros((n, N, 3, 7))
+    matte = (e @ wl)[:, None]  # (n, 1, 3)
+    coated = ((e * coat_transmittance(l[..., 2])) @ wl)[:, None] \
+        * coat_transmittance(V[..., 2])[..., None]  # (n, N, 3)
+    diffuse = (1 - coat) * matte + coat * coated
+    J = np.zeros((n, N, 3, SV_SIZE))
     eye = np.eye(3)
-    J[..., :3] = (e @ wl)[:, None, :, None] * eye
-    J[..., 3:6] = S[..., None] * eye
-    J[..., 6] = dS * P[:, None, SV_KS]
+    J[..., SV_KD] = diffuse[..., None] * eye
+    J[..., SV_KS] = S[..., None] * eye
+    J[..., SV_ALPHA] = dS * P[:, None, SV_KS]
+    J[..., SV_COAT] = (coated - matte) * P[:, None, SV_KD]
     J *= k[:, None, None, None]
-    pred = (e @ wl)[:, None] * P[:, None, SV_KD] + S * P[:, None, SV_KS]
+    pred = diffuse * P[:, None, SV_KD] + S * P[:, None, SV_KS]
     r = np.where(W[..., None], k[:, None, None] * pred - L, 0.0)
     return loo_linear(J, r, w, W)
 

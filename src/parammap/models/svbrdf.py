@@ -4,7 +4,8 @@ issue 48 item 2).
 Each texel of the flat surface (normal +z) reflects each light ``j`` (a point at
 ``p_j``, surface frame, mm; relative RGB intensity ``w_j``) as
 
-    L(v) = sum_j w_j e_j [Kd + Ks D(h_j) Vis(l_j, v)],   e_j = cos(theta_j) (R / r_j)^2
+    L(v) = sum_j w_j e_j [Kd ((1 - c) + c T(l_j) T(v)) + Ks D(h_j) Vis(l_j, v)],
+    e_j = cos(theta_j) (R / r_j)^2
 
 with ``l_j`` the unit vector to the light, ``r_j`` its distance, ``theta_j`` its angle
 from the normal, ``R`` = :data:`REFERENCE_MM` (``e_j`` is the irradiance relative to
@@ -13,17 +14,26 @@ lights' true relative intensities and a moved light dims with its distance as a 
 does), ``h_j`` the half vector of ``l_j`` and the view ``v``, ``D`` the GGX
 (Trowbridge-Reitz) distribution of roughness ``alpha`` and ``Vis`` Smith's
 height-correlated visibility ``G2 / (4 n.l n.v)`` (Heitz 2014). ``Kd`` (RGB) is the
-diffuse radiance per unit ``e`` of the first light (albedo / pi times its intensity),
-``Ks`` (RGB) the specular amplitude (Fresnel F0 times the intensity, its rise toward
-grazing not modelled:
-the views rarely see a highlight beyond 60 deg of incidence, where Schlick's factor
-stays within 10 % of F0 for a dielectric). Radiance is in the observation map's units.
+diffuse radiance per unit ``e`` of the first light at normal incidence (albedo / pi
+times its intensity), ``Ks`` (RGB) the specular amplitude (Fresnel F0 times the
+intensity, its rise toward grazing not modelled: the views rarely see a highlight
+beyond 60 deg of incidence, where Schlick's factor stays within 10 % of F0 for a
+dielectric). ``c`` in [0, 1] is the share of the diffuse light that crosses a
+dielectric coating on its way in and out (a plastic, a varnish, a glossy print): ``T``
+is the coating's Fresnel transmittance (:func:`coat_transmittance`, index
+:data:`COAT_IOR`) relative to normal incidence, which dims that light toward grazing
+(to 0.75 at 75 deg); a matte surface (paper, cloth) has ``c`` = 0. Without it a
+coated texel's diffuse fall-off is taken up by the lobe, which then comes out wider
+and brighter than the surface's (alpha 15-30 % and Ks 25-35 % too high on a rough
+plastic). Radiance is in the observation map's units.
 
-For a given ``alpha`` the radiance is linear in ``Kd`` and ``Ks``, so a texel's fit is a
-one-dimensional search over ``alpha`` (a grid in log alpha, then a parabola through the
-best three) with the two amplitudes per channel solved exactly and non-negative at each
-step (variable projection): no start to choose and no local minimum in the amplitudes,
-vectorised over thousands of texels.
+For a given ``alpha`` the radiance is linear in the matte and coated parts of ``Kd``
+and in ``Ks``, so a texel's fit is a one-dimensional search over ``alpha`` (a grid in
+log alpha, then a parabola through the best three) with the amplitudes per channel
+solved exactly and non-negative at each step (variable projection): no start to
+choose and no local minimum in the amplitudes, vectorised over thousands of texels.
+``c`` is the coated part's share of ``Kd`` (luminance) at the best ``alpha``, and
+``Kd`` and ``Ks`` are solved once more with it.
 """
 
 from __future__ import annotations
@@ -35,15 +45,17 @@ import warnings
 import nlopt
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
+from scipy.ndimage import median_filter
 
-from ..conventions import LUMINANCE, SV_ALPHA, SV_KD, SV_KS, SV_SIZE, FitArray, FitStatus
+from ..conventions import LUMINANCE, SV_ALPHA, SV_COAT, SV_KD, SV_KS, SV_SIZE, FitArray, FitStatus
 from ..geometry import texel_centres
 from .residuals import mean_percentage_residual
 from .weights import noise_weights, reduced_chi2
 
-__all__ = ["ALPHA_RANGE", "MIN_OBS", "alpha_grid", "fit_svbrdf_batch", "fit_svbrdf_tile",
-           "ggx_vis", "light_terms", "light_weights", "metallic_roughness", "neighbour_priors",
-           "pool_svbrdf_tile",
+__all__ = ["ALPHA_RANGE", "COAT_F", "COAT_IOR", "COAT_WINDOW_F", "MIN_OBS", "alpha_grid",
+           "coat_regions", "coat_share", "coat_transmittance", "fit_svbrdf_batch",
+           "fit_svbrdf_tile", "fresnel_dielectric", "ggx_vis", "light_terms",
+           "light_weights", "metallic_roughness", "neighbour_priors", "pool_svbrdf_tile",
            "refine_lights", "specular_basis", "svbrdf_eval", "svbrdf_outputs"]
 
 #: GGX alpha searched: from a near-mirror (a lobe about 0.3 deg wide) to fully rough.
@@ -53,6 +65,32 @@ REFINE_GRID_STEPS = 24  # half the fit's: the objective needs each texel's best 
 #: the irradiance's reference distance (1 m): e = 1 a metre from a light, facing it
 REFERENCE_MM = 1000.0
 MIN_OBS = SV_SIZE + 1  # observations a texel needs (per channel: Kd, Ks, alpha shared)
+#: refractive index of a dielectric (a coating, a plastic): F0 = 0.04, glTF's
+COAT_IOR = 1.5
+#: the F statistic (one parameter) a texel's coat must reach to be kept on its own
+#: evidence: chi-square's 99 % point for one degree of freedom
+COAT_F = 6.63
+#: the median F over a texel's (2 r + 1)^2 window (r = :data:`POOL_RADIUS`) for the coat
+#: to be kept: noise alone gives chi-square's median for one degree of freedom, 0.45, and
+#: the 81 texels, at least some 20 of them independent (neighbours share photo pixels),
+#: put their median within 0.45 +- 0.24; 1.2 is 3 sds above
+COAT_WINDOW_F = 1.2
+
+
+def fresnel_dielectric(cos_t, ior: float = COAT_IOR) -> np.ndarray:
+    """Unpolarised Fresnel reflectance of light arriving from air at ``cos_t`` (any
+    shape) to the normal of a smooth dielectric of index ``ior``."""
+    c = np.clip(np.asarray(cos_t, float), 1e-6, 1.0)
+    ct = np.sqrt(1 - (1 - c * c) / ior ** 2)  # the refracted ray's cosine
+    rs = ((c - ior * ct) / (c + ior * ct)) ** 2
+    rp = ((ior * c - ct) / (ior * c + ct)) ** 2
+    return 0.5 * (rs + rp)
+
+
+def coat_transmittance(cos_t) -> np.ndarray:
+    """The coating's transmittance ``T = (1 - F(cos_t)) / (1 - F0)`` relative to normal
+    incidence (1 there, 0.75 at 75 deg, 0 at grazing; any shape)."""
+    return (1 - fresnel_dielectric(cos_t)) / (1 - fresnel_dielectric(1.0))
 
 
 def alpha_grid(steps: int = GRID_STEPS) -> np.ndarray:
@@ -112,12 +150,38 @@ def svbrdf_eval(params: np.ndarray, points: np.ndarray, views: np.ndarray,
     flat-field's relative irradiance, :class:`parammap.models.radiometry.IrradianceGrid`:
     the capture's frames were read so)."""
     p = np.asarray(params, float)
+    v = np.asarray(views, float)
     l, e = light_terms(points, lights_mm)  # (M, J, 3), (M, J)
     alpha = np.clip(p[:, SV_ALPHA], *ALPHA_RANGE)[:, None, None]
-    s = specular_basis(l, e, np.asarray(views, float)[:, None, :], alpha)[:, 0]  # (M, J)
+    s = specular_basis(l, e, v[:, None, :], alpha)[:, 0]  # (M, J)
     w = np.asarray(weights, float)
-    out = p[:, SV_KD] * (e @ w) + p[:, SV_KS] * (s @ w)
+    c = np.clip(np.nan_to_num(p[:, SV_COAT]), 0, 1)[:, None]
+    coated = ((e * coat_transmittance(l[..., 2])) @ w) * coat_transmittance(v[:, 2])[:, None]
+    out = p[:, SV_KD] * ((1 - c) * (e @ w) + c * coated) + p[:, SV_KS] * (s @ w)
     return out if irradiance is None else out / irradiance(points)[:, None]
+
+
+def _solve_small(G: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Solve many small symmetric positive definite systems G (..., k, k) x = r (..., k)
+    by Cholesky, vectorised over the leading axes (numpy's batched solve spends most of
+    its time per matrix at k <= 5)."""
+    k = G.shape[-1]
+    L = np.zeros_like(G)
+    for j in range(k):
+        d = G[..., j, j] - np.einsum("...i,...i->...", L[..., j, :j], L[..., j, :j])
+        L[..., j, j] = np.sqrt(np.maximum(d, 1e-300))
+        for i in range(j + 1, k):
+            L[..., i, j] = (G[..., i, j] - np.einsum("...m,...m->...", L[..., i, :j],
+                                                    L[..., j, :j])) / L[..., j, j]
+    z = np.empty_like(r)
+    for i in range(k):  # L z = r, then L^T x = z
+        z[..., i] = (r[..., i] - np.einsum("...m,...m->...", L[..., i, :i], z[..., :i])) \
+            / L[..., i, i]
+    x = np.empty_like(r)
+    for i in reversed(range(k)):
+        x[..., i] = (z[..., i] - np.einsum("...m,...m->...", L[..., i + 1:, i],
+                                           x[..., i + 1:])) / L[..., i, i]
+    return x
 
 
 def _nnls_small(G: np.ndarray, r: np.ndarray, yy: np.ndarray) -> tuple[np.ndarray,
@@ -130,70 +194,113 @@ def _nnls_small(G: np.ndarray, r: np.ndarray, yy: np.ndarray) -> tuple[np.ndarra
     B, P = r.shape
     ridge = 1e-12 * np.maximum(np.trace(G, axis1=1, axis2=2), 1e-300)
     Gr = G + ridge[:, None, None] * np.eye(P)
-    best = np.linalg.solve(Gr, r[..., None])[..., 0]
+    best = _solve_small(Gr, r)
     best_rss = yy - np.einsum("bk,bk->b", best, r)  # at the optimum, c.G.c = c.r
     rest = np.flatnonzero(~(best >= 0).all(1))
     if len(rest):
         Gq, rq, yq = Gr[rest], r[rest], yy[rest]
         cb, rb = np.zeros((len(rest), P)), yq.copy()
-        for k in range(1, P):
-            for sub in itertools.combinations(range(P), k):
-                s = list(sub)
-                Gs = Gq[:, s][:, :, s]
-                c = np.linalg.solve(Gs, rq[:, s][..., None])[..., 0]
-                rss = yq - np.einsum("bk,bk->b", c, rq[:, s])
-                ok = (c >= 0).all(1) & (rss < rb)
-                rb[ok] = rss[ok]
-                full = np.zeros((int(ok.sum()), P))
-                full[:, s] = c[ok]
-                cb[ok] = full
+        for k in range(1, P):  # every support of k bases in one batched solve
+            subs = np.array(list(itertools.combinations(range(P), k)))  # (n, k)
+            Gs = Gq[:, subs[:, :, None], subs[:, None, :]]  # (b, n, k, k)
+            rs = rq[:, subs]  # (b, n, k)
+            c = _solve_small(Gs, rs)
+            rss = yq[:, None] - np.einsum("bnk,bnk->bn", c, rs)
+            rss = np.where((c >= 0).all(-1), rss, np.inf)
+            j = np.argmin(rss, 1)
+            ok = rss[np.arange(len(rest)), j] < rb
+            rb[ok] = rss[ok, j[ok]]
+            full = np.zeros((int(ok.sum()), P))
+            np.put_along_axis(full, subs[j[ok]], c[ok, j[ok]], axis=1)
+            cb[ok] = full
         best[rest], best_rss[rest] = cb, rb
     return best, np.maximum(best_rss, 0.0)
 
 
-def _amplitudes(y: np.ndarray, omega: np.ndarray, e_w: np.ndarray, S: np.ndarray,
+def _diffuse_moments(y: np.ndarray, omega: np.ndarray, D: list[np.ndarray]) -> dict:
+    """The sums of :func:`_amplitudes` that do not depend on alpha: the P diffuse bases
+    D (each (B, 3), constant over the views, or (B, N, 3)) against themselves and the
+    data y (B, N, 3) under the weights omega (B, N)."""
+    B = y.shape[0]
+    P = len(D)
+    sw = omega.sum(1)  # (B,)
+    Dw = [d[:, None, :] * sw[:, None, None] if d.ndim == 2 else d * omega[:, :, None]
+          for d in D]  # constant ones: their weight summed over the views, (B, 1, 3)
+    G = np.empty((B, 3, P, P))
+    r = np.empty((B, 3, P))
+    oy = np.einsum("bn,bnc->bc", omega, y)
+    for p in range(P):
+        r[:, :, p] = D[p] * oy if D[p].ndim == 2 else np.einsum("bnc,bnc->bc", Dw[p], y)
+        for q in range(p, P):
+            if D[p].ndim == 2 and D[q].ndim == 2:
+                g = D[p] * D[q] * sw[:, None]
+            elif D[p].ndim == 2:
+                g = D[p] * np.einsum("bn,bnc->bc", omega, D[q])
+            elif D[q].ndim == 2:
+                g = D[q] * np.einsum("bn,bnc->bc", omega, D[p])
+            else:
+                g = np.einsum("bnc,bnc->bc", Dw[p], D[q])
+            G[:, :, p, q] = G[:, :, q, p] = g
+    return {"D": D, "G": G, "r": r, "yy": np.einsum("bn,bnc->bc", omega, y * y)}
+
+
+def _amplitudes(y: np.ndarray, omega: np.ndarray, dm: dict, S: np.ndarray,
                 prior: tuple[np.ndarray, np.ndarray] | None = None,
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per channel non-negative ``Kd`` and specular amplitudes of a batch at one alpha.
+    """Per channel non-negative diffuse and specular amplitudes of a batch at one alpha.
 
-    y (B, N, 3) radiance, omega (B, N) weights (0: not observed); e_w (B, 3) the
-    diffuse basis (constant over the views); S (B, N, Q, 3) the Q specular bases;
-    prior: a Gaussian prior on the (one, Q = 1) specular amplitude per channel, its
-    mean (B, 3) and its precision (B, 3) in units of the weighted residuals (0: none),
-    whose penalty the RSS then includes.
-    Returns coefficients (B, 1 + Q, 3), RSS (B, 3) and the normal matrices
-    (B, 3, 1 + Q, 1 + Q) (without the prior)."""
+    y (B, N, 3) radiance, omega (B, N) weights (0: not observed); dm the P diffuse
+    bases' sums (:func:`_diffuse_moments`); S (B, N, Q, 3) the Q specular bases; prior:
+    a Gaussian prior on the first specular amplitude per channel, its mean (B, 3) and
+    its precision (B, 3) in units of the weighted residuals (0: none), whose penalty the
+    RSS then includes. Returns coefficients (B, P + Q, 3) (diffuse first), RSS (B, 3)
+    and the normal matrices (B, 3, P + Q, P + Q) (without the prior)."""
     B, N, Q, _ = S.shape
-    # the diffuse column is constant over the views: its sums need no pass over them
+    D = dm["D"]
+    P = len(D)
+    K = P + Q
     Sw = S * omega[:, :, None, None]
-    sw = omega.sum(1)  # (B,)
-    G = np.empty((B, 3, 1 + Q, 1 + Q))
-    G[:, :, 0, 0] = (e_w * e_w) * sw[:, None]
-    G[:, :, 0, 1:] = (e_w[:, None, :] * Sw.sum(1)).swapaxes(1, 2)
-    G[:, :, 1:, 0] = G[:, :, 0, 1:]
-    r = np.empty((B, 3, 1 + Q))
-    r[:, :, 0] = e_w * np.einsum("bn,bnc->bc", omega, y)
-    for p in range(Q):  # Q is the number of lights at most: plain sums beat einsum
-        r[:, :, 1 + p] = (Sw[:, :, p] * y).sum(1)
-        for q in range(p, Q):
-            G[:, :, 1 + p, 1 + q] = G[:, :, 1 + q, 1 + p] = (Sw[:, :, p] * S[:, :, q]).sum(1)
-    yy = np.einsum("bn,bnc->bc", omega, y * y)
+    G = np.empty((B, 3, K, K))
+    G[:, :, :P, :P] = dm["G"]
+    r = np.empty((B, 3, K))
+    r[:, :, :P] = dm["r"]
+    for q in range(Q):  # Q is the number of lights at most: plain loops
+        r[:, :, P + q] = np.einsum("bnc,bnc->bc", Sw[:, :, q], y)
+        for p in range(P):
+            g = D[p] * Sw[:, :, q].sum(1) if D[p].ndim == 2 else \
+                np.einsum("bnc,bnc->bc", Sw[:, :, q], D[p])
+            G[:, :, p, P + q] = G[:, :, P + q, p] = g
+        for k in range(q, Q):
+            G[:, :, P + q, P + k] = G[:, :, P + k, P + q] = \
+                np.einsum("bnc,bnc->bc", Sw[:, :, q], S[:, :, k])
+    yy = dm["yy"]
     if prior is not None:
         mu, lam = prior
         G = G.copy()
-        G[:, :, 1, 1] += lam
+        G[:, :, P, P] += lam
         r = r.copy()
-        r[:, :, 1] += lam * mu
+        r[:, :, P] += lam * mu
         yy = yy + lam * mu * mu
-    c, rss = _nnls_small(G.reshape(B * 3, 1 + Q, 1 + Q), r.reshape(B * 3, 1 + Q),
-                         yy.reshape(B * 3))
-    return (np.swapaxes(c.reshape(B, 3, 1 + Q), 1, 2), rss.reshape(B, 3), G)
+    c, rss = _nnls_small(G.reshape(B * 3, K, K), r.reshape(B * 3, K), yy.reshape(B * 3))
+    return (np.swapaxes(c.reshape(B, 3, K), 1, 2), rss.reshape(B, 3), G)
+
+
+def coat_share(kd: np.ndarray) -> np.ndarray:
+    """(B,) the coated part's share of the diffuse amplitudes' luminance, from the two
+    per channel (B, 2, 3) (matte, coated); 0 where both are 0."""
+    lum = kd @ LUMINANCE  # (B, 2)
+    tot = lum.sum(1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(tot > 0, np.clip(lum[:, 1] / tot, 0, 1), 0.0)
 
 
 def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
                      points: np.ndarray, lights_mm: np.ndarray, weights: np.ndarray | None,
                      grid: np.ndarray | None = None, sd: bool = True,
-                     prior: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+                     prior: dict[str, np.ndarray] | None = None,
+                     with_coat: bool = True, evidence: bool = False,
+                     start: dict[str, np.ndarray] | None = None,
+                     coat_choice: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Fit a batch of texels.
 
     Parameters
@@ -205,7 +312,14 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
         amplitude per light and channel is fitted instead of a shared ``Ks`` (the pilot
         fit of :func:`light_weights`).
     grid : the alphas searched (:func:`alpha_grid`); sd : False: only ``alpha``,
-        ``coeffs`` (B, 1 + Q, 3) and ``rss``.
+        ``coat``, ``coeffs`` (B, 1 + Q, 3) and ``rss``.
+    with_coat : False: every texel matte (the coat's share 0).
+    evidence : return, for :func:`coat_evidence`, each texel's ``coat_f`` (the F statistic
+        of its coat), ``alpha`` and ``coat`` (the coated model's), ``alpha_matte`` (the
+        matte model's) and, with priors, ``sig2``: the state ``start`` takes.
+    start : an ``evidence`` call's result: its alphas and coat shares taken, no search.
+    coat_choice : (B,) bool, the texels that keep their coat (the others matte); None:
+        those whose own F statistic passes :data:`COAT_F`.
     prior : Gaussian priors per texel (shared ``Ks`` only): ``u_mean``, ``u_var`` (B,)
         on ln alpha, ``ks_mean``, ``ks_var`` (B, 3) on Ks (:func:`neighbour_priors`);
         the data's residuals are scaled by each channel's residual variance of the
@@ -228,6 +342,9 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
     shared = weights is not None
     w = np.asarray(weights, float) if shared else np.ones((J, 3))
     e_w = e @ w  # (B, 3)
+    # the diffuse bases: matte (constant over the views) and coated
+    coated = ((e * coat_transmittance(l[..., 2])) @ w)[:, None, :] \
+        * coat_transmittance(np.asarray(views, float)[..., 2])[..., None]  # (B, N, 3)
 
     # the half vectors do not depend on alpha: their cosines once for every alpha tried
     v = np.asarray(views, float)[:, :, None, :]
@@ -243,43 +360,22 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
             return (s @ w)[:, :, None, :]  # (B, N, 1, 3)
         return np.broadcast_to(s[..., None], s.shape + (3,))
 
-    prof = np.empty((B, len(grid)))
-    for g, a in enumerate(grid):
-        prof[:, g] = _amplitudes(y, omega, e_w, bases(np.full(B, a)))[1].sum(1)
     u = np.log(grid)
-    amp_prior = None
-    if prior is not None:
-        if not shared:
-            raise ValueError("priors need the lights' intensities (a shared Ks)")
-        # each channel's residual variance of the texel's own best fit
-        own = grid[np.argmin(prof, 1)]
-        rss_own = _amplitudes(y, omega, e_w, bases(own))[1]
-        nobs = np.maximum((omega > 0).sum(1) - 2, 1)[:, None]
-        scale = np.einsum("bn,bnc->bc", omega, y * y) / np.maximum((omega > 0).sum(1), 1)[:, None]
-        sig2 = np.maximum(rss_own / nobs, 1e-8 * scale + 1e-30)  # (B, 3)
-        amp_prior = (np.nan_to_num(prior["ks_mean"]),
-                     np.where(np.isfinite(prior["ks_mean"]), sig2 / prior["ks_var"], 0.0))
-        upen = np.where(np.isfinite(prior["u_mean"])[:, None],
-                        (u[None] - np.nan_to_num(prior["u_mean"])[:, None]) ** 2
-                        / prior["u_var"][:, None], 0.0)
-        for g, a in enumerate(grid):
-            rss_g = _amplitudes(y, omega, e_w, bases(np.full(B, a)), amp_prior)[1]
-            prof[:, g] = (rss_g / sig2).sum(1) + upen[:, g]
-    # a parabola in log alpha through the best grid point and its neighbours
-    k = np.clip(np.argmin(prof, 1), 1, len(grid) - 2)
-    f0, f1, f2 = (prof[np.arange(B), k + d] for d in (-1, 0, 1))
-    h = u[1] - u[0]
-    curv = (f0 - 2 * f1 + f2) / (h * h)  # second derivative
-    slope = (f2 - f0) / (2 * h)
-    step = np.where(curv > 0, -slope / np.where(curv > 0, curv, 1), 0.0)
-    u_best = u[k] + np.clip(step, -h, h)
-    at_edge = np.argmin(prof, 1)
-    u_best = np.where((at_edge == 0) | (at_edge == len(grid) - 1), u[at_edge], u_best)
-    alpha = np.exp(u_best)
+    every = np.arange(B)
 
-    def objective(alpha, sel=slice(None)):
+    def profile(dm, idx, ap=None, pen=None):
+        """(n, grid) each texel's least objective at every alpha of the grid."""
+        prof = np.empty((len(idx), len(grid)))
+        for g, a in enumerate(grid):
+            rss_g = _amplitudes(y[idx], omega[idx], dm, bases(np.full(len(idx), a), idx),
+                                ap)[1]
+            prof[:, g] = rss_g.sum(1) if pen is None else (rss_g / sig2[idx]).sum(1) + pen[:, g]
+        return prof
+
+    def objective(alpha, dm, sel=slice(None)):
+        """At alphas of the texels ``sel``, with their diffuse bases' sums ``dm``."""
         ap = None if amp_prior is None else (amp_prior[0][sel], amp_prior[1][sel])
-        c, rss, G = _amplitudes(y[sel], omega[sel], e_w[sel], bases(alpha, sel), ap)
+        c, rss, G = _amplitudes(y[sel], omega[sel], dm, bases(alpha, sel), ap)
         if amp_prior is None:
             return c, rss, G, rss.sum(1)
         pen = (rss / sig2[sel]).sum(1)
@@ -288,19 +384,102 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
                         / prior["u_var"][sel], 0.0)
         return c, rss, G, pen
 
-    c, rss, G, obj = objective(alpha)
-    worse = obj > prof.min(1)  # the parabola missed: keep the grid's best
-    if worse.any():
-        alpha[worse] = grid[np.argmin(prof[worse], 1)]
-        c[worse], rss[worse], G[worse], _ = objective(alpha[worse], worse)
-    if not sd:
-        return {"alpha": alpha, "coeffs": c, "rss": rss.sum(1)}
+    def best_alpha(prof, cols, idx):
+        """Each texel's alpha from its profile (a parabola in log alpha through the best
+        grid point and its neighbours) and its amplitudes there."""
+        n = len(idx)
+        k = np.clip(np.argmin(prof, 1), 1, len(grid) - 2)
+        f0, f1, f2 = (prof[np.arange(n), k + d] for d in (-1, 0, 1))
+        h = u[1] - u[0]
+        curv = (f0 - 2 * f1 + f2) / (h * h)  # second derivative
+        slope = (f2 - f0) / (2 * h)
+        step = np.where(curv > 0, -slope / np.where(curv > 0, curv, 1), 0.0)
+        u_best = u[k] + np.clip(step, -h, h)
+        at_edge = np.argmin(prof, 1)
+        u_best = np.where((at_edge == 0) | (at_edge == len(grid) - 1), u[at_edge], u_best)
+        alpha = np.exp(u_best)
+        c, _, _, obj = objective(alpha, _diffuse_moments(y[idx], omega[idx], cols), idx)
+        worse = obj > prof.min(1)  # the parabola missed: keep the grid's best
+        if worse.any():
+            alpha[worse] = grid[np.argmin(prof[worse], 1)]
+            c[worse] = objective(alpha[worse], _diffuse_moments(
+                y[idx[worse]], omega[idx[worse]], [x[worse] for x in cols]), idx[worse])[0]
+        return alpha, c
+
+    def mixed(coat, idx):
+        """(n, N, 3) the one diffuse basis of the texels idx at coat shares (n,)."""
+        return (1 - coat)[:, None, None] * e_w[idx][:, None, :] \
+            + coat[:, None, None] * coated[idx]
+
     nobs = (omega > 0).sum(1)
+    amp_prior = upen = sig2 = None
+    if prior is not None:
+        if not shared:
+            raise ValueError("priors need the lights' intensities (a shared Ks)")
+        upen = np.where(np.isfinite(prior["u_mean"])[:, None],
+                        (u[None] - np.nan_to_num(prior["u_mean"])[:, None]) ** 2
+                        / prior["u_var"][:, None], 0.0)
+    cols = [e_w, coated] if with_coat else [e_w]
+    if start is None:
+        D2 = _diffuse_moments(y, omega, cols)
+        prof = profile(D2, every)
+        if prior is not None:
+            # each channel's residual variance of the texel's own best fit
+            own = grid[np.argmin(prof, 1)]
+            rss_own = _amplitudes(y, omega, D2, bases(own))[1]
+            scale = np.einsum("bn,bnc->bc", omega, y * y) / np.maximum(nobs, 1)[:, None]
+            sig2 = np.maximum(rss_own / np.maximum(nobs - 2, 1)[:, None],
+                              1e-8 * scale + 1e-30)  # (B, 3)
+    else:
+        sig2 = start.get("sig2")
+    if prior is not None:
+        amp_prior = (np.nan_to_num(prior["ks_mean"]),
+                     np.where(np.isfinite(prior["ks_mean"]), sig2 / prior["ks_var"], 0.0))
+    if start is None:
+        if prior is not None:
+            prof = profile(D2, every, amp_prior, upen)
+        alpha, c = best_alpha(prof, cols, every)
+        # the coat's share of the diffuse light
+        coat = coat_share(c[:, :2]) if with_coat else np.zeros(B)
+        if not sd:
+            c, rss, G, _ = objective(alpha, _diffuse_moments(y, omega, [mixed(coat, every)]))
+            return {"alpha": alpha, "coat": coat, "coeffs": c, "rss": rss.sum(1)}
+        # the coat is kept where it explains the data better than a matte texel does, by
+        # an F test of its one parameter: on a matte texel its fall-off toward grazing
+        # trades against a broad lobe's rise (alpha near 1) and fits noise (with priors,
+        # their penalties left out)
+        alpha_m, f_coat = alpha, np.zeros(B)
+        if with_coat:
+            dm1 = _diffuse_moments(y, omega, [e_w])
+            alpha_m, _ = best_alpha(profile(dm1, every, amp_prior, upen), [e_w], every)
+            rss_m = objective(alpha_m, dm1)[1]
+            rss_c = objective(alpha, _diffuse_moments(y, omega, [mixed(coat, every)]))[1]
+            # per channel, then their mean: a view's noise is shared by its channels
+            # (one pixel), so the three channels' gains are one parameter's, not three
+            dof_c = np.maximum(nobs - (2 if shared else 1 + J) - 1, 1)[:, None]
+            f_coat = ((rss_m - rss_c) / np.maximum(rss_c / dof_c, 1e-300)).mean(1)
+        if evidence:
+            return {"coat_f": f_coat, "alpha": alpha, "coat": coat, "alpha_matte": alpha_m,
+                    **({} if sig2 is None else {"sig2": sig2})}
+    else:
+        alpha, coat, alpha_m = (np.array(start[k], float) for k in
+                                ("alpha", "coat", "alpha_matte"))
+        f_coat = np.asarray(start["coat_f"], float)
+    keep = (f_coat > COAT_F) if coat_choice is None else np.asarray(coat_choice, bool)
+    keep = keep & bool(with_coat)
+    alpha = np.where(keep, alpha, alpha_m)
+    coat = np.where(keep, coat, 0.0)
+    # the amplitudes and their sds at the chosen alpha and coat
+    dif = mixed(coat, every)
+    c, rss, _, _ = objective(alpha, _diffuse_moments(y, omega, [dif]))
+    # a matte texel's coat is not a parameter of its fit (the F test fixed it)
+    d_coat = np.where(keep[:, None, None], coated - e_w[:, None, :], 0.0)
+    sd_all = _sandwich_sd(y, omega, dif, d_coat, c, bases, alpha)
+    sd_all[:, -2] = np.where(keep, sd_all[:, -2], np.nan)
     Q = c.shape[1] - 1
-    dof = np.maximum(3 * nobs - (3 * (1 + Q) + 1), 1)
-    sd_all = _sandwich_sd(y, omega, e_w, c, lambda a: bases(a), alpha)
-    sd_c = sd_all[:, :-1].reshape(B, 3, 1 + Q)  # per channel: Kd, amplitudes
-    sd_u = sd_all[:, -1]
+    dof = np.maximum(3 * nobs - (3 * (1 + Q) + 1 + keep), 1)
+    sd_c = sd_all[:, :-2].reshape(B, 3, 1 + Q)  # per channel: Kd, amplitudes
+    sd_coat, sd_u = sd_all[:, -2], sd_all[:, -1]
     if prior is not None:  # the posterior's: data and prior combined
         with np.errstate(divide="ignore"):
             has = np.isfinite(prior["u_mean"])
@@ -312,33 +491,40 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
     params[:, SV_KD] = c[:, 0]
     params[:, SV_KS] = c[:, 1]
     params[:, SV_ALPHA] = alpha
+    params[:, SV_COAT] = coat
     sd = np.empty((B, SV_SIZE))
     sd[:, SV_KD] = sd_c[:, :, 0]
     sd[:, SV_KS] = sd_c[:, :, 1]
     sd[:, SV_ALPHA] = alpha * sd_u
+    sd[:, SV_COAT] = sd_coat
     ks = (c[:, 1:2] * w[None]) if shared else c[:, 1:]
     return {"estimate": params, "ks": ks, "stdev": sd,
-            "stdev_ks": sd_c[:, :, 1:].swapaxes(1, 2), "rss": rss.sum(1), "dof": dof}
+            "stdev_ks": sd_c[:, :, 1:].swapaxes(1, 2), "rss": rss.sum(1), "dof": dof,
+            "coat_f": f_coat}
 
 
-def _sandwich_sd(y, omega, e_w, c, bases, alpha, rel_step: float = 1e-3) -> np.ndarray:
-    """(B, 3 (1 + Q) + 1) standard deviations of each channel's amplitudes (Kd, then the
-    Q specular ones) and of ln alpha: the sandwich ``A^-1 (J^T W diag(r^2) W J) A^-1``,
-    ``A = J^T W J``, robust to noise that grows with the radiance (a highlight's views
-    are noisier than the rest), with MacKinnon and White's HC3 leverage correction
-    ``r_i / (1 - h_ii)``."""
+def _sandwich_sd(y, omega, diffuse, d_coat, c, bases, alpha, rel_step: float = 1e-3,
+                 ) -> np.ndarray:
+    """(B, 3 (1 + Q) + 2) standard deviations of each channel's amplitudes (Kd, then the
+    Q specular ones), of the coat's share and of ln alpha: the sandwich
+    ``A^-1 (J^T W diag(r^2) W J) A^-1``, ``A = J^T W J``, robust to noise that grows with
+    the radiance (a highlight's views are noisier than the rest), with MacKinnon and
+    White's HC3 leverage correction ``r_i / (1 - h_ii)``. ``diffuse`` (B, N, 3) is the
+    diffuse basis at the fitted coat share and ``d_coat`` (B, N, 3) its derivative in
+    the share."""
     B, N, _ = y.shape
     Q = c.shape[1] - 1
     S = bases(alpha)  # (B, N, Q, 3)
     dS = (bases(alpha * math.exp(rel_step)) - bases(alpha * math.exp(-rel_step))) \
         / (2 * rel_step)
-    P = 3 * (1 + Q) + 1
+    P = 3 * (1 + Q) + 2
     Jm = np.zeros((B, N, 3, P))
     for ch in range(3):
-        Jm[:, :, ch, ch * (1 + Q)] = e_w[:, None, ch]
+        Jm[:, :, ch, ch * (1 + Q)] = diffuse[..., ch]
         Jm[:, :, ch, ch * (1 + Q) + 1: (ch + 1) * (1 + Q)] = S[..., ch]
+        Jm[:, :, ch, -2] = c[:, None, 0, ch] * d_coat[..., ch]
         Jm[:, :, ch, -1] = np.einsum("bnq,bq->bn", dS[..., ch], c[:, 1:, ch])
-    r = y - (c[:, 0] * e_w)[:, None, :] - np.einsum("bnqc,bqc->bnc", S, c[:, 1:])
+    r = y - c[:, None, 0] * diffuse - np.einsum("bnqc,bqc->bnc", S, c[:, 1:])
     Jm = Jm.reshape(B, N * 3, P)
     wv = np.repeat(omega, 3, axis=1)  # (B, 3N)
     rv = r.reshape(B, N * 3)
@@ -357,7 +543,10 @@ def _profile_objective(y, views, omega, points, lights_mm, grid) -> float:
     """Sum over texels of each one's least weighted residual (each light its own
     specular amplitude) relative to its weighted sum of squares: scale-free, so that
     a bright texel does not outweigh a dark one."""
-    r = fit_svbrdf_batch(y, views, omega, points, lights_mm, None, grid=grid, sd=False)
+    # matte: where the highlights are places the lights, and a coat's freedom on a matte
+    # texel (its fall-off against a broad lobe) only blurs that
+    r = fit_svbrdf_batch(y, views, omega, points, lights_mm, None, grid=grid, sd=False,
+                         with_coat=False)
     ss = np.einsum("bn,bnc->b", omega, y * y)
     return float(np.sum(r["rss"] / np.maximum(ss, 1e-30)))
 
@@ -441,6 +630,18 @@ def svbrdf_outputs() -> dict[str, tuple[tuple[int, ...], str, float]]:
     }
 
 
+def coat_regions(f: np.ndarray, r: int | None = None) -> np.ndarray:
+    """(t, u) bool: the texels that keep their coat, those whose (2 r + 1)^2 window's
+    median coat F statistic (``f`` (t, u), NaN where not fitted: no evidence; r =
+    :data:`POOL_RADIUS`) exceeds :data:`COAT_WINDOW_F`: a coat is a material's, and one
+    texel's views rarely tell it from a broad lobe, a window's do. The median keeps a
+    material's edge where it is (a matte texel beside a plastic keeps no coat)."""
+    r = POOL_RADIUS if r is None else r
+    ok = np.isfinite(f)
+    med = median_filter(np.where(ok, f, 0.0), size=2 * r + 1, mode="reflect")
+    return ok & (med > COAT_WINDOW_F)
+
+
 def fit_svbrdf_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, *,
                     origin: tuple[int, int], grid: tuple[int, int, float, float],
                     lights_mm: np.ndarray, weights: np.ndarray,
@@ -486,12 +687,25 @@ def fit_svbrdf_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarr
     nobs = W.sum(1)
     flat[FitArray.STATUS][nobs < MIN_OBS] = FitStatus.TOO_FEW
     todo = np.flatnonzero(nobs >= MIN_OBS)
+    # first each texel's evidence for a coat, then the coat where its neighbours' agree
+    states, f = {}, np.full(t * u, np.nan)
     for s0 in range(0, len(todo), batch):
         sel = todo[s0:s0 + batch]
+        pr = None if prior is None else {k: v[sel] for k, v in prior.items()}
         try:
-            pr = None if prior is None else {k: v[sel] for k, v in prior.items()}
+            states[s0] = fit_svbrdf_batch(L[sel], V[sel], omega[sel], pts[sel], lights_mm,
+                                          weights, prior=pr, evidence=True)
+        except (np.linalg.LinAlgError, FloatingPointError):
+            flat[FitArray.STATUS][sel] = FitStatus.FAILED
+            continue
+        f[sel] = states[s0]["coat_f"]
+    keep = coat_regions(f.reshape(t, u)).ravel()
+    for s0, state in states.items():
+        sel = todo[s0:s0 + batch]
+        pr = None if prior is None else {k: v[sel] for k, v in prior.items()}
+        try:
             r = fit_svbrdf_batch(L[sel], V[sel], omega[sel], pts[sel], lights_mm, weights,
-                                 prior=pr)
+                                 prior=pr, start=state, coat_choice=keep[sel])
         except (np.linalg.LinAlgError, FloatingPointError):
             flat[FitArray.STATUS][sel] = FitStatus.FAILED
             continue

@@ -29,6 +29,7 @@ from ..conventions import (
     MH_KD,
     MH_M,
     SV_ALPHA,
+    SV_COAT,
     SV_KD,
     SV_KS,
     SVBRDF_MODEL,
@@ -339,8 +340,8 @@ def sh_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path, 
 
 def svbrdf_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Path,
                    name: str, texels: list[tuple[int, int]] | None = None) -> list[Path]:
-    """Parameter maps (Kd, Ks, GGX alpha and its relative sd), residual maps and lobe
-    plots of an svbrdf fit store."""
+    """Parameter maps (Kd, Ks, GGX alpha and its relative sd, the coat's share),
+    residual maps and lobe plots of an svbrdf fit store."""
     g = open_fit(fit_path)
     obs = open_observation_map(obs_path)
     out_dir = Path(out_dir)
@@ -351,7 +352,8 @@ def svbrdf_figures(fit_path: str | Path, obs_path: str | Path, out_dir: str | Pa
         maps = {"Kd (luminance)": p[..., SV_KD] @ LUMINANCE,
                 "Ks (luminance)": p[..., SV_KS] @ LUMINANCE,
                 "GGX alpha": p[..., SV_ALPHA],
-                "sd of alpha / alpha": sd[..., SV_ALPHA] / p[..., SV_ALPHA]}
+                "sd of alpha / alpha": sd[..., SV_ALPHA] / p[..., SV_ALPHA],
+                "coat (diffuse share)": p[..., SV_COAT]}
     paths = [plot_maps(maps, out_dir / f"{name}_params.png", f"{name}: parameter maps")]
 
     def predict(r, c, d):

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import zarr
 
-from ..conventions import FitArray, FitStatus
+from ..conventions import SVBRDF_CHANNELS, FitArray, FitStatus
 from ..errors import InputError
 from ..models.radiometry import RADIOMETRY_KEYS, IrradianceGrid
 from .common import (
@@ -109,7 +109,7 @@ def sh_attrs(hemisphere: str, n: int, sampled_cap: bool, solid_angles: str,
             _LAYOUT: SH_LAYOUT}
 
 
-SVBRDF_LAYOUT = "Kd.R Kd.G Kd.B Ks.R Ks.G Ks.B alpha"
+SVBRDF_LAYOUT = " ".join(SVBRDF_CHANNELS)
 
 
 def svbrdf_attrs(lights_mm: np.ndarray, weights: np.ndarray,
@@ -118,7 +118,8 @@ def svbrdf_attrs(lights_mm: np.ndarray, weights: np.ndarray,
     (``lights``: ``position_mm`` (J, 3), ``weights`` (J, 3) relative RGB intensities,
     the flat-field's ``irradiance`` it put back, :func:`parammap.stores.lights.light_doc`)
     and ``settings`` (where the lights came from)."""
-    return {_MODEL: "svbrdf", "model_version": 1, _LAYOUT: SVBRDF_LAYOUT,
+    # version 2: the coat's share (a plastic's diffuse light dimmed toward grazing)
+    return {_MODEL: "svbrdf", "model_version": 2, _LAYOUT: SVBRDF_LAYOUT,
             _LIGHTS: light_doc(lights_mm, weights, irradiance), **settings}
 
 

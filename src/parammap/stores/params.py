@@ -5,7 +5,7 @@ Channel names and header attributes follow docs/reference/conventions.md:
 - MH (K lobes): ``Kd.R Kd.G Kd.B m`` then for each lobe k = 1..K
   ``lobek.Ks.R lobek.Ks.G lobek.Ks.B lobek.d.X lobek.d.Y lobek.d.Z``;
 - SH (n bands): ``sh.R.00 ... sh.R.(n^2-1)``, then G, then B (two digits at least);
-- a microfacet SVBRDF (``svbrdf-ggx``): ``Kd.R Kd.G Kd.B Ks.R Ks.G Ks.B alpha``, its
+- a microfacet SVBRDF (``svbrdf-ggx``): ``Kd.R Kd.G Kd.B Ks.R Ks.G Ks.B alpha coat``, its
   lights in the header (``parammap_lights``, JSON, :func:`parammap.stores.lights.light_doc`);
 - a diffuse-only map (the baseline): ``Kd.R Kd.G Kd.B``.
 
@@ -57,7 +57,8 @@ __all__ = ["MODELS", "ParamMap", "ParamMapFiles", "best_shares", "channel_names"
 
 logger = logging.getLogger(__name__)
 
-MODELS = {"mh": 1, "sh": 1, "svbrdf": 1, "diffuse": 1, "best": 2}
+# svbrdf 2: the coat's share (version 1 had 7 channels, no coat)
+MODELS = {"mh": 1, "sh": 1, "svbrdf": 2, "diffuse": 1, "best": 2}
 
 
 class ParamMapError(ExrError):

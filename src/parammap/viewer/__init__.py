@@ -20,6 +20,7 @@ inflates them into RGBA layers of a 2-D texture array (texel row 0
 - MH: layer 0 = (Kd.R, Kd.G, Kd.B, m), then per lobe k (Ks.R, Ks.G, Ks.B, 0) at layer
   ``1 + 2k`` and (d.X, d.Y, d.Z, 0) at ``2 + 2k``;
 - SH: layer i = (sh.R.i, sh.G.i, sh.B.i, 0) for coefficient i (docs/reference/conventions.md basis);
+- svbrdf: layer 0 = (Kd.R, Kd.G, Kd.B, alpha), layer 1 = (Ks.R, Ks.G, Ks.B, coat);
 - diffuse: layer 0 = (Kd.R, Kd.G, Kd.B, 0).
 
 A map in tiles (other than SH and a best map's choices) is streamed: the page loads its
@@ -53,7 +54,7 @@ import numpy as np
 
 from ..conventions import sh_norms
 from ..geometry import Intrinsics, undistort_normalized
-from ..models.svbrdf import ALPHA_RANGE, REFERENCE_MM
+from ..models.svbrdf import ALPHA_RANGE, COAT_IOR, REFERENCE_MM
 from ..stores.camera import load_intrinsics, read_poses
 from ..stores.capture import Capture
 from ..stores.metrics import read_metrics
@@ -119,6 +120,7 @@ def glsl_constants() -> str:
         f"const int SV_MAX_LIGHTS = {SV_MAX_LIGHTS};",
         f"const float SV_ALPHA_MIN = {ALPHA_RANGE[0]!r};",
         f"const float SV_REFERENCE_MM = {REFERENCE_MM!r};",
+        f"const float SV_COAT_IOR = {COAT_IOR!r};",
     ])
 
 

@@ -609,8 +609,9 @@ def layers_to_params(layers: np.ndarray, info: dict[str, Any]) -> np.ndarray:
         return layers[..., :3].transpose(1, 2, 3, 0).reshape(T, S, 3 * L)
     if info["model"] == "best":  # candidate indices
         return np.rint(layers[0, ..., :2])
-    if info["model"] == "svbrdf":  # (Kd, alpha), (Ks, 0)
-        return np.concatenate([layers[0, ..., :3], layers[1, ..., :3], layers[0, ..., 3:]], -1)
+    if info["model"] == "svbrdf":  # (Kd, alpha), (Ks, coat)
+        return np.concatenate([layers[0, ..., :3], layers[1, ..., :3], layers[0, ..., 3:],
+                               layers[1, ..., 3:]], -1)
     return layers[0, ..., :3].copy()
 
 

@@ -9,6 +9,7 @@ from ..conventions import (
     MH_HEAD,
     MH_KD,
     SV_ALPHA,
+    SV_COAT,
     SV_KD,
     SV_KS,
     mh_dir,
@@ -43,7 +44,7 @@ def layer_info(pm: ParamMap) -> tuple[dict, int]:
         return {"model": "sh", "bands": n}, P // 3
     if pm.model == "diffuse":
         return {"model": "diffuse"}, 1
-    if pm.model == "svbrdf":  # (Kd, alpha), (Ks, 0); its lights for the shader
+    if pm.model == "svbrdf":  # (Kd, alpha), (Ks, coat); its lights for the shader
         pos, w = pm.lights[:2]
         if len(pos) > SV_MAX_LIGHTS:
             raise InputError(f"the viewer evaluates up to {SV_MAX_LIGHTS} lights")
@@ -73,7 +74,7 @@ def viewer_layers(pm: ParamMap) -> tuple[np.ndarray, dict]:
         layers = [np.concatenate([p[..., :2], np.zeros((T, S, 2), np.float32)], -1)]
     elif pm.model == "svbrdf":
         layers = [np.concatenate([p[..., SV_KD], p[..., SV_ALPHA:SV_ALPHA + 1]], -1),
-                  np.concatenate([p[..., SV_KS], np.zeros((T, S, 1), np.float32)], -1)]
+                  np.concatenate([p[..., SV_KS], p[..., SV_COAT:SV_COAT + 1]], -1)]
     else:
         layers = [np.concatenate([p[..., MH_KD], np.zeros((T, S, 1), np.float32)], -1)]
     return np.stack(layers).astype("<f4"), info
