@@ -244,35 +244,51 @@ def _diffuse_moments(y: np.ndarray, omega: np.ndarray, D: list[np.ndarray]) -> d
     return {"D": D, "G": G, "r": r, "yy": np.einsum("bn,bnc->bc", omega, y * y)}
 
 
+def _spec_moments(y: np.ndarray, omega: np.ndarray, D: list[np.ndarray], S: np.ndarray,
+                  ) -> dict:
+    """The sums of :func:`_amplitudes` that involve the Q specular bases S (B, N, Q, 3):
+    against the data, themselves and each diffuse basis of D (:func:`_diffuse_moments`)."""
+    B, N, Q, _ = S.shape
+    P = len(D)
+    Sw = S * omega[:, :, None, None]
+    rs = np.empty((B, 3, Q))
+    Gss = np.empty((B, 3, Q, Q))
+    Gds = np.empty((B, 3, P, Q))
+    for q in range(Q):  # Q is the number of lights at most: plain loops
+        rs[:, :, q] = np.einsum("bnc,bnc->bc", Sw[:, :, q], y)
+        for p in range(P):
+            Gds[:, :, p, q] = D[p] * Sw[:, :, q].sum(1) if D[p].ndim == 2 else \
+                np.einsum("bnc,bnc->bc", Sw[:, :, q], D[p])
+        for k in range(q, Q):
+            Gss[:, :, q, k] = Gss[:, :, k, q] = np.einsum("bnc,bnc->bc", Sw[:, :, q], S[:, :, k])
+    return {"rs": rs, "Gss": Gss, "Gds": Gds}
+
+
 def _amplitudes(y: np.ndarray, omega: np.ndarray, dm: dict, S: np.ndarray,
                 prior: tuple[np.ndarray, np.ndarray] | None = None,
+                sm: dict | None = None, use: list[int] | None = None,
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per channel non-negative diffuse and specular amplitudes of a batch at one alpha.
 
-    y (B, N, 3) radiance, omega (B, N) weights (0: not observed); dm the P diffuse
-    bases' sums (:func:`_diffuse_moments`); S (B, N, Q, 3) the Q specular bases; prior:
-    a Gaussian prior on the first specular amplitude per channel, its mean (B, 3) and
-    its precision (B, 3) in units of the weighted residuals (0: none), whose penalty the
-    RSS then includes. Returns coefficients (B, P + Q, 3) (diffuse first), RSS (B, 3)
-    and the normal matrices (B, 3, P + Q, P + Q) (without the prior)."""
+    y (B, N, 3) radiance, omega (B, N) weights (0: not observed); dm the diffuse bases'
+    sums (:func:`_diffuse_moments`); S (B, N, Q, 3) the Q specular bases; prior: a
+    Gaussian prior on the first specular amplitude per channel, its mean (B, 3) and its
+    precision (B, 3) in units of the weighted residuals (0: none), whose penalty the RSS
+    then includes; sm: the specular sums (:func:`_spec_moments`), when already made; use:
+    which of dm's diffuse bases the model has (default all, P of them).
+    Returns coefficients (B, P + Q, 3) (diffuse first), RSS (B, 3) and the normal
+    matrices (B, 3, P + Q, P + Q) (without the prior)."""
     B, N, Q, _ = S.shape
-    D = dm["D"]
-    P = len(D)
+    sm = _spec_moments(y, omega, dm["D"], S) if sm is None else sm
+    use = list(range(len(dm["D"]))) if use is None else use
+    P = len(use)
     K = P + Q
-    Sw = S * omega[:, :, None, None]
     G = np.empty((B, 3, K, K))
-    G[:, :, :P, :P] = dm["G"]
-    r = np.empty((B, 3, K))
-    r[:, :, :P] = dm["r"]
-    for q in range(Q):  # Q is the number of lights at most: plain loops
-        r[:, :, P + q] = np.einsum("bnc,bnc->bc", Sw[:, :, q], y)
-        for p in range(P):
-            g = D[p] * Sw[:, :, q].sum(1) if D[p].ndim == 2 else \
-                np.einsum("bnc,bnc->bc", Sw[:, :, q], D[p])
-            G[:, :, p, P + q] = G[:, :, P + q, p] = g
-        for k in range(q, Q):
-            G[:, :, P + q, P + k] = G[:, :, P + k, P + q] = \
-                np.einsum("bnc,bnc->bc", Sw[:, :, q], S[:, :, k])
+    G[:, :, :P, :P] = dm["G"][:, :, use][:, :, :, use]
+    G[:, :, :P, P:] = sm["Gds"][:, :, use]
+    G[:, :, P:, :P] = np.swapaxes(G[:, :, :P, P:], 2, 3)
+    G[:, :, P:, P:] = sm["Gss"]
+    r = np.concatenate([dm["r"][:, :, use], sm["rs"]], 2)
     yy = dm["yy"]
     if prior is not None:
         mu, lam = prior
@@ -363,14 +379,18 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
     u = np.log(grid)
     every = np.arange(B)
 
-    def profile(dm, idx, ap=None, pen=None):
-        """(n, grid) each texel's least objective at every alpha of the grid."""
-        prof = np.empty((len(idx), len(grid)))
+    def profile(dm, uses, idx, ap=None, pen=None):
+        """(n, grid) each texel's least objective at every alpha of the grid, one per
+        diffuse model (``uses``: which of dm's bases it has; the specular sums once)."""
+        profs = [np.empty((len(idx), len(grid))) for _ in uses]
         for g, a in enumerate(grid):
-            rss_g = _amplitudes(y[idx], omega[idx], dm, bases(np.full(len(idx), a), idx),
-                                ap)[1]
-            prof[:, g] = rss_g.sum(1) if pen is None else (rss_g / sig2[idx]).sum(1) + pen[:, g]
-        return prof
+            S = bases(np.full(len(idx), a), idx)
+            sm = _spec_moments(y[idx], omega[idx], dm["D"], S)
+            for prof, use in zip(profs, uses, strict=True):
+                rss_g = _amplitudes(y[idx], omega[idx], dm, S, ap, sm, use)[1]
+                prof[:, g] = rss_g.sum(1) if pen is None else \
+                    (rss_g / sig2[idx]).sum(1) + pen[:, g]
+        return profs
 
     def objective(alpha, dm, sel=slice(None)):
         """At alphas of the texels ``sel``, with their diffuse bases' sums ``dm``."""
@@ -420,12 +440,16 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
                         (u[None] - np.nan_to_num(prior["u_mean"])[:, None]) ** 2
                         / prior["u_var"][:, None], 0.0)
     cols = [e_w, coated] if with_coat else [e_w]
+    # the matte model's profile beside the coated one's where the coat is tested
+    both = with_coat and sd and start is None
     if start is None:
         D2 = _diffuse_moments(y, omega, cols)
-        prof = profile(D2, every)
+        dm1 = _diffuse_moments(y, omega, [e_w])
+        uses = [list(range(len(cols))), [0]] if both else [list(range(len(cols)))]
+        profs = profile(D2, uses, every)
         if prior is not None:
             # each channel's residual variance of the texel's own best fit
-            own = grid[np.argmin(prof, 1)]
+            own = grid[np.argmin(profs[0], 1)]
             rss_own = _amplitudes(y, omega, D2, bases(own))[1]
             scale = np.einsum("bn,bnc->bc", omega, y * y) / np.maximum(nobs, 1)[:, None]
             sig2 = np.maximum(rss_own / np.maximum(nobs - 2, 1)[:, None],
@@ -437,8 +461,8 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
                      np.where(np.isfinite(prior["ks_mean"]), sig2 / prior["ks_var"], 0.0))
     if start is None:
         if prior is not None:
-            prof = profile(D2, every, amp_prior, upen)
-        alpha, c = best_alpha(prof, cols, every)
+            profs = profile(D2, uses, every, amp_prior, upen)
+        alpha, c = best_alpha(profs[0], cols, every)
         # the coat's share of the diffuse light
         coat = coat_share(c[:, :2]) if with_coat else np.zeros(B)
         if not sd:
@@ -449,9 +473,8 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
         # trades against a broad lobe's rise (alpha near 1) and fits noise (with priors,
         # their penalties left out)
         alpha_m, f_coat = alpha, np.zeros(B)
-        if with_coat:
-            dm1 = _diffuse_moments(y, omega, [e_w])
-            alpha_m, _ = best_alpha(profile(dm1, every, amp_prior, upen), [e_w], every)
+        if both:
+            alpha_m, _ = best_alpha(profs[1], [e_w], every)
             rss_m = objective(alpha_m, dm1)[1]
             rss_c = objective(alpha, _diffuse_moments(y, omega, [mixed(coat, every)]))[1]
             # per channel, then their mean: a view's noise is shared by its channels
