@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import base64
 import contextlib
+import dataclasses
 import io
 import os
 import shutil
@@ -516,11 +517,19 @@ def test_texel_inspector_shows_the_clicked_texel(viewer_dir, chromium):
 @pytest.fixture(scope="module")
 def svbrdf_viewer_dir(viewer_dir, tmp_path_factory):
     """viewer_dir's capture with the lights found from its mh-2 fit and the microfacet
-    SVBRDF fitted under them, on a page of its own."""
+    SVBRDF fitted under them, on a page of its own; its left half given a full coat
+    (the analytic capture's Phong patches have none), so that the page draws both."""
+    from parammap.conventions import SV_COAT
+    from parammap.stores.params import write_param_map
+
     cap, out, _ = viewer_dir
     assert main(["lights", "--out", str(out), "--set", "lights.source=mh-2"]) == 0
     assert main(["fit-svbrdf", "--out", str(out), "--workers", "1"]) == 0
     assert main(["export", "--out", str(out), "--model", "svbrdf-ggx"]) == 0
+    path = out / "params" / "svbrdf-ggx.exr"
+    pm = read_param_map(path)
+    pm.params[:, : pm.shape[1] // 2, SV_COAT] = 1.0
+    write_param_map(path, pm)
     vdir = tmp_path_factory.mktemp("svbrdf-viewer")
     assert main(["viewer", str(cap), "--out", str(out), "--figures", str(vdir), "--model",
                  "svbrdf-ggx", "--model", "diffuse"]) == 0
@@ -531,8 +540,11 @@ def test_relightable_map_matches_python_renderer_as_its_light_moves(svbrdf_viewe
                                                                       chromium):
     """The svbrdf map in a held-out view against the Python renderer, under its own
     lights and with its first light moved 80 mm along x and 60 mm down (the page's
-    light sliders): within 2 levels on average both times, and the moved light changes
-    the picture."""
+    light sliders): within 2 levels on average both times, within 0.3 of the coat's own
+    effect where the coated half differs from the same map drawn matte, and the moved
+    light changes the picture."""
+    from parammap.conventions import SV_COAT
+
     cap, out, vdir = svbrdf_viewer_dir
     recs = yaml.safe_load((out / "camera" / "poses.yaml").read_text())["views"]
     held = next(r for r in recs if r["holdout"] and r["kept"])
@@ -556,5 +568,15 @@ def test_relightable_map_matches_python_renderer_as_its_light_moves(svbrdf_viewe
             refs.append(tone_map(ref, gamma).astype(int))
             diff = np.abs(shots[-1].astype(int) - refs[-1])[inside]
             assert diff.mean() < 2.0, (shift, diff.mean())
+            # where the coat shows (the same map drawn matte differs), the page draws it
+            p0 = q.params.copy()
+            p0[..., SV_COAT] = 0.0
+            ref0 = tone_map(render(dataclasses.replace(q, params=p0), intr,
+                                   np.array(held["R"]), np.array(held["t"]))[0],
+                            gamma).astype(int)
+            coat = inside & (ref0 != refs[-1]).any(-1)
+            shows = np.abs(ref0 - refs[-1])[coat].mean()
+            assert coat.sum() > 1000 and shows > 1.0, (coat.sum(), shows)
+            assert np.abs(shots[-1].astype(int) - refs[-1])[coat].mean() < 0.3 * shows
     assert not errors
     assert np.abs(refs[1] - refs[0])[inside].mean() > 2.0
