@@ -196,7 +196,8 @@ def predict(model: str, P: np.ndarray, V: np.ndarray, points: np.ndarray | None 
 def loo_svbrdf(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray, w: np.ndarray,
                points: np.ndarray, lights: tuple, rel_step: float = 1e-3) -> Loo:
     """Leave-one-out residuals of an svbrdf map (:mod:`parammap.models.svbrdf`): Kd, Ks,
-    ln alpha and the coat's share refitted without the view, linearised at the fit.
+    ln alpha and the coat's share (where its region kept one) refitted without the view,
+    linearised at the fit.
     ``lights`` as :attr:`parammap.stores.params.ParamMap.lights`: with a flat-field's
     irradiance its radiance is divided by it, as the observations were."""
     P = np.nan_to_num(np.asarray(P, float))
@@ -221,7 +222,8 @@ def loo_svbrdf(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray, w: np
     J[..., SV_KD] = diffuse[..., None] * eye
     J[..., SV_KS] = S[..., None] * eye
     J[..., SV_ALPHA] = dS * P[:, None, SV_KS]
-    J[..., SV_COAT] = (coated - matte) * P[:, None, SV_KD]
+    # a matte texel's coat was fixed at 0 by its region (not a parameter of its fit)
+    J[..., SV_COAT] = np.where(coat > 0, (coated - matte) * P[:, None, SV_KD], 0.0)
     J *= k[:, None, None, None]
     pred = diffuse * P[:, None, SV_KD] + S * P[:, None, SV_KS]
     r = np.where(W[..., None], k[:, None, None] * pred - L, 0.0)
