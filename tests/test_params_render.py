@@ -73,6 +73,13 @@ def test_bad_exr_input_is_a_clear_error(tmp_path):
               {"parammap_model": "mh", "parammap_model_version": 2})
     with pytest.raises(ParamMapError, match="version 2"):
         read_param_map(tmp_path / "v2.exr")
+    # an svbrdf map from before its coat (version 1, seven channels): refit, one line
+    old = "Kd.R Kd.G Kd.B Ks.R Ks.G Ks.B alpha"
+    write_exr(tmp_path / "svbrdf-v1.exr", {c: np.zeros((2, 2)) for c in old.split()},
+              {"parammap_model": "svbrdf", "parammap_model_version": 1,
+               "parammap_layout": old, "S": 2, "T": 2, "width_mm": 1.0, "height_mm": 1.0})
+    with pytest.raises(ParamMapError, match="svbrdf-v1.exr: svbrdf map version 1 .*rerun"):
+        read_param_map(tmp_path / "svbrdf-v1.exr")
 
 
 def test_renderer_reproduces_generator_photo_of_exact_mh_patch(tiny_capture):

@@ -181,7 +181,8 @@ def read_param_map(path: str | Path, with_sd: bool = True) -> ParamMap:
                             f"(known: {', '.join(MODELS)})")
     if h.get("parammap_model_version") != MODELS[model]:
         raise ParamMapError(f"{path}: {model} map version {h.get('parammap_model_version')!r}"
-                            f" is not supported (expected {MODELS[model]})")
+                            f" is not supported (expected {MODELS[model]}; a map of another "
+                            "parammap version: rerun its fit and export)")
     layout = str(h.get("parammap_layout", "")).split()
     try:
         expected = channel_names(model, len(layout))
