@@ -52,7 +52,8 @@ from ..geometry import texel_centres
 from .residuals import mean_percentage_residual
 from .weights import noise_weights, reduced_chi2
 
-__all__ = ["ALPHA_RANGE", "COAT_F", "COAT_IOR", "COAT_WINDOW_F", "MIN_OBS", "alpha_grid",
+__all__ = ["ALPHA_RANGE", "COAT_F", "COAT_IOR", "COAT_WINDOW_F", "MIN_OBS", "OFF_HIGHLIGHT",
+           "alpha_grid",
            "coat_regions", "coat_share", "coat_transmittance", "fit_svbrdf_batch",
            "fit_svbrdf_tile", "fresnel_dielectric", "ggx_vis", "light_terms",
            "light_weights", "metallic_roughness", "neighbour_priors", "pool_svbrdf_tile",
@@ -70,6 +71,10 @@ COAT_IOR = 1.5
 #: the F statistic (one parameter) a texel's coat must reach to be kept on its own
 #: evidence: chi-square's 99 % point for one degree of freedom
 COAT_F = 6.63
+#: a view is off a texel's highlight where the lobe gives under this share of its
+#: diffuse light: the coat's evidence is judged there (a tenth left a rough plastic,
+#: whose broad lobe reaches most views, with too few views to show its coat)
+OFF_HIGHLIGHT = 0.3
 #: the median F over a texel's (2 r + 1)^2 window (r = :data:`POOL_RADIUS`) for the coat
 #: to be kept: noise alone gives chi-square's median for one degree of freedom, 0.45, and
 #: the 81 texels, at least some 20 of them independent (neighbours share photo pixels),
@@ -444,7 +449,6 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
     both = with_coat and sd and start is None
     if start is None:
         D2 = _diffuse_moments(y, omega, cols)
-        dm1 = _diffuse_moments(y, omega, [e_w])
         uses = [list(range(len(cols))), [0]] if both else [list(range(len(cols)))]
         profs = profile(D2, uses, every)
         if prior is not None:
@@ -475,12 +479,28 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
         alpha_m, f_coat = alpha, np.zeros(B)
         if both:
             alpha_m, _ = best_alpha(profs[1], [e_w], every)
-            rss_m = objective(alpha_m, dm1)[1]
-            rss_c = objective(alpha, _diffuse_moments(y, omega, [mixed(coat, every)]))[1]
+            dif_c = mixed(coat, every)
+            fits = []
+            for a, dif in ((alpha_m, np.broadcast_to(e_w[:, None, :], y.shape)),
+                           (alpha, dif_c)):
+                cc = objective(a, _diffuse_moments(y, omega, [dif]))[0]
+                spec = np.einsum("bnqc,bqc->bnc", bases(a), cc[:, 1:])
+                fits.append((cc[:, None, 0] * dif, spec))
+            # judged on the views off the highlights (each model's lobe under
+            # OFF_HIGHLIGHT of its diffuse light): there a coat's fall-off toward grazing
+            # shows, and a lobe whose shape is not GGX's (a Phong one) does not pass for it
+            off = omega > 0
+            for d_part, s_part in fits:
+                off &= s_part @ LUMINANCE < OFF_HIGHLIGHT * (d_part @ LUMINANCE)
+            w_off = np.where(off, omega, 0.0)
+            rss_m, rss_c = (np.einsum("bn,bnc->bc", w_off, (y - d_part - s_part) ** 2)
+                            for d_part, s_part in fits)
             # per channel, then their mean: a view's noise is shared by its channels
             # (one pixel), so the three channels' gains are one parameter's, not three
-            dof_c = np.maximum(nobs - (2 if shared else 1 + J) - 1, 1)[:, None]
-            f_coat = ((rss_m - rss_c) / np.maximum(rss_c / dof_c, 1e-300)).mean(1)
+            n_off = off.sum(1)
+            dof_c = np.maximum(n_off - 2, 1)[:, None]
+            f_coat = np.where(n_off >= MIN_OBS, ((rss_m - rss_c) / np.maximum(
+                rss_c / dof_c, 1e-300)).mean(1), 0.0)
         if evidence:
             return {"coat_f": f_coat, "alpha": alpha, "coat": coat, "alpha_matte": alpha_m,
                     **({} if sig2 is None else {"sig2": sig2})}
