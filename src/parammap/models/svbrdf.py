@@ -352,8 +352,9 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
     dict: ``estimate`` (B, ``SV_SIZE``) (with ``weights`` None, ``Ks`` of the first
     light), ``ks`` (B, J, 3) the specular amplitude per light (``Ks w_j``), ``stdev``
     (B, ``SV_SIZE``) standard deviations (HC3 sandwich; with ``prior``, the
-    posterior's), ``stdev_ks`` (B, J, 3), ``rss`` (B,) the weighted residual sum,
-    ``dof`` (B,) degrees of freedom.
+    posterior's; the coat's NaN where the texel is matte), ``stdev_ks`` (B, J, 3),
+    ``rss`` (B,) the weighted residual sum, ``dof`` (B,) degrees of freedom, ``coat_f``
+    (B,) the coat's F statistic (0 where not tested).
     """
     grid = alpha_grid() if grid is None else np.asarray(grid, float)
     y = np.asarray(y, float)
