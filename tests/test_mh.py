@@ -722,10 +722,12 @@ def test_compiled_kernels_agree_with_their_numpy_versions():
 def test_compiled_lm_reaches_the_truth_and_respects_bounds():
     """The bounded LM (active set) recovers a noise-free texel's parameters from a start
     far off (half the Kd, 2.2x the m, 3x the Ks, the lobe 15-20 deg away) and ends within
-    its bounds."""
+    its bounds. At a noise-free optimum the last step meets the floating-point floor:
+    whether it then stops on the cost's change or on the damping depends on the CPU's
+    rounding, so either is a stop at the optimum; running out of steps is not."""
     from parammap.models.mh.model import _params_to_x_batch, _x_to_params_batch
     from parammap.models.mh.optim import _bounds
-    from parammap.models.mh.solve import LM_CONVERGED, lm_batch
+    from parammap.models.mh.solve import LM_CONVERGED, LM_DAMPED, lm_batch
 
     case = phong_case(texels=4)
     V = case.direction[1, 1].astype(float)
@@ -744,7 +746,7 @@ def test_compiled_lm_reaches_the_truth_and_respects_bounds():
     lb, ub = _bounds(1, 20.0 * float(L.max() / s[0]))
     why = lm_batch(start, np.ascontiguousarray(V)[None], np.ascontiguousarray(L / s[0])[None],
                    np.ones((1, len(V))), 1, lb, ub[None], 200, 1e-12, np.empty((1, 19)))
-    assert why[0] == LM_CONVERGED
+    assert why[0] in (LM_CONVERGED, LM_DAMPED)
     assert (start >= lb - 1e-12).all() and (start <= ub + 1e-12).all()
     p = _x_to_params_batch(start, s)[0]
     np.testing.assert_allclose(p, truth, rtol=1e-5, atol=1e-6)
