@@ -162,3 +162,58 @@ def test_response_from_brackets_read_one_at_a_time_is_the_whole_sets(tiny_captur
     z = stack[:, idx[:, 1], idx[:, 2]]
     assert len(idx) > 20
     assert ((z > cfg["low"]) & (z < cfg["high"])).all(-1).any(0).all()
+
+
+def test_debevec_solved_in_closed_form_is_the_papers_least_squares():
+    """Eliminating each sample's ln E gives the curve of the paper's whole system
+    (data rows, second-difference rows, g(128) = 0) solved as one least squares,
+    with brackets of different lengths padded by zero-weight entries."""
+    from parammap.stages.hdr import hat_weights, solve_debevec
+
+    rng = np.random.default_rng(3)
+    N, P, lam = 60, 4, 25.0
+    Z = rng.integers(0, 256, (N, P))
+    Z[:10, 3] = 0  # three-exposure brackets among four-exposure ones
+    LT = np.log(rng.uniform(0.01, 1.0, (N, P)))
+    w = hat_weights()
+    A = np.zeros((N * P + 255, 256 + N))
+    b = np.zeros(N * P + 255)
+    rows = np.arange(N * P)
+    A[rows, Z.ravel()] = w[Z].ravel()
+    A[rows, 256 + np.repeat(np.arange(N), P)] = -w[Z].ravel()
+    b[rows] = (w[Z] * LT).ravel()
+    A[N * P, 128] = 1.0
+    zz = np.arange(1, 255)
+    wz = np.maximum(w[zz], 0.05) * lam
+    A[N * P + zz, zz - 1], A[N * P + zz, zz], A[N * P + zz, zz + 1] = wz, -2 * wz, wz
+    paper = np.linalg.lstsq(A, b, rcond=None)[0][:256]
+    np.testing.assert_allclose(solve_debevec(Z, LT, lam, w), paper, atol=1e-9)
+
+
+def test_bracket_spacing_and_the_smoothing_it_starts_from():
+    """The spacing is the median step between a bracket's distinct times, whatever
+    their order; at one stop the selection is the plain solve at ``smoothness``, and
+    at wider spacing it never smooths less than that nor more than smoothness x
+    stops^2."""
+    from parammap.stages.hdr import (
+        bracket_stops,
+        hat_weights,
+        select_smoothness,
+        solve_debevec,
+    )
+
+    assert bracket_stops([np.array([1.0, 0.25, 4.0]), np.array([0.5, 2.0])]) == 2.0
+    assert bracket_stops([np.array([1 / 8, 8.0, 1.0])]) == 3.0
+    assert bracket_stops([np.array([1.0, 1.0])]) == 1.0  # no spacing to read
+    rng = np.random.default_rng(4)
+    X = np.exp(rng.uniform(np.log(2e-3), 0.0, 400))
+    t = 2.0 ** -np.arange(3)
+    Z = np.clip(np.round(255 * (X[:, None] * t) ** (1 / 2.2)), 0, 255).astype(int)
+    LT = np.broadcast_to(np.log(t), Z.shape)
+    w = hat_weights()
+    fit, held = slice(0, 300), slice(300, None)
+    g1 = select_smoothness(Z[fit], LT[fit], Z[held], LT[held], w, 30.0, 1.0)
+    np.testing.assert_allclose(g1, solve_debevec(Z[fit], LT[fit], 30.0, w))
+    g2 = select_smoothness(Z[fit], LT[fit], Z[held], LT[held], w, 30.0, 2.0)
+    assert any(np.allclose(g2, solve_debevec(Z[fit], LT[fit], lam, w))
+               for lam in (30.0, 60.0, 120.0))

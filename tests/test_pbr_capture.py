@@ -60,14 +60,15 @@ def test_capture_format_and_truth(pbr):
 
 
 def test_hdr_within_oracle(pbr):
-    """The recovered filmic response merges within 1.5x of an oracle merge with the
-    true response, on the same pixels."""
+    """The recovered filmic response merges within 1.25x of an oracle merge with the
+    true response, on the same pixels (issue 45; measured 1.02x at the median and the
+    95th percentile, 1.35x / 1.39x before the prior followed the bracket's 2 stops)."""
     from parammap.synth.testsupport import hdr_errors
 
     cap, truth, out = pbr
     e = hdr_errors(cap, truth, out, ["v000", "v010", "v020", "v031"])
-    assert e["median"] < 1.5 * e["oracle_median"], e
-    assert e["p95"] < 1.5 * e["oracle_p95"], e
+    assert e["median"] < 1.25 * e["oracle_median"], e
+    assert e["p95"] < 1.25 * e["oracle_p95"], e
 
 
 def test_views_kept_and_poses(pbr):

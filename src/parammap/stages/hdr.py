@@ -39,10 +39,10 @@ from ..stores.radiometry import merged_frame_radiometry
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["HdrError", "fit_sensor_noise", "hat_weights", "load_response", "merge_bracket",
-           "merge_linear", "merge_view", "recover_response", "reexposure_error", "run_hdr",
-           "run_response", "sample_pixels", "save_response", "smooth_candidates",
-           "solve_debevec"]
+__all__ = ["HdrError", "bracket_stops", "fit_sensor_noise", "hat_weights", "load_response",
+           "merge_bracket", "merge_linear", "merge_view", "recover_response",
+           "reexposure_error", "run_hdr", "run_response", "sample_pixels", "save_response",
+           "select_smoothness", "smooth_candidates", "solve_debevec"]
 
 
 def hat_weights(low: int = default("hdr.low"), high: int = default("hdr.high")) -> np.ndarray:
@@ -155,10 +155,55 @@ def _choose_samples(candidates: list[np.ndarray], n: int, low: int, high: int) -
     return cands[np.sort(np.array(chosen[:n] if len(chosen) > n else chosen, int))]
 
 
+def _debevec_normal(Z: np.ndarray, log_t: np.ndarray, weights: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Normal equations (256 x 256, 256) of Debevec-Malik's data rows with each sample's
+    ln E eliminated in closed form (a sample's ln E is the weighted mean of its
+    exposures' g(z) - ln t)."""
+    Z = np.asarray(Z, np.intp)
+    w2 = weights[Z] ** 2
+    W = w2.sum(axis=1)
+    ok = W > 0
+    Z, log_t, w2, W = Z[ok], np.asarray(log_t, float)[ok], w2[ok], W[ok]
+    G = np.zeros((256, 256))
+    rhs = np.zeros(256)
+    np.add.at(G, (Z.ravel(), Z.ravel()), w2.ravel())
+    np.add.at(rhs, Z.ravel(), (w2 * log_t).ravel())
+    mean_log_t = (w2 * log_t).sum(axis=1) / W
+    for p in range(Z.shape[1]):
+        np.add.at(rhs, Z[:, p], -w2[:, p] * mean_log_t)
+        for q in range(Z.shape[1]):
+            np.add.at(G, (Z[:, p], Z[:, q]), -w2[:, p] * w2[:, q] / W)
+    return G, rhs
+
+
+def _debevec_prior(weights: np.ndarray) -> np.ndarray:
+    """(256, 256) normal matrix of the second-difference rows at lambda = 1 plus the
+    anchor g[128] = 0 (its unit row is added separately)."""
+    zz = np.arange(1, 255)
+    wz = np.maximum(weights[zz], 0.05)
+    D = np.zeros((254, 256))
+    D[zz - 1, zz - 1] = wz
+    D[zz - 1, zz] = -2 * wz
+    D[zz - 1, zz + 1] = wz
+    return D.T @ D
+
+
+def _solve_normal(G: np.ndarray, rhs: np.ndarray, prior: np.ndarray, smoothness: float
+                  ) -> np.ndarray:
+    M = G + smoothness**2 * prior
+    M[128, 128] += 1.0
+    return np.linalg.solve(M, rhs)
+
+
 def solve_debevec(
     Z: np.ndarray, log_t: np.ndarray, smoothness: float, weights: np.ndarray
 ) -> np.ndarray:
     """Debevec-Malik's ``gsolve`` for one channel.
+
+    The same least squares as the paper's (weighted data rows, second-difference rows,
+    g[128] = 0), solved with each sample's log radiance eliminated in closed form: a
+    256 x 256 system whatever the number of samples.
 
     Parameters
     ----------
@@ -171,24 +216,81 @@ def solve_debevec(
     -------
     (256,) float64 g(z) = ln X, anchored at g[128] = 0.
     """
-    N, P = Z.shape
-    n_eq = N * P + 255
-    A = np.zeros((n_eq, 256 + N))
-    b = np.zeros(n_eq)
+    G, rhs = _debevec_normal(Z, log_t, weights)
+    return _solve_normal(G, rhs, _debevec_prior(weights), smoothness)
+
+
+def _inconsistency(g: np.ndarray, Z: np.ndarray, log_t: np.ndarray, weights: np.ndarray
+                   ) -> np.ndarray:
+    """(N,) each sample's weighted squared spread of g(z) - ln t about its mean: how far
+    curve ``g`` (256,) is from merging the sample's exposures to one radiance."""
     w = weights[Z]
-    rows = np.arange(N * P)
-    A[rows, Z.ravel()] = w.ravel()
-    A[rows, 256 + np.repeat(np.arange(N), P)] = -w.ravel()
-    b[rows] = (w * log_t).ravel()
-    k = N * P
-    A[k, 128] = 1.0
-    zz = np.arange(1, 255)
-    wz = np.maximum(weights[zz], 0.05) * smoothness
-    A[k + zz, zz - 1] = wz
-    A[k + zz, zz] = -2 * wz
-    A[k + zz, zz + 1] = wz
-    x = np.linalg.lstsq(A, b, rcond=None)[0]
-    return x[:256]
+    y = g[Z] - log_t
+    W = w.sum(axis=1)
+    m = (w * y).sum(axis=1) / np.maximum(W, 1e-12)
+    return np.where(W > 0, (w * (y - m[:, None]) ** 2).sum(axis=1), 0.0)
+
+
+def select_smoothness(Z: np.ndarray, log_t: np.ndarray, Zv: np.ndarray, log_tv: np.ndarray,
+                      weights: np.ndarray, smoothness: float, stops: float) -> np.ndarray:
+    """Debevec's curve with the most smoothing the data allow.
+
+    Exposures a ratio r apart leave the samples blind to any change of g that is
+    periodic in ln X with period ln r (each sample ties g only at exposures r apart);
+    only the second-difference prior holds such a wave down, and its curvature falls as
+    (ln r)^-2, so the prior that restrains it at ``stops`` is ``smoothness * stops**2``.
+    A real response may bend more than that prior lets it: lambda is halved from there
+    (down to ``smoothness``) until the curve merges the validation samples ``Zv`` as
+    consistently as the least smoothed curve, within one standard error (the
+    one-standard-error rule).
+
+    Parameters
+    ----------
+    Z, log_t : (N, P) levels and log times of the fitting samples.
+    Zv, log_tv : (M, P) the same of validation samples, none of them fitted.
+    smoothness : lambda for exposures one stop apart.
+    stops : the brackets' spacing (:func:`bracket_stops`).
+
+    Returns
+    -------
+    (256,) g(z), anchored at g[128] = 0.
+    """
+    G, rhs = _debevec_normal(Z, log_t, weights)
+    prior = _debevec_prior(weights)
+    lams = [smoothness * max(stops, 1.0) ** 2]
+    while lams[-1] / 2 > smoothness:
+        lams.append(lams[-1] / 2)
+    if lams[-1] > smoothness:
+        lams.append(smoothness)
+    curves = [_solve_normal(G, rhs, prior, lam) for lam in lams]
+    if len(curves) == 1 or len(Zv) < 20:
+        return curves[0]
+    scores = np.array([_inconsistency(g, Zv, log_tv, weights) for g in curves])
+    best = int(np.argmin(scores.mean(axis=1)))
+    limit = scores[best].mean() + scores[best].std() / np.sqrt(scores.shape[1])
+    return curves[next(k for k in range(len(lams)) if scores[k].mean() <= limit)]
+
+
+def bracket_stops(times: list[np.ndarray]) -> float:
+    """Median spacing, in stops, between neighbouring exposures of the brackets (1 where
+    no bracket has two distinct times)."""
+    steps = [np.diff(np.log2(np.unique(np.asarray(t, float)))) for t in times]
+    steps = np.concatenate([s for s in steps if s.size] or [np.ones(1)])
+    return float(np.median(steps))
+
+
+def _sample_levels(brackets: list[np.ndarray], times: list[np.ndarray], idx: np.ndarray,
+                   channel: int) -> tuple[np.ndarray, np.ndarray]:
+    """(N, P) levels and log times of samples ``idx`` ((N, 3) bracket, row, column) in
+    one channel; brackets of fewer exposures are padded with level 0 (weight 0)."""
+    P = max(len(b) for b in brackets)
+    Z = np.zeros((len(idx), P), np.intp)
+    LT = np.zeros((len(idx), P))
+    for k, (b, r, cc) in enumerate(idx):
+        p = len(brackets[b])
+        Z[k, :p] = brackets[b][:, r, cc, channel]
+        LT[k, :p] = np.log(times[b])
+    return Z, LT
 
 
 def _monotonic(g: np.ndarray) -> np.ndarray:
@@ -214,10 +316,19 @@ def recover_response(
     times : list of (P_v,) exposure times in seconds.
     method : ``debevec`` (this module's solver, zero weight at black and saturated
         levels) or ``robertson`` (OpenCV's, on the same samples).
+    smoothness : Debevec's lambda for exposures one stop apart, scaled by the square of
+        the brackets' spacing in stops (:func:`bracket_stops`).
 
     Returns
     -------
     (256, 3) g(z) = ln X per channel, anchored at g[128] = 0, strictly increasing.
+
+    Notes
+    -----
+    Exposures a ratio r apart leave the samples blind to any change of g that is
+    periodic in ln X with period ln r (each sample only ties g at levels r apart in
+    exposure); only the second-difference prior holds such a wave down, and its
+    curvature falls as (ln r)^-2, so lambda grows as the square of the spacing.
     """
     if not brackets:
         raise HdrError("no brackets to recover the response from")
@@ -233,18 +344,16 @@ def recover_response(
     w = hat_weights(low, high)
     g = np.zeros((256, 3))
     if method == "debevec":
-        # Samples from brackets of different lengths: solve per length group jointly by
-        # padding with zero-weight entries.
-        P = max(len(b) for b in brackets)
+        # The candidates not chosen judge how much smoothing the data allow.
+        chosen = {(int(b), int(j)) for b, _, j in idx}
+        rest = np.array([(b, 0, j) for b, br in enumerate(brackets)
+                         for j in range(br.shape[2]) if (b, j) not in chosen], int
+                        ).reshape(-1, 3)
+        stops = bracket_stops(times)
         for c in range(3):
-            Z = np.zeros((len(idx), P), int)
-            LT = np.zeros((len(idx), P))
-            for k, (b, r, cc) in enumerate(idx):
-                p = len(brackets[b])
-                Z[k, :p] = brackets[b][:, r, cc, c]
-                LT[k, :p] = np.log(times[b])
-                Z[k, p:] = 0  # weight 0 at level 0
-            g[:, c] = solve_debevec(Z, LT, smoothness, w)
+            Z, LT = _sample_levels(brackets, times, idx, c)
+            Zv, LTv = _sample_levels(brackets, times, rest, c)
+            g[:, c] = select_smoothness(Z, LT, Zv, LTv, w, smoothness, stops)
     elif method == "robertson":
         groups: dict[int, list] = {}
         for b, r, cc in idx:
