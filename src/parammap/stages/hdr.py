@@ -232,7 +232,8 @@ def _inconsistency(g: np.ndarray, Z: np.ndarray, log_t: np.ndarray, weights: np.
 
 
 def select_smoothness(Z: np.ndarray, log_t: np.ndarray, Zv: np.ndarray, log_tv: np.ndarray,
-                      weights: np.ndarray, smoothness: float, stops: float) -> np.ndarray:
+                      weights: np.ndarray, smoothness: float, stops: float
+                      ) -> tuple[np.ndarray, float]:
     """Debevec's curve with the most smoothing the data allow.
 
     Exposures a ratio r apart leave the samples blind to any change of g that is
@@ -253,7 +254,7 @@ def select_smoothness(Z: np.ndarray, log_t: np.ndarray, Zv: np.ndarray, log_tv: 
 
     Returns
     -------
-    (256,) g(z), anchored at g[128] = 0.
+    (256,) g(z), anchored at g[128] = 0, and the lambda chosen.
     """
     G, rhs = _debevec_normal(Z, log_t, weights)
     prior = _debevec_prior(weights)
@@ -264,11 +265,12 @@ def select_smoothness(Z: np.ndarray, log_t: np.ndarray, Zv: np.ndarray, log_tv: 
         lams.append(smoothness)
     curves = [_solve_normal(G, rhs, prior, lam) for lam in lams]
     if len(curves) == 1 or len(Zv) < 20:
-        return curves[0]
+        return curves[0], lams[0]
     scores = np.array([_inconsistency(g, Zv, log_tv, weights) for g in curves])
     best = int(np.argmin(scores.mean(axis=1)))
     limit = scores[best].mean() + scores[best].std() / np.sqrt(scores.shape[1])
-    return curves[next(k for k in range(len(lams)) if scores[k].mean() <= limit)]
+    k = next(k for k in range(len(lams)) if scores[k].mean() <= limit)
+    return curves[k], lams[k]
 
 
 def bracket_stops(times: list[np.ndarray]) -> float:
@@ -350,10 +352,14 @@ def recover_response(
                          for j in range(br.shape[2]) if (b, j) not in chosen], int
                         ).reshape(-1, 3)
         stops = bracket_stops(times)
+        chosen_lams = []
         for c in range(3):
             Z, LT = _sample_levels(brackets, times, idx, c)
             Zv, LTv = _sample_levels(brackets, times, rest, c)
-            g[:, c] = select_smoothness(Z, LT, Zv, LTv, w, smoothness, stops)
+            g[:, c], lam = select_smoothness(Z, LT, Zv, LTv, w, smoothness, stops)
+            chosen_lams.append(f"{lam:.3g}")
+        logger.info(f"response: brackets {stops:.2f} stops apart, smoothness (R, G, B) "
+                    f"{', '.join(chosen_lams)}")
     elif method == "robertson":
         groups: dict[int, list] = {}
         for b, r, cc in idx:
