@@ -231,6 +231,11 @@ def _inconsistency(g: np.ndarray, Z: np.ndarray, log_t: np.ndarray, weights: np.
     return np.where(W > 0, (w * (y - m[:, None]) ** 2).sum(axis=1), 0.0)
 
 
+# The share of the noise's variance that the response curve's own error may add to the
+# bracket's inconsistency (select_smoothness).
+SMOOTHING_BUDGET = 0.1
+
+
 def select_smoothness(Z: np.ndarray, log_t: np.ndarray, Zv: np.ndarray, log_tv: np.ndarray,
                       weights: np.ndarray, smoothness: float, stops: float
                       ) -> tuple[np.ndarray, float]:
@@ -241,9 +246,11 @@ def select_smoothness(Z: np.ndarray, log_t: np.ndarray, Zv: np.ndarray, log_tv: 
     only the second-difference prior holds such a wave down, and its curvature falls as
     (ln r)^-2, so the prior that restrains it at ``stops`` is ``smoothness * stops**2``.
     A real response may bend more than that prior lets it: lambda is halved from there
-    (down to ``smoothness``) until the curve merges the validation samples ``Zv`` as
-    consistently as the least smoothed curve, within one standard error (the
-    one-standard-error rule).
+    (down to ``smoothness``) until the curve merges the validation samples ``Zv`` about
+    as consistently as the least smoothed curve: their mean squared spread at most
+    :data:`SMOOTHING_BUDGET` above the least (or one standard error, where that is
+    more). The spread's excess is what the curve's own error adds to the noise's
+    variance, so a tenth of it costs the merge under 5 % (sqrt(1.1)).
 
     Parameters
     ----------
@@ -259,16 +266,17 @@ def select_smoothness(Z: np.ndarray, log_t: np.ndarray, Zv: np.ndarray, log_tv: 
     G, rhs = _debevec_normal(Z, log_t, weights)
     prior = _debevec_prior(weights)
     lams = [smoothness * max(stops, 1.0) ** 2]
-    while lams[-1] / 2 > smoothness:
+    while lams[-1] / 2 > smoothness * 1.001:
         lams.append(lams[-1] / 2)
-    if lams[-1] > smoothness:
+    if lams[-1] > smoothness * 1.001:
         lams.append(smoothness)
     curves = [_solve_normal(G, rhs, prior, lam) for lam in lams]
     if len(curves) == 1 or len(Zv) < 20:
         return curves[0], lams[0]
     scores = np.array([_inconsistency(g, Zv, log_tv, weights) for g in curves])
     best = int(np.argmin(scores.mean(axis=1)))
-    limit = scores[best].mean() + scores[best].std() / np.sqrt(scores.shape[1])
+    spread = scores[best].mean()
+    limit = spread + max(SMOOTHING_BUDGET * spread, scores[best].std() / np.sqrt(scores.shape[1]))
     k = next(k for k in range(len(lams)) if scores[k].mean() <= limit)
     return curves[k], lams[k]
 
