@@ -135,9 +135,12 @@ def test_a_bracket_merged_in_strips_is_the_bracket_merged_whole(tiny_copy, tmp_p
 def test_response_from_brackets_read_one_at_a_time_is_the_whole_sets(tiny_capture):
     """Issue 47: the response stage keeps only each bracket's candidate samples as it
     reads it (memory of one bracket, not of every view's); the curve is the one
-    recovered from every bracket held at once, and the samples are the same pixels."""
+    recovered from every bracket held at once, and the samples are the same pixels.
+    The response's record names the brackets' spacing and the smoothing each channel
+    kept."""
     from parammap.config import validate_config
     from parammap.stages.hdr import (
+        bracket_stops,
         load_bracket,
         recover_response,
         response_for_capture,
@@ -154,6 +157,10 @@ def test_response_from_brackets_read_one_at_a_time_is_the_whole_sets(tiny_captur
                              cfg["samples"], cfg["smoothness"], cfg["seed"], cfg["low"],
                              cfg["high"])
     np.testing.assert_array_equal(streamed, whole)
+    assert meta["stops"] == pytest.approx(bracket_stops([t for _, t in loaded]), abs=1e-4)
+    assert len(meta["smoothness"]) == 3
+    assert all(cfg["smoothness"] <= lam <= cfg["smoothness"] * max(meta["stops"], 1) ** 2
+               * 1.001 for lam in meta["smoothness"])
     # the samples' coordinates are those of the pixels their levels were read from
     stack = loaded[0][0]
     idx = sample_pixels([stack], 200)

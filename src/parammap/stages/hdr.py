@@ -314,7 +314,7 @@ def recover_response(
     brackets: list[np.ndarray], times: list[np.ndarray], method: str = default("hdr.method"),
     samples: int = default("hdr.samples"), smoothness: float = default("hdr.smoothness"),
     seed: int = 0, low: int = default("hdr.low"),
-    high: int = default("hdr.high"), candidates: bool = False,
+    high: int = default("hdr.high"), candidates: bool = False, info: dict | None = None,
 ) -> np.ndarray:
     """Recover the response from the brackets of one or more views.
 
@@ -328,6 +328,8 @@ def recover_response(
         levels) or ``robertson`` (OpenCV's, on the same samples).
     smoothness : Debevec's lambda for exposures one stop apart, scaled by the square of
         the brackets' spacing in stops (:func:`bracket_stops`).
+    info : filled (``debevec``) with ``stops``, the brackets' spacing, and
+        ``smoothness``, the lambda kept per channel (R, G, B).
 
     Returns
     -------
@@ -365,9 +367,11 @@ def recover_response(
             Z, LT = _sample_levels(brackets, times, idx, c)
             Zv, LTv = _sample_levels(brackets, times, rest, c)
             g[:, c], lam = select_smoothness(Z, LT, Zv, LTv, w, smoothness, stops)
-            chosen_lams.append(f"{lam:.3g}")
+            chosen_lams.append(float(f"{lam:.4g}"))
         logger.info(f"response: brackets {stops:.2f} stops apart, smoothness (R, G, B) "
-                    f"{', '.join(chosen_lams)}")
+                    f"{', '.join(f'{lam:g}' for lam in chosen_lams)}")
+        if info is not None:
+            info.update(stops=round(stops, 4), smoothness=chosen_lams)
     elif method == "robertson":
         groups: dict[int, list] = {}
         for b, r, cc in idx:
@@ -789,9 +793,10 @@ def response_for_capture(
         del stack
         if (n + 1) % 8 == 0:
             logger.info(f"response: read {n + 1}/{len(pick)} brackets")
+    info: dict = {}
     g = recover_response(brackets, times, cfg["method"], cfg["samples"], cfg["smoothness"],
-                         cfg["seed"], cfg["low"], cfg["high"], candidates=True)
-    return g, {"response": cfg["method"], "views_used": used,
+                         cfg["seed"], cfg["low"], cfg["high"], candidates=True, info=info)
+    return g, {"response": cfg["method"], "views_used": used, **info,
                "samples": cfg["samples"], "seconds": time.perf_counter() - t0}
 
 
