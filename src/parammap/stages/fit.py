@@ -58,7 +58,7 @@ from ..models.mh import (
 )
 from ..models.radiometry import IrradianceGrid
 from ..models.sh import fit_sh_tile, parse_sh_model, sh_outputs
-from ..models.sh.cap import GUARD_STEPS
+from ..models.sh.cap import guard_steps
 from ..models.svbrdf import MIN_OBS as SVBRDF_MIN_OBS
 from ..models.svbrdf import (
     POOL_RADIUS,
@@ -510,7 +510,7 @@ def fit_sh_map(obs_path: str | Path, out_path: str | Path, hemisphere: str, n: i
         extra = {"sampled_cap": True,
                  "regularisation_median": float(np.median(lam)) if ok.any() else None,
                  "guarded_texels": int((esc > 0).sum()),
-                 "guard_unresolved_texels": int((esc > GUARD_STEPS).sum()),
+                 "guard_unresolved_texels": int((esc > guard_steps(hemisphere)).sum()),
                  "bands_median": float(np.median(g[FitArray.BANDS][:][ok]))
                  if ok.any() else None}
         if robust and ok.any():

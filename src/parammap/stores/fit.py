@@ -60,7 +60,7 @@ FIT_UNITS = {
     FitArray.CHI2: "1 (reduced chi-square)", FitArray.K_USED: "lobes",
     FitArray.EVALS: "objective evaluations",
     FitArray.STATUS: "parammap.conventions.FitStatus code",
-    FitArray.REG: "1 (relative prior weight)", FitArray.GUARD: "prior escalations",
+    FitArray.REG: "1 (relative prior weight)", FitArray.GUARD: "range-guard escalations",
     FitArray.BANDS: "SH bands",
     FitArray.ROBUST: "1 (share of the robust refit)",
     FitArray.SHRINK: "1 (share of the fit kept over its DC term)",

@@ -185,7 +185,7 @@ def project_cap(
         return (np.swapaxes(c, 1, 2), lam) + ((M,) if system else ())
     if reg != "auto":
         raise InputError(f"regularisation must be a number or 'auto' (got {reg!r})")
-    grid = np.array([0.0] + [10.0 ** k for k in range(-5, 1)])
+    grid = np.asarray(REG_GRID)
     c, score = _loo_scores(Y, radiance, omega,
                            A[None] + grid[:, None, None, None] * scale[None] * D, rhs)
     pick = np.nan_to_num(score, nan=np.inf).argmin(0)  # the least; ties: the weakest
@@ -213,6 +213,9 @@ def resolvable_bands(directions: np.ndarray, n: int) -> int:
     return int(min(n, max(2, math.floor(math.pi / (2 * delta)) + 1)))
 
 
+REG_GRID = (0.0,) + tuple(10.0 ** k for k in range(-5, 1))  # rlsop's lambdas (relative)
+
+
 PRIOR_FLOOR = 1e-3  # weakest prior (relative), also the pilot fit's
 
 
@@ -232,7 +235,7 @@ def prior_strength(radiance: np.ndarray, Y: np.ndarray, omega: np.ndarray,
     return np.clip(res / np.maximum(spread, 1e-30), PRIOR_FLOOR, 1.0)
 
 
-GUARD_STEPS = 4  # escalations of the prior, x10 each
+GUARD_STEPS = 4  # decades the guard escalates (the prior, or rlsop's lambda)
 
 
 GUARD_TOLERANCE = 0.1  # of the texel's observed range
@@ -250,13 +253,22 @@ def guarded_project(
     prior ten times stronger, up to ``GUARD_STEPS`` times, so that directions no view
     looked at are filled by the low bands rather than by an extrapolated lobe.
 
+    ``rlsop`` has a second remedy: smoother bands, lambda stronger by sqrt(10) per
+    escalation (from at least :data:`SMOOTHING_GUARD_START`, up to
+    :func:`guard_steps`), until the reconstruction stays in that range wherever renders
+    may look, between the views as well as where none looked (every direction of
+    :func:`hemisphere_grid` up to the same reach). Of the two, each texel keeps the one
+    whose exact leave-one-view-out error is less: a stronger prior where no view looked
+    also drags a lobe near the edge of the cap, and leave-one-out judges the lambda it
+    chose only at the views, where a lobe's ringing between them does not show.
+
     Only the bands the views resolve are fitted (:func:`resolvable_bands`); the
     coefficients above them are zero.
 
     Returns
     -------
     (B, 3, n^2) coefficients, (B,) the relative lambda, (B,) int8 escalations per texel
-    (``GUARD_STEPS + 1``: still outside after the last one), and the bands fitted; with
+    (:func:`guard_steps` + 1: still outside after the last one), and the bands fitted; with
     ``system``, also the final normal-equation matrices (B, k^2, k^2) of the k fitted
     bands (:func:`project_cap`) and the (B, N) observation weights they were built
     with (``weights`` times the cap's cell fractions): together the linear smoother
@@ -273,29 +285,89 @@ def guarded_project(
                                     Y, prior_scale=np.full(len(Y), PRIOR_FLOOR))[0])
     c, lam, M = project_cap(radiance, directions, weights, n, hemisphere, cap, reg, Y,
                             prior_scale=mu, system=True)
-    esc = np.zeros(len(c), np.int8)
     # renders look from within the zenith range the views covered, not beyond it
     reach = np.arccos(np.clip(directions[..., 2].min(), -1, 1)) + cap.rho
-    Yu = cap.basis_u[cap.zenith_u <= reach]
     omega = weights * cap.fraction
-    if not len(Yu):
-        return (pad_bands(c, full), lam, esc, n) + ((M, omega) if system else ())
     lo, hi = radiance.min(1), radiance.max(1)  # (B, 3)
     tol = GUARD_TOLERANCE * (hi - lo) + 1e-12
-    for step in range(GUARD_STEPS + 1):
-        f = Yu[None] @ np.swapaxes(c, 1, 2)  # (B, U, 3)
-        bad = ((f < (lo - tol)[:, None]) | (f > (hi + tol)[:, None])).any((1, 2))
-        if not bad.any():
-            break
-        if step == GUARD_STEPS:
-            esc[bad] = GUARD_STEPS + 1  # still outside: reported, not hidden
-            break
-        esc[bad] += 1
-        sel = np.flatnonzero(bad)
-        c[sel], _, M[sel] = project_cap(radiance[sel], directions[sel], weights[sel], n,
-                                        hemisphere, cap, lam[sel], Y[sel],
-                                        prior_scale=mu[sel] * 10.0 ** esc[sel], system=True)
-    return (pad_bands(c, full), lam, esc, n) + ((M, omega) if system else ())
+    flag = guard_steps(hemisphere) + 1
+
+    def refit(sel, lam_, prior):
+        return project_cap(radiance[sel], directions[sel], weights[sel], n, hemisphere,
+                           cap, lam_, Y[sel], prior_scale=prior, system=True)
+
+    # where no view looked: the prior ten times stronger per escalation
+    guard = _RangeGuard(c, M, lam, lo - tol, hi + tol)
+    guard.run(cap.basis_u[cap.zenith_u <= reach], GUARD_STEPS, flag,
+              lambda sel, esc: refit(sel, lam[sel], mu[sel] * 10.0 ** esc))
+    if hemisphere != "rlsop":
+        return (pad_bands(guard.c, full), lam, guard.esc, n) + \
+            ((guard.M, omega) if system else ())
+    # rlsop: or smoother bands, held to the range between the views too (leave-one-out
+    # judges a fit only at the views: its lambda may ring there); per texel, the remedy
+    # whose leave-one-out error is less
+    g, _ = hemisphere_grid()
+    smooth = _RangeGuard(c, M, lam, lo - tol, hi + tol)
+
+    def stronger(sel, esc):
+        smooth.lam[sel] = np.maximum(10.0 ** (1 / LAMBDA_STEPS_PER_DECADE)
+                                     * smooth.lam[sel], SMOOTHING_GUARD_START)
+        return refit(sel, smooth.lam[sel], mu[sel])
+
+    smooth.run(_grid_basis(n)[0][np.arccos(g[:, 2]) <= reach], guard_steps(hemisphere),
+               flag, stronger)
+    acted = np.flatnonzero((guard.esc > 0) | (smooth.esc > 0))
+    if len(acted):
+        w = omega[acted] / omega[acted].sum(1, keepdims=True)
+        err = [np.einsum("bn,bnc->b", w, _loo(smoother(r.M[acted], Y[acted], omega[acted]),
+                                              Y[acted], radiance[acted]) ** 2)
+               for r in (guard, smooth)]
+        take = acted[err[1] < err[0]]
+        for name in ("c", "M", "lam", "esc"):
+            getattr(guard, name)[take] = getattr(smooth, name)[take]
+    return (pad_bands(guard.c, full), guard.lam, guard.esc, n) + \
+        ((guard.M, omega) if system else ())
+
+
+class _RangeGuard:
+    """A fit's coefficients (B, 3, k^2), normal-equation matrices and lambdas, refitted
+    by :meth:`run` until their reconstructions stay within (B, 3) bounds."""
+
+    def __init__(self, c, M, lam, lo, hi):
+        self.c, self.M, self.lam = c.copy(), M.copy(), lam.copy()
+        self.lo, self.hi = lo, hi
+        self.esc = np.zeros(len(c), np.int8)
+
+    def outside(self, basis: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        # one product for all texels: (G, k^2) @ (k^2, 3 B)
+        cc = np.swapaxes(self.c[idx], 0, 2).reshape(self.c.shape[2], -1)
+        f = (basis @ cc).reshape(len(basis), 3, len(idx))
+        return ((f < self.lo[idx].T[None]) | (f > self.hi[idx].T[None])).any((0, 1))
+
+    def run(self, basis: np.ndarray, steps: int, flag: int, refit) -> None:
+        """Up to ``steps`` escalations checked at ``basis`` (G, k^2); ``refit(sel, esc)``
+        returns the refit of texels ``sel`` at their escalation counts ``esc``. Texels
+        still outside after the last get ``flag``."""
+        sel = np.arange(len(self.c))  # texels whose current fit is unchecked
+        for step in range(steps + 1 if len(basis) else 0):
+            sel = sel[self.outside(basis, sel)]
+            if not len(sel):
+                return
+            if step == steps:
+                self.esc[sel] = flag  # still outside: reported, not hidden
+                return
+            self.esc[sel] += 1
+            self.c[sel], _, self.M[sel] = refit(sel, self.esc[sel])
+
+
+SMOOTHING_GUARD_START = 1e-2  # rlsop's first lambda (relative) when its guard acts
+LAMBDA_STEPS_PER_DECADE = 2  # rlsop's smoothing guard: lambda x sqrt(10) per escalation
+
+
+def guard_steps(hemisphere: str) -> int:
+    """The most escalations :func:`guarded_project`'s guard makes for a projection; a
+    texel with one more is still outside the range after the last (reported)."""
+    return GUARD_STEPS * (LAMBDA_STEPS_PER_DECADE if hemisphere == "rlsop" else 1)
 
 
 def batch_cap(directions: np.ndarray, n: int) -> tuple[int, SampledCap]:
