@@ -4,6 +4,9 @@ PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV := .venv
 BIN := $(VENV)/bin
 CORES ?= all
+# pytest-xdist workers for `make test`: a module's tests stay on one worker (their
+# module fixtures are built once)
+TEST_WORKERS ?= auto
 
 .PHONY: demo test lint report paper clean-reports setup setup-pbr setup-docs docs browser
 
@@ -63,7 +66,9 @@ test: setup setup-pbr setup-docs browser
 	$(BIN)/ruff check src tests workflow/scripts benchmarks
 	$(BIN)/snakemake --lint --cores 1 --dry-run >/dev/null
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet
-	$(BIN)/python -m pytest -q
+	# one BLAS thread a worker: the workers already fill the cores
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile \
+	  --no-loadscope-reorder
 
 lint: setup
 	$(BIN)/ruff check src tests workflow/scripts benchmarks

@@ -192,7 +192,7 @@ def test_stage_on_the_tiny_capture(tiny_processed, tmp_path):
     off with distance and its lobes are mostly Phong ones, which no physical microfacet
     lobe under a point light matches: the residual is nearly flat along each light's
     distance, and they land 7-21 % off, depending on the MH fit they start from; on
-    the physically based presets within 0.2-4 %, ``test_pbr_capture.py``),
+    the physically based presets within 0.2-4 %, ``test_pbr_relight.py``),
     every texel fitted, the map exported and its
     held-out renders better than diffuse on every held-out view; without lights.yaml
     the stage says which file it lacks; with no light in it, a nominal one overhead."""

@@ -69,7 +69,9 @@ def _shared(browser):
 
 @pytest.fixture(scope="module")
 def viewer_dir(tiny_processed, tmp_path_factory):
-    cap, _, out = tiny_processed
+    cap, _, shared = tiny_processed
+    out = tmp_path_factory.mktemp("viewer-proc") / "proc"
+    shutil.copytree(shared, out)  # the session's folder stays as other tests expect it
     assert main(["fit-mh", str(cap), "--out", str(out), "--lobes", "2", "--workers", "1"]) == 0
     assert main(["fit-sh", str(cap), "--out", str(out), "--model", "sh-wls-16",
                  "--workers", "1"]) == 0
@@ -179,8 +181,8 @@ def test_page_assembles_tiles_and_reduces_sh_tile_by_tile(viewer_dir, tiled_view
     assert not errors, errors
 
 
-STREAM_UP = 16  # the streaming test's map: the tiny mh-2 map, each texel 16 x 16
-STREAM_TILE = 64
+STREAM_UP = 8  # the streaming test's map: the tiny mh-2 map, each texel 8 x 8
+STREAM_TILE = 32
 
 
 def test_page_streams_the_tiles_on_screen_at_the_zoom_level(viewer_dir, tmp_path, chromium):
@@ -239,13 +241,13 @@ def test_page_streams_the_tiles_on_screen_at_the_zoom_level(viewer_dir, tmp_path
         np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1, atol=1e-3)
 
     # opened far away (the address keeps the orbit camera)
-    with _viewer_page(chromium, dirs[STREAM_TILE], "#model=mh-2&az=0.6&el=1.5&dist=10") \
+    with _viewer_page(chromium, dirs[STREAM_TILE], "#model=mh-2&az=0.6&el=1.5&dist=20") \
             as (page, errors):
         first = page.evaluate("(async () => { await viewer.setModel('mh-2');"
                               " return viewer.stream('mh-2'); })()")
         assert len(first[-1]["have"]) == 1 and not any(x["have"] for x in first[:2])
         far = page.evaluate("viewer.settle()")
-        # the surface is about 77 canvas pixels across at 10 sizes away
+        # the surface is about 38 canvas pixels across at 20 sizes away: 5 texels a pixel
         assert far["wanted"] == far["drawn"] == 4
         assert far["levels"][0]["have"] == [] and far["levels"][1]["have"] == []
         page.evaluate("viewer.setResolution(8)")

@@ -71,13 +71,13 @@ def _round_trip(pm):
     return layers, info, back, b"".join(payloads)
 
 
-def test_mh_planes_round_trip_within_their_quantisation(tiny_processed):
+def test_mh_planes_round_trip_within_their_quantisation(tiny_work):
     """MH-2 of the tiny capture: Kd and Ks within half a square-root level, m within half
     a log level, lobe directions within 0.75 deg (half a level of two hemi-octahedral
     planes); the layer layout survives
     (``layers_to_params`` inverts ``viewer_layers``); at most 16 bytes per texel on this
     small, noisy map (5x less than float32; 9-11 on the demo and pbr-bench maps)."""
-    cap, _, out = tiny_processed
+    cap, _, out = tiny_work
     assert main(["fit-mh", str(cap), "--out", str(out), "--lobes", "2", "--workers", "1"]) == 0
     assert main(["export", str(cap), "--out", str(out), "--model", "mh-2"]) == 0
     pm = read_param_map(out / "params" / "mh-2.exr")
@@ -98,14 +98,14 @@ def test_mh_planes_round_trip_within_their_quantisation(tiny_processed):
     assert len(payload) * 16 / 15 / (T * S) <= 16
 
 
-def test_viewer_stage_measures_payload_error_below_half_a_level(tiny_processed, tmp_path):
+def test_viewer_stage_measures_payload_error_below_half_a_level(tiny_work, tmp_path):
     """The viewer stage writes ``manifest.json`` with every model's payload size and the
     error its quantisation adds to renders of the held-out views at the report's gamma:
     below 0.5 mean 8-bit levels for MH, SH (PCA) and diffuse; SH near the budget its
     steps were chosen for."""
     import json
 
-    cap, _, out = tiny_processed
+    cap, _, out = tiny_work
     assert main(["fit-mh", str(cap), "--out", str(out), "--lobes", "2", "--workers", "1"]) == 0
     assert main(["fit-sh", str(cap), "--out", str(out), "--model", "sh-rlsop-36",
                  "--workers", "1"]) == 0

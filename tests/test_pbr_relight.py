@@ -1,0 +1,115 @@
+"""The relightable map and the flat-field on the physically based ``pbr-tiny`` capture
+(conftest.py's ``pbr_tiny``, shared with ``test_pbr_capture.py``): the lights found and
+the microfacet SVBRDF relit under lights the capture never had (issue 48), and a white
+card under the capture's area light (the flat-field)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from parammap.cli import main
+from parammap.conventions import LUMINANCE
+from parammap.stores.observation import open_observation_map
+from parammap.synth.pbr import patch_labels, render_white_card
+
+if os.environ.get("CI"):
+    import mitsuba  # noqa: F401  (CI installs parammap[pbr]: never skip there)
+else:
+    pytest.importorskip("mitsuba", reason="the pbr presets need parammap[pbr] (Mitsuba 3)")
+
+
+def test_svbrdf_relit_from_its_lights(pbr_tiny, tmp_path):
+    """The microfacet SVBRDF on a capture whose materials are microfacet ones: the light
+    (an area light 90 x 60 mm) placed within 2 % of its distance (measured 0.4 %), the
+    held-out views against the clean renders closer than MH-1's on every view (measured
+    5.7 / 5.8 / 5.0 against 6.5 / 11.3 / 8.3), its highlights no more speckled than
+    1.5x the truth's, and relit under other lights (issue 48 item 4)."""
+    import shutil
+
+    from parammap.synth.testsupport import highlight_speckle, holdout_against_truth
+
+    cap, truth, out = pbr_tiny
+    work = tmp_path / "proc"
+    shutil.copytree(out, work)
+    assert main(["lights", "--out", str(work), "--set", "lights.source=mh-1"]) == 0
+    assert main(["fit-svbrdf", "--out", str(work)]) == 0
+    assert main(["export", "--out", str(work), "--model", "svbrdf-ggx"]) == 0
+    m = json.loads((work / "metrics" / "fit-svbrdf-ggx.json").read_text())
+    scene = json.loads((truth / "scene.json").read_text())
+    c = yaml.safe_load((cap / "capture.yaml").read_text())["surface"]
+    centre = np.array([c["width_mm"] / 2, c["height_mm"] / 2, 0.0])
+    light = centre + np.array(scene["lights"][0]["position_mm"])
+    found = np.array(m["light_positions"]["refined_mm"][0])
+    assert np.linalg.norm(found - light) < 0.02 * np.linalg.norm(light - centre), found
+    res = holdout_against_truth(cap, truth, work, ["svbrdf-ggx", "mh-1", "diffuse"])
+    assert all(r["svbrdf-ggx"] < r["mh-1"] for r in res.values()), res
+    sp = highlight_speckle(cap, truth, work, ["svbrdf-ggx"])
+    assert sp["svbrdf-ggx"]["ratio"] < 1.5, sp
+    # under lights the capture never had (the first turned 120 deg, a disc added): the
+    # relightable map follows them (measured 8.4, 1.5x its captured figure; the rest is
+    # the scene's sky, which it cannot tell from its lamps), MH and SH cannot (40-56)
+    from parammap.synth.pbr import render_relit
+    from parammap.synth.testsupport import relit_against_truth
+
+    relit_truth = tmp_path / "truth"
+    shutil.copytree(truth, relit_truth)
+    render_relit(relit_truth)
+    rel = relit_against_truth(cap, relit_truth, work, ["svbrdf-ggx", "mh-1", "sh-rlsop-36"])
+    mean = {m: np.mean([r[m] for r in rel.values()]) for m in ("svbrdf-ggx", "mh-1",
+                                                                "sh-rlsop-36")}
+    captured = np.mean([r["svbrdf-ggx"] for r in res.values()])
+    assert mean["svbrdf-ggx"] < 2 * captured, (mean, captured)
+    assert mean["svbrdf-ggx"] < 0.5 * min(mean["mh-1"], mean["sh-rlsop-36"]), mean
+
+
+def _diffuse_patch_tilt(out, truth) -> float:
+    """How much the matte patch's mean radiance in near-frontal views, over its true
+    albedo, changes across the patch (a plane fitted to its inner texels, relative)."""
+    obs = open_observation_map(out / "observation.zarr")
+    L, W = np.asarray(obs.radiance[:], float), np.asarray(obs.valid[:], bool)
+    frontal = W & (np.asarray(obs.direction[:], float)[..., 2] > np.cos(np.radians(40)))
+    mean = np.nanmean(np.where(frontal, L @ LUMINANCE, np.nan), -1)
+    albedo = cv2.resize(np.load(truth / "albedo.npz")["albedo"].astype(np.float32),
+                        (obs.S, obs.T), interpolation=cv2.INTER_AREA) @ LUMINANCE
+    kinds = [p["kind"] for p in json.loads((truth / "scene.json").read_text())["patches"]]
+    lab = patch_labels(truth, obs.S, obs.T, obs.width_mm, obs.height_mm)
+    inner = cv2.erode((lab == kinds.index("diffuse")).astype(np.uint8),
+                      np.ones((5, 5), np.uint8)) > 0
+    yy, xx = np.nonzero(inner)
+    z = (mean / albedo)[inner]
+    ok = np.isfinite(z)
+    a, *_ = np.linalg.lstsq(np.c_[np.ones(ok.sum()), xx[ok], yy[ok]], z[ok], rcond=None)
+    return float((abs(a[1]) * np.ptp(xx) + abs(a[2]) * np.ptp(yy)) / a[0])
+
+
+def test_white_card_flattens_the_area_light(pbr_tiny, tmp_path):
+    """A white card rendered under the capture's area light (its real fall-off, Monte
+    Carlo noise, no vignetting: a pinhole): the matte patch's radiance, which the light
+    tilts by several per cent across it, is flat to within what the merge's response
+    leaves (the merged frames are ~2 % off linear between the card's and the patch's
+    brightness)."""
+    cap0, truth, out0 = pbr_tiny
+    cap, out = tmp_path / "cap", tmp_path / "proc"
+    shutil.copytree(cap0, cap)
+    cards = render_white_card(cap, truth, views=6)
+    out.mkdir()
+    shutil.copytree(out0 / "camera", out / "camera")
+    shutil.copytree(out0 / "hdr", out / "hdr")
+    for v in cards:
+        assert main(["-q", "hdr", str(cap), "--out", str(out), "--view", v]) == 0
+    tilt = {}
+    for flat in ("false", "true"):
+        sets = ["--set", f"radiometry.flatfield={flat}", "--set", "observation.texels_x=96"]
+        assert main(["-q", "radiometry", str(cap), "--out", str(out), *sets]) == 0
+        assert main(["-q", "observe", str(cap), "--out", str(out), *sets]) == 0
+        tilt[flat] = _diffuse_patch_tilt(out, truth)
+    rec = json.loads((out / "metrics" / "radiometry.json").read_text())["flatfield"]
+    assert rec["card_views"] == cards and rec["vignetting_at_field_max"] < 0.02
+    assert tilt["false"] > 0.05 and tilt["true"] < 0.3 * tilt["false"], tilt
