@@ -134,7 +134,11 @@ class PbrPreset:
     board_dictionary: str = "DICT_5X5_100"
     calib_images: int = 24
     spp: int = 4  # samples per render pixel (render_scale^2 render pixels per photo pixel)
+    # the held-out views' clean renders (and relit truths). Their Monte Carlo noise (6 %
+    # rms a pixel on pbr-tiny) is part of every figure measured against them; "multijitter"
+    # at 8 leaves a fifth of it in a third of the time (docs/results.md, session 40)
     clean_spp: int = 32
+    clean_sampler: str = "independent"
     render_scale: int = 2
     lights: tuple[Light, ...] = (Light(),)
     environment: float = 0.03
@@ -193,6 +197,9 @@ PBR_PRESETS = {
 }
 
 MATERIAL_KINDS = ("roughplastic", "roughconductor", "principled", "diffuse")
+#: stratified samples per render pixel of a board photo: its squares' edges, with half
+#: the Monte Carlo noise of 4 independent samples a pixel and half their time
+BOARD_SPP = 2
 
 
 def _mitsuba():
@@ -411,7 +418,10 @@ def _board_scene(mi, calib: dict, board_img: np.ndarray):
     bh = calib["squares_y"] * calib["square_mm"]
     ext = 4 * max(bw, bh)
     alb = np.repeat(np.where(board_img > 127, 0.8, 0.04).astype(np.float32)[..., None], 3, -1)
-    d = {"type": "scene", "integrator": {"type": "direct"},
+    # cosine-weighted BSDF samples of a uniform sky are exact on the board (nothing in
+    # front of it): sampling the sky as well only adds noise
+    d = {"type": "scene", "integrator": {"type": "direct", "emitter_samples": 0,
+                                         "bsdf_samples": 1},
          "board": {"type": "rectangle",
                    "to_world": _quad_transform([0, 0, 0], [bw, 0, 0], [0, bh, 0]),
                    "bsdf": {"type": "diffuse", "reflectance": _bitmap(mi, alb, nearest=True)}},
@@ -451,7 +461,8 @@ class _Camera:
         my = (f * xy[..., 1] + rh / 2 - 0.5).astype(np.float32)
         return cls(f, (rw, rh), mx, my)
 
-    def sensor(self, mi, R: np.ndarray, t: np.ndarray, spp: int) -> object:
+    def sensor(self, mi, R: np.ndarray, t: np.ndarray, spp: int,
+               sampler: str = "independent") -> object:
         C = -R.T @ t
         M = np.eye(4)
         # Mitsuba's camera looks down +z with x left and y up; OpenCV's x right, y down
@@ -463,7 +474,7 @@ class _Camera:
             "far_clip": 1e5, "to_world": mi.ScalarTransform4f(M.tolist()),
             "film": {"type": "hdrfilm", "width": self.size[0], "height": self.size[1],
                      "rfilter": {"type": "box"}, "pixel_format": "rgb"},
-            "sampler": {"type": "independent", "sample_count": spp}})
+            "sampler": {"type": sampler, "sample_count": spp}})
 
     def photo(self, render: np.ndarray) -> np.ndarray:
         """Resample a pinhole render (rh, rw, 3) into the distorted photo (H, W, 3)."""
@@ -475,8 +486,9 @@ class _Camera:
         return acc / self.map_x.shape[2]
 
 
-def _render(mi, scene, cam: _Camera, R, t, spp: int, seed: int) -> np.ndarray:
-    img = mi.render(scene, sensor=cam.sensor(mi, R, t, spp), seed=seed, spp=spp)
+def _render(mi, scene, cam: _Camera, R, t, spp: int, seed: int,
+            sampler: str = "independent") -> np.ndarray:
+    img = mi.render(scene, sensor=cam.sensor(mi, R, t, spp, sampler), seed=seed, spp=spp)
     return cam.photo(np.array(img))
 
 
@@ -542,9 +554,11 @@ def generate_pbr(
         write_rgb(tmp_truth / "radiance" / f"{view_ids[k]}.exr", rad,
                   {"view_id": view_ids[k], "units": "scene radiance (exposure = radiance * t)"})
         if is_hold[k]:
-            clean = _render(mi, scene, cam, R, t, preset.clean_spp, int(seeds[k]) % 2**31 + 1)
+            clean = _render(mi, scene, cam, R, t, preset.clean_spp, int(seeds[k]) % 2**31 + 1,
+                            preset.clean_sampler)
             write_rgb(tmp_truth / "clean" / f"{view_ids[k]}.exr", clean,
-                      {"view_id": view_ids[k], "spp": str(preset.clean_spp)})
+                      {"view_id": view_ids[k], "spp": str(preset.clean_spp),
+                       "sampler": preset.clean_sampler})
         if (k + 1) % 10 == 0 or k + 1 == len(poses):
             logger.info(f"  rendered {k + 1}/{len(poses)} views ({time.perf_counter() - t0:.0f} s)")
 
@@ -577,8 +591,8 @@ def generate_pbr(
     cposes = board_poses(rng, preset.calib_images, sx * sq, sy * sq, preset.focal_px, (w, h),
                          preset.board_max_tilt_deg)
     for k, (R, t) in enumerate(cposes):
-        rad = _render(mi, bscene, cam, R, t, max(4, preset.spp // 2),
-                      int(seeds[len(all_dirs) + k]) % 2**31)
+        rad = _render(mi, bscene, cam, R, t, BOARD_SPP, int(seeds[len(all_dirs) + k]) % 2**31,
+                      "multijitter")
         img = _expose(rad, 0.6 / 0.8, preset.response, preset,
                       np.random.default_rng(int(seeds[len(all_dirs) + k])))
         _write_photo(tmp_out / f"calibration/board_{k:02d}.{ext}", img, preset)
@@ -628,17 +642,22 @@ def novel_lights(preset: str | PbrPreset) -> tuple[Light, ...]:
     return moved, extra
 
 
-def render_relit(truth: str | Path, lights: tuple[Light, ...] | None = None) -> Path:
+def render_relit(truth: str | Path, lights: tuple[Light, ...] | None = None,
+                 spp: int | None = None, sampler: str | None = None,
+                 folder: str = "relit") -> Path:
     """Clean renders of a generated capture's held-out views under other lights
-    (default :func:`novel_lights`): ``<truth>/relit/<view>.exr`` and
-    ``<truth>/relit/lights.json`` (the lights, positions relative to the surface's
+    (default :func:`novel_lights`): ``<truth>/<folder>/<view>.exr`` and
+    ``<truth>/<folder>/lights.json`` (the lights, positions relative to the surface's
     centre as in ``scene.json``). The scene is rebuilt from the generator's preset and
-    seed (``generator.json``), so it is the captured one but for its lights."""
+    seed (``generator.json``), so it is the captured one but for its lights. ``spp`` and
+    ``sampler`` (Mitsuba's) default to the preset's clean renders'; with the capture's
+    own lights this re-renders its clean truth at another noise level."""
     mi = _mitsuba()
     truth = Path(truth)
     gen = json.loads((truth / "generator.json").read_text())
     name, preset = resolve_preset(gen["preset"], PBR_PRESETS)
     lights = lights or novel_lights(preset)
+    spp, sampler = spp or preset.clean_spp, sampler or preset.clean_sampler
     rng = np.random.default_rng(gen["seed"])
     albedo = _albedo_texture(preset, rng)  # the generator's draws, in its order
     mats = _materials(preset, rng)
@@ -648,13 +667,13 @@ def render_relit(truth: str | Path, lights: tuple[Light, ...] | None = None) -> 
     cam = _Camera.build(np.array(cam_doc["K"]), tuple(cam_doc["dist"]),
                         tuple(cam_doc["image_size"]), preset.render_scale)
     rig = np.load(truth / "poses.npz")
-    out = truth / "relit"
+    out = truth / folder
     out.mkdir(exist_ok=True)
     for k in np.flatnonzero(rig["holdout"]):
         vid = str(rig["view_ids"][k])
-        img = _render(mi, scene, cam, rig["R"][k], rig["t"][k], preset.clean_spp,
-                      (gen["seed"] * 7919 + int(k)) % 2**31)
-        write_rgb(out / f"{vid}.exr", img, {"view_id": vid, "spp": str(preset.clean_spp)})
+        img = _render(mi, scene, cam, rig["R"][k], rig["t"][k], spp,
+                      (gen["seed"] * 7919 + int(k)) % 2**31, sampler)
+        write_rgb(out / f"{vid}.exr", img, {"view_id": vid, "spp": str(spp), "sampler": sampler})
     (out / "lights.json").write_text(json.dumps([asdict(L) for L in lights], indent=1))
     logger.info(f"synth {name}: relit {int(rig['holdout'].sum())} held-out views under "
                 f"{len(lights)} light(s) into {out}")
