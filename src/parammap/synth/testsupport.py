@@ -289,7 +289,8 @@ def highlight_speckle(capture: str | Path, truth: str | Path, processed: str | P
     image there is the RMS 8-bit difference between horizontally and vertically
     neighbouring pixels, both in the highlight (a pixel is about a texel in these
     captures). A smooth highlight drawn smooth gives a ratio near 1; salt-and-pepper
-    lobes give more.
+    lobes give more. The clean render's own Monte Carlo noise counts in the truth's
+    variation: on the pbr presets' 32 independent samples it is most of it.
 
     Returns
     -------
