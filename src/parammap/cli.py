@@ -424,7 +424,8 @@ def _parser() -> argparse.ArgumentParser:
     s = add("synth", help="write a synthetic capture and its ground truth")
     s.add_argument("--preset", default="demo",
                    help="tiny | demo | paper | lab (analytic, default demo) | pbr-tiny | "
-                        "pbr-bench | pbr-two-lights | pbr-two-lights-dense | pbr-mirror "
+                        "pbr-tiny-camera | pbr-bench | pbr-two-lights | pbr-two-lights-dense | "
+                        "pbr-mirror "
                         "(Mitsuba 3, "
                         "needs parammap[pbr])")
     s.add_argument("--seed", type=int, default=0)

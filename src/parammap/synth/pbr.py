@@ -134,6 +134,10 @@ class PbrPreset:
     board_dictionary: str = "DICT_5X5_100"
     calib_images: int = 24
     spp: int = 4  # samples per render pixel (render_scale^2 render pixels per photo pixel)
+    # Mitsuba's sampler of the photos: 4 independent samples leave 18 % of Monte Carlo
+    # noise a pixel, far above a camera's own (about 1 % at mid-grey); "multijitter"
+    # leaves about 3 % in the same time (docs/results.md, session 41)
+    sampler: str = "independent"
     # the held-out views' clean renders (and relit truths). Their Monte Carlo noise (6 %
     # rms a pixel on pbr-tiny) is part of every figure measured against them; "multijitter"
     # at 8 leaves a fifth of it in a third of the time (docs/results.md, session 40)
@@ -166,6 +170,11 @@ PBR_PRESETS = {
         calib_images=16,
         spp=4, clean_spp=48, response=FilmicResponse(white=8.0, gamma=2.0),
         image_format="jpg"),
+    # pbr-tiny photographed with about a camera's noise (stratified samples) and held out
+    # against 5x cleaner truths: what the Monte Carlo noise of pbr-tiny's photos hides
+    # (benchmarks; issue 49's speckle)
+    "pbr-tiny-camera": PbrPreset(sampler="multijitter", clean_spp=8,
+                                 clean_sampler="multijitter"),
     # two area lights (a rectangle and a disc): two highlights per texel
     "pbr-two-lights": PbrPreset(
         views=40, markers=8, marker_dictionary="DICT_4X4_100", marker_frac=0.18,
@@ -549,7 +558,8 @@ def generate_pbr(
 
     radiance = []
     for k, (R, t) in enumerate(poses):
-        rad = _render(mi, scene, cam, R, t, preset.spp, int(seeds[k]) % 2**31)
+        rad = _render(mi, scene, cam, R, t, preset.spp, int(seeds[k]) % 2**31,
+                      preset.sampler)
         radiance.append(rad)
         write_rgb(tmp_truth / "radiance" / f"{view_ids[k]}.exr", rad,
                   {"view_id": view_ids[k], "units": "scene radiance (exposure = radiance * t)"})
@@ -709,7 +719,8 @@ def render_white_card(capture: str | Path, truth: str | Path, views: int = 6,
     entries = []
     for k, d in enumerate(dirs):
         R, t = view_pose(d, preset, K, items, crng)
-        rad = _render(mi, scene, cam, R, t, preset.spp, int(crng.integers(2**31)))
+        rad = _render(mi, scene, cam, R, t, preset.spp, int(crng.integers(2**31)),
+                      preset.sampler)
         nrng = np.random.default_rng(int(crng.integers(2**31)))
         vid, exps = f"card{k:02d}", []
         for e, te in enumerate(times):

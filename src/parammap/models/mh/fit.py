@@ -34,6 +34,7 @@ from .model import (
     _sort_lobes_batch,
     bic,
     mh_eval,
+    overshoots,
 )
 from .optim import FitResult, MhFitConfig, fit_texel, polish_batch, refine_batch
 from .starts import initial_batch
@@ -218,7 +219,7 @@ def fit_mh_tile(
     # residual diagnostics for the whole tile at once
     ok = todo[flat[FitArray.STATUS][todo] == FitStatus.OK]
     if select and len(ok):
-        _select_lobes(flat, alts, ok, (t, u), V, L, W, NW, cfg.lobe_window)
+        _select_lobes(flat, alts, ok, (t, u), V, L, W, NW, cfg.lobe_window, NZ)
     if len(ok):
         P = flat[FitArray.PARAMS][ok].astype(float)
         before = _lobes_present(P)
@@ -283,7 +284,7 @@ def _padded(params: np.ndarray, k: int, K: int) -> np.ndarray:
 
 def _select_lobes(flat: dict, alts: dict[int, np.ndarray], ok: np.ndarray,
                   shape: tuple[int, int], V: np.ndarray, L: np.ndarray, W: np.ndarray,
-                  NW: np.ndarray, window: int) -> None:
+                  NW: np.ndarray, window: int, noise: np.ndarray | None = None) -> None:
     """Choose each texel's number of lobes by how well the fit predicts left-out views.
 
     A lobe that lowers the residual of the views it was fitted to can still predict
@@ -295,7 +296,10 @@ def _select_lobes(flat: dict, alts: dict[int, np.ndarray], ok: np.ndarray,
     (n, 4 + 6K) padded parameters, NaN where that fit failed) is summed over ``window``
     x ``window`` texels of the tile (neighbours share their material; one texel's error
     is noisy), and each texel takes the number of lobes with the lowest sum (the fewer
-    lobes on a tie). Changes ``flat`` in place.
+    lobes on a tie). A fit with more lobes whose peak no view measures, where the lobes
+    do not explain the views to their ``noise`` ((n, N) relative sd), is not available
+    (:func:`~.model.overshoots`: leave-one-out cannot see such a spike). Changes
+    ``flat`` in place.
     """
     ks = sorted(alts)
     # whether a texel has a lobe at all stays BIC's choice (and drop_negligible_lobes'):
@@ -330,6 +334,8 @@ def _select_lobes(flat: dict, alts: dict[int, np.ndarray], ok: np.ndarray,
     # a texel keeps its fit unless another is available and predicts better
     cur = np.searchsorted(ks, flat[FitArray.K_USED][ok])
     avail = np.array([np.isfinite(alts[k][ok]).all(1) for k in ks])
+    avail[1:] &= ~overshoots([alts[k][ok] for k in ks], V[ok], L[ok], W[ok],
+                             None if noise is None else noise[ok])
     pooled = np.where(avail, pooled, np.inf)
     choice = np.argmin(pooled, 0)  # argmin takes the first: fewer lobes on a tie
     change = (choice != cur) & (pooled[choice, np.arange(len(ok))]

@@ -27,10 +27,16 @@ from ...conventions import (
     mhx_theta,
 )
 from ...errors import InputError
+from ..weights import reduced_chi2
 from .kernel import eval_batch
 
 M_MIN, M_MAX = 1.0, 10000.0
 LN_M_MAX = math.log(M_MAX)
+# A lobe draws a highlight of its own when its peak is farther from every other lobe of
+# the texel than this many half widths at half maximum (their half-maximum regions
+# apart). Lobes nearer together draw one highlight that is not a Phong lobe, and no one
+# of their directions is the light's.
+LOBE_SEPARATION = 2.0
 
 
 def mh_eval(params: np.ndarray, directions: np.ndarray) -> np.ndarray:
@@ -170,3 +176,73 @@ def parse_lobes(K: str | int) -> int | str:
     return k
 
 
+def separate_lobes(params: np.ndarray, kused: np.ndarray) -> np.ndarray:
+    """(H, W, Kmax) bool: lobe k of each texel draws a highlight of its own, its direction
+    more than :data:`LOBE_SEPARATION` half widths at half maximum (``acos(2^(-1/m))``
+    for the texel's shininess m) from each other lobe the texel uses."""
+    Kmax = mh_lobes(params.shape[-1])
+    m = np.maximum(np.nan_to_num(params[..., MH_M].astype(float)), 1.0)
+    hwhm = np.arccos(np.power(0.5, 1.0 / m))
+    d = np.stack([np.nan_to_num(params[..., mh_dir(k)].astype(float)) for k in range(Kmax)], -2)
+    cos = np.clip(np.einsum("...kc,...lc->...kl", d, d), -1.0, 1.0)
+    near = np.arccos(cos) <= LOBE_SEPARATION * hwhm[..., None, None]
+    used = np.arange(Kmax) < kused[..., None]
+    near &= used[..., None, :] & ~np.eye(Kmax, dtype=bool)
+    return used & ~near.any(-1)
+
+
+def _peak(P: np.ndarray) -> np.ndarray:
+    """(n,) the largest luminance (sum over channels) MH parameters P (n, 4 + 6K) draw at
+    their lobes' peaks above the horizon (lobes of one width peak there, or between
+    peaks no higher than the largest); 0 where none."""
+    K = mh_lobes(P.shape[-1])
+    if K == 0:
+        return np.zeros(len(P))
+    d = np.stack([P[:, mh_dir(k)] for k in range(K)], 1)
+    ks = np.stack([P[:, mh_ks(k)].sum(-1) for k in range(K)], 1)
+    norm = np.linalg.norm(d, axis=-1, keepdims=True)
+    up = (d[..., 2] > 0) & (ks > 0) & (norm[..., 0] > 0)
+    d = np.where(up[..., None], d / np.where(norm > 0, norm, 1.0), [0.0, 0.0, 1.0])
+    return np.where(up, mh_eval(P, d).sum(-1), 0.0).max(1)
+
+
+def overshoots(alts: list[np.ndarray], V: np.ndarray, L: np.ndarray, W: np.ndarray,
+               noise: np.ndarray | None) -> np.ndarray:
+    """(len(alts) - 1, n): whether each fit with more lobes than the first (``alts``:
+    (n, 4 + 6K) padded parameters, fewest lobes first, NaN where that fit failed) leaves
+    more than the noise unexplained and draws a highlight brighter than anything the
+    texel's views (V (n, N, 3), L (n, N, 3), W (n, N) bool; ``noise`` (n, N) their
+    relative sd) saw and than the fewest lobes draw, by more than three of its own RMS
+    residuals (luminance).
+
+    Such a peak lies between the views, and no view tells its height. Where the lobes
+    explain the views to their noise (reduced chi-square within three of its sd of 1),
+    the highlight is a Phong lobe's and its height follows from the lobes' shape, as a
+    real highlight between views does (two lights, a sharp lobe). Where they do not (a
+    microfacet highlight, peak and tail, drawn as several Phong lobes), the lobes
+    describe a shape that is not theirs: a lobe whose flank alone the views see takes
+    the texel's one shininess, fitted to another lobe, and lobes side by side can sum
+    to a spike. Neither the residuals nor a left-out view sees it; it differs from
+    texel to texel, and a render draws it as salt-and-pepper speckle. Fewer lobes
+    through the same views extrapolate the highlight by their shape alone. With the
+    noise unknown, nothing is judged.
+    """
+    out = np.zeros((len(alts) - 1, len(V)), bool)
+    if noise is None:
+        return out
+    y = np.where(W, L.sum(-1), -np.inf)
+    ref = np.maximum(y.max(1), _peak(np.nan_to_num(alts[0])))
+    n = np.maximum(W.sum(1), 1)
+    for i, P in enumerate(alts[1:]):
+        Q = np.nan_to_num(P)
+        fitted = mh_eval(Q, V)
+        r = np.where(W, fitted.sum(-1) - np.where(W, L.sum(-1), 0.0), 0.0)
+        rmse = np.sqrt((r * r).sum(1) / n)
+        k = (np.stack([Q[:, mh_ks(j)].sum(-1) for j in range(mh_lobes(Q.shape[-1]))], 1)
+             > 0).sum(1)
+        free = mhx_size(k)
+        dof = np.maximum(3 * W.sum(1) - free, 1)
+        with np.errstate(divide="ignore", invalid="ignore"):  # a failed fit's zeros
+            misfit = reduced_chi2(L, fitted, noise, W, free) > 1.0 + 3.0 * np.sqrt(2.0 / dof)
+        out[i] = np.isfinite(P).all(1) & misfit & (_peak(Q) > ref + 3.0 * rmse)
+    return out

@@ -29,7 +29,7 @@ from ...conventions import (
 )
 from ..residuals import mean_percentage_residual
 from ..weights import noise_weights, reduced_chi2
-from .model import bic, mh_eval
+from .model import bic, mh_eval, separate_lobes
 from .optim import MhFitConfig, fit_texel, refine_batch
 from .starts import rescaled_batch
 from .uncertainty import loo_error, parameter_sd
@@ -55,11 +55,6 @@ POOL_LR = float(chi2.ppf(0.99, 1))
 POOL_MIN_SHIFT = 0.05
 POOL_MIN_NEIGHBOURS = 5
 POOL_SD_FLOOR = 1e-3
-# A lobe's direction is pooled only where it draws a highlight of its own: its peak
-# farther from every other lobe of the texel than this many half widths at half maximum
-# (their half-maximum regions apart). Lobes nearer together draw one highlight that is
-# not a Phong lobe, and no one of their directions is the light's.
-POOL_LOBE_SEPARATION = 2.0
 
 
 def _neighbourhood_median(e: np.ndarray, radius: int, strip_elements: int = 1 << 22,
@@ -461,21 +456,6 @@ def _predicts_better(own: np.ndarray, pooled: np.ndarray, V: np.ndarray, L: np.n
     return bool(np.isfinite(e_own) and e_new <= e_own)
 
 
-def _separate_lobes(params: np.ndarray, kused: np.ndarray) -> np.ndarray:
-    """(H, W, Kmax) bool: lobe k of each texel draws a highlight of its own, its direction
-    more than :data:`POOL_LOBE_SEPARATION` half widths at half maximum (``acos(2^(-1/m))``
-    for the texel's shininess m) from each other lobe the texel uses."""
-    Kmax = mh_lobes(params.shape[-1])
-    m = np.maximum(np.nan_to_num(params[..., MH_M].astype(float)), 1.0)
-    hwhm = np.arccos(np.power(0.5, 1.0 / m))
-    d = np.stack([np.nan_to_num(params[..., mh_dir(k)].astype(float)) for k in range(Kmax)], -2)
-    cos = np.clip(np.einsum("...kc,...lc->...kl", d, d), -1.0, 1.0)
-    near = np.arccos(cos) <= POOL_LOBE_SEPARATION * hwhm[..., None, None]
-    used = np.arange(Kmax) < kused[..., None]
-    near &= used[..., None, :] & ~np.eye(Kmax, dtype=bool)
-    return used & ~near.any(-1)
-
-
 def _pool_lobes(params: np.ndarray, sd: np.ndarray, kused: np.ndarray,
                 status: np.ndarray, offset: tuple[int, int], shape: tuple[int, int], take,
                 *, radius: int) -> np.ndarray:
@@ -492,7 +472,7 @@ def _pool_lobes(params: np.ndarray, sd: np.ndarray, kused: np.ndarray,
     uncertainties, chi-square with 2 dof) and it moves the lobe by more than twice the
     neighbours' own sd and enough to change the lobe's value at its half width by
     :data:`POOL_MIN_SHIFT`; Kd, Ks and m stay the texel's. Only lobes that draw a
-    highlight of their own (:func:`_separate_lobes`). Returns (t, u) bool: the texels
+    highlight of their own (:func:`separate_lobes`). Returns (t, u) bool: the texels
     changed.
 
     Ks was pooled alike and not kept: without m moving with it (the two trade off
@@ -510,7 +490,7 @@ def _pool_lobes(params: np.ndarray, sd: np.ndarray, kused: np.ndarray,
     # (lobes are ordered by strength; with another count, the order means another lobe)
     counts = [(k, K) for K in range(1, Kmax + 1) for k in range(K)
               if mh_sd_dir(k) < sd.shape[-1]]
-    alone = _separate_lobes(params, kused)
+    alone = separate_lobes(params, kused)
     for k, K in counts:
         ks = np.nan_to_num(params[..., mh_ks(k)].astype(float)).sum(-1)
         d = params[..., mh_dir(k)].astype(float)
