@@ -128,12 +128,22 @@ def ggx_vis(n_h: np.ndarray, n_v: np.ndarray, n_l: np.ndarray, alpha) -> np.ndar
     """``D(h) Vis(l, v)`` of GGX with Smith's height-correlated masking-shadowing, for
     the cosines of the half vector, view and light with the normal (any broadcastable
     shapes). 0 where the light or the view is below the surface."""
-    a2 = np.asarray(alpha, float) ** 2
-    ch2 = np.clip(n_h, 0, 1) ** 2
-    D = a2 / (math.pi * (ch2 * (a2 - 1) + 1) ** 2)
+    c = _ggx_cosines(n_h, n_v, n_l)
+    return np.where((n_v > 0) & (n_l > 0), _ggx_dvis(c, np.asarray(alpha, float) ** 2), 0.0)
+
+
+def _ggx_cosines(n_h, n_v, n_l) -> tuple[np.ndarray, ...]:
+    """What :func:`ggx_vis` needs of the cosines whatever alpha: the half vector's
+    squared, the view's and the light's (clipped to (0, 1]) and their squares."""
     nv, nl = np.clip(n_v, 1e-6, 1), np.clip(n_l, 1e-6, 1)
-    vis = 0.5 / (nl * np.sqrt(nv * nv * (1 - a2) + a2) + nv * np.sqrt(nl * nl * (1 - a2) + a2))
-    return np.where((n_v > 0) & (n_l > 0), D * vis, 0.0)
+    return np.clip(n_h, 0, 1) ** 2, nv, nl, nv * nv, nl * nl
+
+
+def _ggx_dvis(c: tuple[np.ndarray, ...], a2) -> np.ndarray:
+    """``D Vis`` from :func:`_ggx_cosines` ``c`` at ``a2`` = alpha squared."""
+    ch2, nv, nl, nv2, nl2 = c
+    D = a2 / (math.pi * (ch2 * (a2 - 1) + 1) ** 2)
+    return D * 0.5 / (nl * np.sqrt(nv2 * (1 - a2) + a2) + nv * np.sqrt(nl2 * (1 - a2) + a2))
 
 
 def specular_basis(l: np.ndarray, e: np.ndarray, views: np.ndarray, alpha) -> np.ndarray:
@@ -374,10 +384,14 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
     n_h = h[..., 2] / np.maximum(np.linalg.norm(h, axis=-1), 1e-12)  # (B, N, J)
     n_v = np.broadcast_to(v[..., 2], n_h.shape)
     n_l = np.broadcast_to(l[:, None, :, 2], n_h.shape)
+    # and what the GGX term needs of them, with the irradiance where both are above the
+    # surface (0 elsewhere), also once
+    cos = _ggx_cosines(n_h, n_v, n_l)
+    e_seen = np.where((n_v > 0) & (n_l > 0), e[:, None, :], 0.0)  # (B, N, J)
 
     def bases(alpha, sel=slice(None)):
         a = np.asarray(alpha, float).reshape(-1, 1, 1)
-        s = e[sel][:, None, :] * ggx_vis(n_h[sel], n_v[sel], n_l[sel], a)  # (B, N, J)
+        s = e_seen[sel] * _ggx_dvis(tuple(x[sel] for x in cos), a * a)  # (B, N, J)
         if shared:
             return (s @ w)[:, :, None, :]  # (B, N, 1, 3)
         return np.broadcast_to(s[..., None], s.shape + (3,))
