@@ -138,10 +138,20 @@ def _missing_file_key(d):
     del d["views"][4]["exposures"][1]["file"]
 
 
+def _ambient_all(d):
+    d["ambient"] = {"share": 1.0}
+
+
+def _ambient_rgb(d):
+    d["ambient"] = {"share": [0.1, 0.2]}
+
+
 @pytest.mark.parametrize(
     "edit, key, words",
     [
         (_str_width, "surface.width_mm", "must be a number (got 'wide')"),
+        (_ambient_all, "ambient.share", "must be a number in [0, 1) or three (R, G, B)"),
+        (_ambient_rgb, "ambient.share", "must be a number in [0, 1) or three (R, G, B)"),
         (_yes_holdout, "views[3].holdout", "must be true or false"),
         (_no_exposures, "views[1].exposures", "no exposures"),
         (_bool_exposure, "views[0].exposures[0].exposure_s", "must be a number"),

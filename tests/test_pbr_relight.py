@@ -16,6 +16,7 @@ import yaml
 
 from parammap.cli import main
 from parammap.conventions import LUMINANCE
+from parammap.models.svbrdf import light_terms
 from parammap.stores.observation import open_observation_map
 from parammap.synth.pbr import patch_labels, render_white_card
 
@@ -26,12 +27,13 @@ else:
 
 
 def test_svbrdf_relit_from_its_lights(pbr_tiny, tmp_path):
-    """The microfacet SVBRDF on a capture whose materials are microfacet ones: the light
-    (an area light 90 x 60 mm) placed within 2 % of its distance (measured 0.4 %), the
-    held-out views against the clean renders closer than MH-1's on every view (measured
-    5.8 / 5.7 / 4.7 against 6.0 / 10.7 / 8.5), its highlights no more speckled than
-    1.5x the clean render's (measured 0.81; that render's own Monte Carlo noise is most
-    of its variation: against a 5x cleaner one every map, diffuse included, is 2.2-2.8x,
+    """The microfacet SVBRDF on a capture whose materials are microfacet ones, in a room
+    whose sky the capture states (``ambient``): the light (an area light 90 x 60 mm)
+    placed within 2 % of its distance (measured 0.4 %), the held-out views against the
+    clean renders closer than MH-1's on every view (measured 5.6 / 5.6 / 4.9 against
+    6.0 / 10.6 / 8.5), its highlights no more speckled than 1.5x the clean render's
+    (measured 0.66; that render's own Monte Carlo noise is most of its variation:
+    against a 5x cleaner one every map, diffuse included, is 2.2-2.8x,
     docs/results.md), and relit under other lights (issue 48 item 4)."""
     import shutil
 
@@ -40,7 +42,8 @@ def test_svbrdf_relit_from_its_lights(pbr_tiny, tmp_path):
     cap, truth, out = pbr_tiny
     work = tmp_path / "proc"
     shutil.copytree(out, work)
-    assert main(["lights", "--out", str(work), "--set", "lights.source=mh-1"]) == 0
+    assert main(["lights", "--capture", str(cap), "--out", str(work),
+                 "--set", "lights.source=mh-1"]) == 0
     assert main(["fit-svbrdf", "--out", str(work)]) == 0
     assert main(["export", "--out", str(work), "--model", "svbrdf-ggx"]) == 0
     m = json.loads((work / "metrics" / "fit-svbrdf-ggx.json").read_text())
@@ -50,13 +53,19 @@ def test_svbrdf_relit_from_its_lights(pbr_tiny, tmp_path):
     light = centre + np.array(scene["lights"][0]["position_mm"])
     found = np.array(m["light_positions"]["refined_mm"][0])
     assert np.linalg.norm(found - light) < 0.02 * np.linalg.norm(light - centre), found
+    # the stated sky's share at the centre, in the fit's units (the light's irradiance)
+    share = np.array(yaml.safe_load((cap / "capture.yaml").read_text())["ambient"]["share"])
+    e = light_terms(centre, found[None])[1] @ np.array(m["light_weights"])
+    assert np.allclose(m["light_positions"]["ambient"], e * share / (1 - share), rtol=1e-3)
     res = holdout_against_truth(cap, truth, work, ["svbrdf-ggx", "mh-1", "diffuse"])
     assert all(r["svbrdf-ggx"] < r["mh-1"] for r in res.values()), res
     sp = highlight_speckle(cap, truth, work, ["svbrdf-ggx"])
     assert sp["svbrdf-ggx"]["ratio"] < 1.5, sp
-    # under lights the capture never had (the first turned 120 deg, a disc added): the
-    # relightable map follows them (measured 9.9, 1.83x its captured 5.4; the rest is
-    # the scene's sky, which it cannot tell from its lamps), MH and SH cannot (40-56)
+    # under lights the capture never had (the first turned 120 deg, a disc added) in
+    # the same room: the relightable map follows them (issue 48: within 1.5x of its
+    # captured figure; measured 4.4, 0.81x its captured 5.4, against a truth with a
+    # fifth of the captured one's Monte Carlo noise; 9.9, 1.83x, with the sky put on
+    # the lamps), MH and SH cannot (40-56)
     from parammap.synth.pbr import render_relit
     from parammap.synth.testsupport import relit_against_truth
 
@@ -69,7 +78,7 @@ def test_svbrdf_relit_from_its_lights(pbr_tiny, tmp_path):
     mean = {m: np.mean([r[m] for r in rel.values()]) for m in ("svbrdf-ggx", "mh-1",
                                                                 "sh-rlsop-36")}
     captured = np.mean([r["svbrdf-ggx"] for r in res.values()])
-    assert mean["svbrdf-ggx"] < 2 * captured, (mean, captured)
+    assert mean["svbrdf-ggx"] < 1.5 * captured, (mean, captured)
     assert mean["svbrdf-ggx"] < 0.5 * min(mean["mh-1"], mean["sh-rlsop-36"]), mean
 
 

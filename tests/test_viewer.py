@@ -522,6 +522,7 @@ def svbrdf_viewer_dir(viewer_dir, tmp_path_factory):
     SVBRDF fitted under them, on a page of its own; its left half given a full coat
     (the analytic capture's Phong patches have none), so that the page draws both."""
     from parammap.conventions import SV_COAT
+    from parammap.models.svbrdf import light_terms
     from parammap.stores.params import write_param_map
 
     cap, out, _ = viewer_dir
@@ -531,6 +532,12 @@ def svbrdf_viewer_dir(viewer_dir, tmp_path_factory):
     path = out / "params" / "svbrdf-ggx.exr"
     pm = read_param_map(path)
     pm.params[:, : pm.shape[1] // 2, SV_COAT] = 1.0
+    # a room's ambient light too (the analytic capture has none): a third of the lamps'
+    # irradiance at the centre, which the page adds as the Python renderer does
+    rig = pm.lights
+    pm = pm.relit(rig.position_mm, rig.intensity, ambient=[0.4, 0.35, 0.3] * (
+        light_terms(np.array([pm.width_mm / 2, pm.height_mm / 2, 0.0]), rig.position_mm)[1]
+        @ rig.intensity) / 3)
     write_param_map(path, pm)
     vdir = tmp_path_factory.mktemp("svbrdf-viewer")
     assert main(["viewer", str(cap), "--out", str(out), "--figures", str(vdir), "--model",
@@ -562,7 +569,7 @@ def test_relightable_map_matches_python_renderer_as_its_light_moves(svbrdf_viewe
                           f" viewer.setView('{held['id']}'); viewer.setGamma({gamma});"
                           " viewer.draw(); })()")
             shots.append(_canvas(page))
-            pos, w = pm.lights
+            pos, w = pm.lights[:2]
             moved = pos.copy()
             moved[0] += shift
             q = pm.relit(moved, w)

@@ -287,12 +287,14 @@ def _advise(a: argparse.Namespace) -> int:
 def _lights(a: argparse.Namespace) -> int:
     from .stages.lights import run_lights
 
-    measured = None
+    measured = ambient = None
     if a.capture:
         from .stores.capture import load_capture
 
-        measured = load_capture(a.capture).lights
-    run_lights(_source(a), _stage_config(a), figures=a.figures, measured=measured)
+        cap = load_capture(a.capture)
+        measured, ambient = cap.lights, cap.ambient
+    run_lights(_source(a), _stage_config(a), figures=a.figures, measured=measured,
+               ambient=ambient)
     return 0
 
 
@@ -529,7 +531,9 @@ def _parser() -> argparse.ArgumentParser:
             s.add_argument("--lobes", default="1", help="lobes K, or auto (default 1)")
         if name == "lights":
             s.add_argument("--capture", help="the capture, whose measured lights (if it "
-                                             "lists any) are compared with those found")
+                                             "lists any) are compared with those found, "
+                                             "and whose ambient light (if stated) the "
+                                             "relightable fit takes")
         if name in ("export", "holdout"):
             s.add_argument("--model", action="append", required=True,
                            help="model name (mh-1, sh-lsop-36, diffuse...), repeatable")

@@ -34,7 +34,15 @@ from ..conventions import (
 from .mh.model import mh_eval
 from .mh.uncertainty import jacobian_x
 from .sh.basis import sh_basis, sh_eval
-from .svbrdf import coat_transmittance, light_terms, specular_basis, svbrdf_eval
+from .svbrdf import (
+    LightRig,
+    coat_sky_transmittance,
+    coat_transmittance,
+    ggx_albedo,
+    light_terms,
+    specular_basis,
+    svbrdf_eval,
+)
 
 __all__ = ["INFLUENCE", "display_error", "influential", "loo_amplitudes", "loo_diffuse",
            "loo_linear", "loo_sh", "loo_svbrdf", "predict", "press", "press_linear",
@@ -202,20 +210,27 @@ def loo_svbrdf(P: np.ndarray, V: np.ndarray, L: np.ndarray, W: np.ndarray, w: np
     irradiance its radiance is divided by it, as the observations were."""
     P = np.nan_to_num(np.asarray(P, float))
     n, N, _ = V.shape
-    pos, wl = lights[:2]
-    k = 1.0 / lights[2](points) if len(lights) > 2 else np.ones(n)
+    rig = LightRig(*lights)
+    pos, wl, sky = rig.position_mm, rig.intensity, rig.ambient
+    k = np.ones(n) if rig.irradiance is None else 1.0 / rig.irradiance(points)
     l, e = light_terms(points, pos)
     alpha = np.clip(P[:, SV_ALPHA], 1e-6, None)
     coat = np.clip(P[:, SV_COAT], 0, 1)[:, None, None]
+    t_v = coat_transmittance(V[..., 2])[..., None]  # (n, N, 1)
 
     def spec(a):
-        return specular_basis(l, e, V, a.reshape(-1, 1, 1)) @ wl  # (n, N, 3)
+        s = specular_basis(l, e, V, a.reshape(-1, 1, 1)) @ wl  # (n, N, 3)
+        if sky is not None:
+            s = s + ggx_albedo(V[..., 2], a[:, None])[..., None] * (sky / np.pi)
+        return s
 
     S = spec(alpha)
     dS = (spec(alpha * np.exp(rel_step)) - spec(alpha * np.exp(-rel_step))) / (2 * rel_step)
     matte = (e @ wl)[:, None]  # (n, 1, 3)
-    coated = ((e * coat_transmittance(l[..., 2])) @ wl)[:, None] \
-        * coat_transmittance(V[..., 2])[..., None]  # (n, N, 3)
+    coated = ((e * coat_transmittance(l[..., 2])) @ wl)[:, None] * t_v  # (n, N, 3)
+    if sky is not None:
+        matte = matte + sky
+        coated = coated + sky * coat_sky_transmittance() * t_v
     diffuse = (1 - coat) * matte + coat * coated
     J = np.zeros((n, N, 3, SV_SIZE))
     eye = np.eye(3)

@@ -27,6 +27,19 @@ coated texel's diffuse fall-off is taken up by the lobe, which then comes out wi
 and brighter than the surface's (alpha 15-30 % and Ks 25-35 % too high on a rough
 plastic). Radiance is in the observation map's units.
 
+A room is not dark: what the walls and the sky send back lights the surface evenly
+from every direction. Where the capture states that light (``ambient``, an irradiance
+``a`` in the units of ``e w``, RGB; :func:`ambient_irradiance` from the share a lab
+measures with the lamps off), each texel adds what a uniform sky of radiance ``a / pi``
+gives it:
+
+    Kd ((1 - c) + c Tbar T(v)) a + Ks E(v, alpha) a / pi
+
+with ``E`` GGX's directional albedo (:func:`ggx_albedo`) and ``Tbar`` the coating's
+cosine-weighted mean transmittance (:func:`coat_sky_transmittance`). Without it the sky
+is taken for the lamps: the albedo comes out too high by its share of the irradiance,
+and a map relit under other lamps carries the old sky's share with them.
+
 For a given ``alpha`` the radiance is linear in the matte and coated parts of ``Kd``
 and in ``Ks``, so a texel's fit is a one-dimensional search over ``alpha`` (a grid in
 log alpha, then a parabola through the best three) with the amplitudes per channel
@@ -41,6 +54,8 @@ from __future__ import annotations
 import itertools
 import math
 import warnings
+from functools import cache
+from typing import Any, NamedTuple
 
 import nlopt
 import numpy as np
@@ -53,9 +68,10 @@ from .residuals import mean_percentage_residual
 from .weights import noise_weights, reduced_chi2
 
 __all__ = ["ALPHA_RANGE", "COAT_F", "COAT_IOR", "COAT_WINDOW_F", "MIN_OBS", "OFF_HIGHLIGHT",
-           "alpha_grid",
-           "coat_regions", "coat_share", "coat_transmittance", "fit_svbrdf_batch",
-           "fit_svbrdf_tile", "fresnel_dielectric", "ggx_vis", "light_terms",
+           "ALBEDO_NODES", "LightRig", "alpha_grid", "ambient_irradiance",
+           "coat_regions", "coat_share", "coat_sky_transmittance", "coat_transmittance",
+           "fit_svbrdf_batch", "fit_svbrdf_tile", "fresnel_dielectric", "ggx_albedo",
+           "ggx_albedo_table", "ggx_vis", "light_terms",
            "light_weights", "metallic_roughness", "neighbour_priors", "pool_svbrdf_tile",
            "refine_lights", "specular_basis", "svbrdf_eval", "svbrdf_outputs"]
 
@@ -96,6 +112,90 @@ def coat_transmittance(cos_t) -> np.ndarray:
     """The coating's transmittance ``T = (1 - F(cos_t)) / (1 - F0)`` relative to normal
     incidence (1 there, 0.75 at 75 deg, 0 at grazing; any shape)."""
     return (1 - fresnel_dielectric(cos_t)) / (1 - fresnel_dielectric(1.0))
+
+
+class LightRig(NamedTuple):
+    """The lights a relightable map is fitted and drawn under: positions (J, 3) mm
+    (surface frame), relative RGB intensities (J, 3), the flat-field's relative
+    irradiance the observations were divided by
+    (:class:`parammap.models.radiometry.IrradianceGrid`, or None) and the room's ambient
+    irradiance (3,) in the units of ``e w`` (or None: a dark room). Its fields are
+    :func:`svbrdf_eval`'s light arguments, in order."""
+
+    position_mm: np.ndarray
+    intensity: np.ndarray
+    irradiance: Any = None
+    ambient: np.ndarray | None = None
+
+
+@cache
+def coat_sky_transmittance() -> float:
+    """``Tbar = 2 int_0^1 T(mu) mu dmu``: the share of an even sky's light that crosses
+    the coating (:func:`coat_transmittance`) on its way in, relative to normal
+    incidence."""
+    x, w = np.polynomial.legendre.leggauss(64)
+    mu = (x + 1) / 2
+    return float(np.sum(w * coat_transmittance(mu) * mu))
+
+
+#: the directional albedo's table (:func:`ggx_albedo_table`): view cosines (linear) by
+#: alphas (log); bilinear between its nodes, it is within 0.01 of the integral (the
+#: viewer's shader holds the same table)
+ALBEDO_NODES = (25, 24)
+
+
+@cache
+def ggx_albedo_table() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(view cosines (m,), ln alphas (n,), albedo (m, n)): GGX's directional albedo
+    ``E(v, alpha) = int D(h) Vis(l, v) cos(theta_l) dw_l`` (Fresnel 1), by Gauss-Legendre
+    quadrature over the distribution of the half vector (a thousandth of a Monte Carlo
+    integral's figure). Smooth in both, so that :func:`ggx_albedo` interpolates it."""
+    x, wx = np.polynomial.legendre.leggauss(64)
+    u, wu = (x + 1) / 2, wx / 2  # GGX's half-vector CDF: tan theta = alpha sqrt(u / (1 - u))
+    nphi = 32
+    phi = (np.arange(nphi) + 0.5) * math.pi / nphi  # the plane of v is a mirror: half turn
+    mus, alpha = np.linspace(0.02, 1.0, ALBEDO_NODES[0]), alpha_grid(ALBEDO_NODES[1])
+    th = np.arctan(alpha[:, None, None] * np.sqrt(u / (1 - u))[:, None])  # (n, u, 1)
+    h = np.stack(np.broadcast_arrays(np.sin(th) * np.cos(phi), np.sin(th) * np.sin(phi),
+                                     np.cos(th)), -1)  # (n, u, phi, 3)
+    a2 = (alpha * alpha)[:, None, None]
+    E = np.empty((len(mus), len(alpha)))
+    for i, mu in enumerate(mus):
+        vh = h[..., 0] * math.sqrt(1 - mu * mu) + h[..., 2] * mu
+        n_l = 2 * vh * h[..., 2] - mu
+        c = _ggx_cosines(h[..., 2], mu, n_l)
+        D = a2 / (math.pi * (c[0] * (a2 - 1) + 1) ** 2)
+        # D Vis cos_l over the half vector's density D cos_h, times dw_l / dw_h = 4 v.h
+        g = np.where((n_l > 0) & (vh > 0), _ggx_dvis(c, a2) / D * c[2] * 4 * vh / h[..., 2],
+                     0.0)
+        E[i] = np.einsum("nup,u->n", g, wu) / nphi
+    return mus, np.log(alpha), E
+
+
+def ggx_albedo(n_v, alpha) -> np.ndarray:
+    """GGX's directional albedo (Fresnel 1) at view cosines ``n_v`` and roughness
+    ``alpha`` (broadcastable), interpolated bilinearly in (cosine, ln alpha) from
+    :func:`ggx_albedo_table`: 1 for a mirror, 0.5-0.6 at alpha 1 (energy the single
+    scattering loses)."""
+    mu, la, E = ggx_albedo_table()
+    x = np.clip((np.asarray(n_v, float) - mu[0]) / (mu[1] - mu[0]), 0, len(mu) - 1.000001)
+    y = np.clip((np.log(np.clip(np.asarray(alpha, float), *ALPHA_RANGE)) - la[0])
+                / (la[1] - la[0]), 0, len(la) - 1.000001)
+    x, y = np.broadcast_arrays(x, y)
+    i, j = x.astype(int), y.astype(int)
+    fx, fy = x - i, y - j
+    return ((E[i, j] * (1 - fx) + E[i + 1, j] * fx) * (1 - fy)
+            + (E[i, j + 1] * (1 - fx) + E[i + 1, j + 1] * fx) * fy)
+
+
+def ambient_irradiance(share, at_mm: np.ndarray, lights_mm: np.ndarray,
+                       weights: np.ndarray) -> np.ndarray:
+    """(3,) the ambient irradiance ``a`` (units of ``e w``) from the ``share`` (scalar or
+    RGB, in [0, 1)) of a white card's light at ``at_mm`` (3,) that stays when the lamps
+    are off: ``a = e w (at) share / (1 - share)``."""
+    _, e = light_terms(np.asarray(at_mm, float), lights_mm)
+    s = np.broadcast_to(np.asarray(share, float), (3,))
+    return (e @ np.asarray(weights, float)) * s / (1 - s)
 
 
 def alpha_grid(steps: int = GRID_STEPS) -> np.ndarray:
@@ -158,12 +258,15 @@ def specular_basis(l: np.ndarray, e: np.ndarray, views: np.ndarray, alpha) -> np
 
 
 def svbrdf_eval(params: np.ndarray, points: np.ndarray, views: np.ndarray,
-                lights_mm: np.ndarray, weights: np.ndarray, irradiance=None) -> np.ndarray:
+                lights_mm: np.ndarray, weights: np.ndarray, irradiance=None,
+                ambient: np.ndarray | None = None) -> np.ndarray:
     """Radiance (M, 3) of parameter vectors (M, ``SV_SIZE``) at surface points (M, 3)
     seen from unit directions (M, 3), under lights (J, 3) mm of relative RGB
-    intensities ``weights`` (J, 3); divided by ``irradiance(points)`` where given (the
+    intensities ``weights`` (J, 3) and the room's ``ambient`` irradiance (3,) (units of
+    ``e w``; None: none); divided by ``irradiance(points)`` where given (the
     flat-field's relative irradiance, :class:`parammap.models.radiometry.IrradianceGrid`:
-    the capture's frames were read so)."""
+    the capture's frames were read so). The light arguments are a :class:`LightRig`'s
+    fields."""
     p = np.asarray(params, float)
     v = np.asarray(views, float)
     l, e = light_terms(points, lights_mm)  # (M, J, 3), (M, J)
@@ -172,7 +275,13 @@ def svbrdf_eval(params: np.ndarray, points: np.ndarray, views: np.ndarray,
     w = np.asarray(weights, float)
     c = np.clip(np.nan_to_num(p[:, SV_COAT]), 0, 1)[:, None]
     coated = ((e * coat_transmittance(l[..., 2])) @ w) * coat_transmittance(v[:, 2])[:, None]
-    out = p[:, SV_KD] * ((1 - c) * (e @ w) + c * coated) + p[:, SV_KS] * (s @ w)
+    matte, spec = e @ w, s @ w
+    if ambient is not None:
+        a = np.asarray(ambient, float)
+        matte = matte + a
+        coated = coated + a * coat_sky_transmittance() * coat_transmittance(v[:, 2])[:, None]
+        spec = spec + a / math.pi * ggx_albedo(v[:, 2], alpha[:, 0, 0])[:, None]
+    out = p[:, SV_KD] * ((1 - c) * matte + c * coated) + p[:, SV_KS] * spec
     return out if irradiance is None else out / irradiance(points)[:, None]
 
 
@@ -331,7 +440,8 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
                      prior: dict[str, np.ndarray] | None = None,
                      with_coat: bool = True, evidence: bool = False,
                      start: dict[str, np.ndarray] | None = None,
-                     coat_choice: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                     coat_choice: np.ndarray | None = None,
+                     ambient: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Fit a batch of texels.
 
     Parameters
@@ -351,6 +461,8 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
     start : an ``evidence`` call's result: its alphas and coat shares taken, no search.
     coat_choice : (B,) bool, the texels that keep their coat (the others matte); None:
         those whose own F statistic passes :data:`COAT_F`.
+    ambient : (3,) the room's ambient irradiance (:func:`svbrdf_eval`), or None; with
+        ``weights`` only (the pilot's per-light amplitudes leave it out).
     prior : Gaussian priors per texel (shared ``Ks`` only): ``u_mean``, ``u_var`` (B,)
         on ln alpha, ``ks_mean``, ``ks_var`` (B, 3) on Ks (:func:`neighbour_priors`);
         the data's residuals are scaled by each channel's residual variance of the
@@ -375,8 +487,13 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
     w = np.asarray(weights, float) if shared else np.ones((J, 3))
     e_w = e @ w  # (B, 3)
     # the diffuse bases: matte (constant over the views) and coated
-    coated = ((e * coat_transmittance(l[..., 2])) @ w)[:, None, :] \
-        * coat_transmittance(np.asarray(views, float)[..., 2])[..., None]  # (B, N, 3)
+    t_v = coat_transmittance(np.asarray(views, float)[..., 2])[..., None]  # (B, N, 1)
+    coated = ((e * coat_transmittance(l[..., 2])) @ w)[:, None, :] * t_v  # (B, N, 3)
+    sky = None
+    if ambient is not None and shared:
+        sky = np.asarray(ambient, float)
+        e_w = e_w + sky
+        coated = coated + sky * coat_sky_transmittance() * t_v
 
     # the half vectors do not depend on alpha: their cosines once for every alpha tried
     v = np.asarray(views, float)[:, :, None, :]
@@ -393,7 +510,10 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
         a = np.asarray(alpha, float).reshape(-1, 1, 1)
         s = e_seen[sel] * _ggx_dvis(tuple(x[sel] for x in cos), a * a)  # (B, N, J)
         if shared:
-            return (s @ w)[:, :, None, :]  # (B, N, 1, 3)
+            s = s @ w  # (B, N, 3)
+            if sky is not None:  # the sky's share of the lobe, an even sky's
+                s = s + ggx_albedo(cos[1][sel][..., 0], a[:, :, 0])[..., None] * (sky / math.pi)
+            return s[:, :, None, :]  # (B, N, 1, 3)
         return np.broadcast_to(s[..., None], s.shape + (3,))
 
     u = np.log(grid)
@@ -705,7 +825,8 @@ def fit_svbrdf_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarr
                     lights_mm: np.ndarray, weights: np.ndarray,
                     noise: np.ndarray | None = None, batch: int = 1024,
                     prior: dict[str, np.ndarray] | None = None,
-                    irradiance=None) -> dict[str, np.ndarray]:
+                    irradiance=None, ambient: np.ndarray | None = None,
+                    ) -> dict[str, np.ndarray]:
     """Fit every texel of a tile (:func:`fit_svbrdf_batch`).
 
     Parameters
@@ -719,6 +840,7 @@ def fit_svbrdf_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarr
     irradiance : the flat-field's relative irradiance the observations were divided by
         (:class:`parammap.models.radiometry.IrradianceGrid`), put back: the lights'
         fall-off is the model's own. None: the observations as they are.
+    ambient : (3,) the room's ambient irradiance (:func:`svbrdf_eval`), or None.
 
     Returns
     -------
@@ -752,7 +874,7 @@ def fit_svbrdf_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarr
         pr = None if prior is None else {k: v[sel] for k, v in prior.items()}
         try:
             states[s0] = fit_svbrdf_batch(L[sel], V[sel], omega[sel], pts[sel], lights_mm,
-                                          weights, prior=pr, evidence=True)
+                                          weights, prior=pr, evidence=True, ambient=ambient)
         except (np.linalg.LinAlgError, FloatingPointError):
             flat[FitArray.STATUS][sel] = FitStatus.FAILED
             continue
@@ -763,13 +885,15 @@ def fit_svbrdf_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarr
         pr = None if prior is None else {k: v[sel] for k, v in prior.items()}
         try:
             r = fit_svbrdf_batch(L[sel], V[sel], omega[sel], pts[sel], lights_mm, weights,
-                                 prior=pr, start=state, coat_choice=keep[sel])
+                                 prior=pr, start=state, coat_choice=keep[sel],
+                                 ambient=ambient)
         except (np.linalg.LinAlgError, FloatingPointError):
             flat[FitArray.STATUS][sel] = FitStatus.FAILED
             continue
         P = r["estimate"]
         fitted = svbrdf_eval(np.repeat(P, N, 0), np.repeat(pts[sel], N, 0),
-                             V[sel].reshape(-1, 3), lights_mm, weights).reshape(len(sel), N, 3)
+                             V[sel].reshape(-1, 3), lights_mm, weights,
+                             ambient=ambient).reshape(len(sel), N, 3)
         flat[FitArray.PARAMS][sel] = P
         flat[FitArray.SD][sel] = r["stdev"]
         res = np.where(W[sel][..., None], fitted - L[sel], 0.0)
@@ -853,6 +977,7 @@ def pool_svbrdf_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
                      origin: tuple[int, int], grid: tuple[int, int, float, float],
                      lights_mm: np.ndarray, weights: np.ndarray,
                      noise: np.ndarray | None = None, irradiance=None,
+                     ambient: np.ndarray | None = None,
                      ) -> dict[str, np.ndarray] | None:
     """The repair pass of an svbrdf fit (:func:`parammap.stages.fit.fit_map`): every
     texel of a tile refitted with its neighbours' priors on ln alpha and Ks
@@ -890,7 +1015,7 @@ def pool_svbrdf_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
     out = fit_svbrdf_tile(radiance, direction, valid & take.reshape(t, u, 1), origin=origin,
                           grid=grid, lights_mm=lights_mm, weights=weights, noise=noise,
                           prior={k: v for k, v in pri.items() if k != "n"},
-                          irradiance=irradiance)
+                          irradiance=irradiance, ambient=ambient)
     sel = take.reshape(t, u) & (out[FitArray.STATUS] == FitStatus.OK)
     for k in base:
         base[k][sel] = out[k][sel]

@@ -63,6 +63,7 @@ from ..models.svbrdf import MIN_OBS as SVBRDF_MIN_OBS
 from ..models.svbrdf import (
     POOL_RADIUS,
     REFERENCE_MM,
+    ambient_irradiance,
     fit_svbrdf_batch,
     fit_svbrdf_tile,
     pool_svbrdf_tile,
@@ -608,14 +609,23 @@ def fit_svbrdf_map(obs_path: str | Path, out_path: str | Path, lights_path: str 
         obs_path, lights_mm, cfg.get("pilot_texels", default("fit.svbrdf.pilot_texels")),
         refine, irradiance=irradiance)
     record["nominal"] = not doc["lights"]
+    ambient = None
+    if doc.get("ambient"):  # the room's light, measured against the lamps' at one point
+        amb = doc["ambient"]
+        ambient = ambient_irradiance(amb["share"], np.r_[amb["at_mm"], 0.0], lights_mm,
+                                     weights)
+        record["ambient"] = np.round(ambient, 6).tolist()
     logger.info(f"fit: {SVBRDF_MODEL} under {len(lights_mm)} light(s) at "
                 f"{np.round(lights_mm, 1).tolist()} mm, relative intensities "
-                f"{np.round(weights, 3).tolist()}")
+                f"{np.round(weights, 3).tolist()}"
+                + ("" if ambient is None else
+                   f", the room's ambient irradiance {np.round(ambient, 4).tolist()}"))
     geom = {"grid": (obs.S, obs.T, obs.width_mm, obs.height_mm), "lights_mm": lights_mm,
-            "weights": weights, "irradiance": irradiance}
+            "weights": weights, "irradiance": irradiance, "ambient": ambient}
     pool = bool(cfg.get("pool_neighbours", default("fit.svbrdf.pool_neighbours")))
     res = fit_map(obs_path, out_path, partial(fit_svbrdf_tile, **geom), svbrdf_outputs(),
-                  svbrdf_attrs(lights_mm, weights, irradiance, lights_source=doc.get("source"),
+                  svbrdf_attrs(lights_mm, weights, irradiance, ambient,
+                               lights_source=doc.get("source"),
                                pool_radius=POOL_RADIUS if pool else 0),
                   scheduler, workers, start_method=start_method,
                   repair_fn=partial(pool_svbrdf_tile, **geom) if pool else None,

@@ -167,12 +167,15 @@ def against_measured(found: list[dict[str, Any]], measured: list[dict[str, Any]]
 
 def run_lights(processed: str | Path, config: dict[str, Any], *,
                figures: str | Path | None = None,
-               measured: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+               measured: list[dict[str, Any]] | None = None,
+               ambient: dict[str, Any] | None = None) -> dict[str, Any]:
     """The lights stage: lights from the MH fit ``lights.source`` (at most
     ``lights.max_lights``) into ``camera/lights.yaml`` and ``metrics/lights.json``; a
     figure of the rays in ``figures`` when given. ``measured``: the lights the capture
     lists (:attr:`parammap.stores.capture.Capture.lights`), recorded beside the found
-    ones with how far each is from the nearest found."""
+    ones with how far each is from the nearest found. ``ambient``: the room's light the
+    capture states (:attr:`parammap.stores.capture.Capture.ambient`), passed on to the
+    relightable fit."""
     proc = Processed(processed)
     cfg = config["lights"]
     src = proc.fit(cfg["source"])
@@ -187,6 +190,10 @@ def run_lights(processed: str | Path, config: dict[str, Any], *,
                         "the map): not a light over the whole surface")
     info: dict[str, Any] = {"source": cfg["source"], "lobes": int(len(rays["origins"]))}
     records = [{k: v for k, v in lt.items() if k not in ("inliers", "kept")} for lt in lights]
+    if ambient:
+        info["ambient"] = ambient
+        logger.info(f"lights: the room's light, {ambient['share']} of a white card's at "
+                    f"{ambient['at_mm']} mm with the lamps off (the capture's ambient)")
     if measured:
         centre = np.array([g.width_mm / 2, g.height_mm / 2, 0.0])
         info["measured"] = against_measured(records, measured, centre)

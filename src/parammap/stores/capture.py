@@ -74,6 +74,9 @@ class Capture:
     raw: dict[str, Any] = field(repr=False, default_factory=dict)
     # lights the lab measured: each ``position_mm`` (surface frame) and maybe ``size_mm``
     lights: list[dict[str, Any]] = field(default_factory=list)
+    # the room's light the lab measured: ``share`` (R, G, B) of a white card's light at
+    # ``at_mm`` (x, y; the surface's centre unless stated) that stays with the lamps off
+    ambient: dict[str, Any] | None = None
     # white-card views (flat-field) and the colour chart's bracket, merged as views are
     flatfield: list[View] = field(default_factory=list)
     chart: View | None = None
@@ -353,13 +356,26 @@ def load_capture(directory: str | Path, check_images: bool = False) -> Capture:
         marker_dictionary=dict_name, marker_ids=ids,
         marker_corners=corners, calibration=calib, calibration_images=calib_images,
         intrinsics_path=intr_path, response=response, views=views, raw=raw,
-        lights=[dict(lt) for lt in raw.get("lights") or []], flatfield=card, chart=chart,
+        lights=[dict(lt) for lt in raw.get("lights") or []], ambient=_ambient(raw),
+        flatfield=card, chart=chart,
         chart_type=chart_raw.get("chart", DEFAULT_CHART),
         chart_reference=chart_raw.get("reference"),
     )
     if check_images:
         _check_images(c, cap, raw["views"])
     return cap
+
+
+def _ambient(raw: dict) -> dict[str, Any] | None:
+    """The capture's ``ambient`` (schema-checked) with its share as (R, G, B) and where
+    it was read (default the surface's centre)."""
+    a = raw.get("ambient")
+    if not a:
+        return None
+    s = raw["surface"]
+    return {"share": np.broadcast_to(np.asarray(a["share"], float), (3,)).tolist(),
+            "at_mm": [float(x) for x in a.get("at_mm") or (s["width_mm"] / 2,
+                                                            s["height_mm"] / 2)]}
 
 
 def _check_images(c: _Ctx, cap: Capture, views_raw: list) -> None:

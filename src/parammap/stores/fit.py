@@ -21,6 +21,7 @@ import zarr
 from ..conventions import SVBRDF_CHANNELS, FitArray, FitStatus
 from ..errors import InputError
 from ..models.radiometry import RADIOMETRY_KEYS, IrradianceGrid
+from ..models.svbrdf import LightRig
 from .common import (
     COMPLETE_ATTR,
     HEIGHT_ATTR,
@@ -113,14 +114,16 @@ SVBRDF_LAYOUT = " ".join(SVBRDF_CHANNELS)
 
 
 def svbrdf_attrs(lights_mm: np.ndarray, weights: np.ndarray,
-                 irradiance: IrradianceGrid | None = None, **settings: Any) -> dict[str, Any]:
+                 irradiance: IrradianceGrid | None = None, ambient: np.ndarray | None = None,
+                 **settings: Any) -> dict[str, Any]:
     """The attributes that describe an svbrdf fit: the lights it was fitted under
     (``lights``: ``position_mm`` (J, 3), ``weights`` (J, 3) relative RGB intensities,
-    the flat-field's ``irradiance`` it put back, :func:`parammap.stores.lights.light_doc`)
-    and ``settings`` (where the lights came from)."""
+    the flat-field's ``irradiance`` it put back, the room's ``ambient`` irradiance,
+    :func:`parammap.stores.lights.light_doc`) and ``settings`` (where the lights came
+    from)."""
     # version 2: the coat's share (a plastic's diffuse light dimmed toward grazing)
     return {_MODEL: "svbrdf", "model_version": 2, _LAYOUT: SVBRDF_LAYOUT,
-            _LIGHTS: light_doc(lights_mm, weights, irradiance), **settings}
+            _LIGHTS: light_doc(lights_mm, weights, irradiance, ambient), **settings}
 
 
 def grid_attrs(obs: ObservationMap, tile: int, provenance: bool = True) -> dict[str, Any]:
@@ -215,10 +218,8 @@ class FitStore(MapStore):
         return out
 
     @property
-    def lights(self) -> tuple | None:
-        """An svbrdf fit's lights: positions (J, 3) mm and relative RGB intensities
-        (J, 3) (and the flat-field's irradiance, :func:`parse_light_doc`); None for
-        other fits."""
+    def lights(self) -> LightRig | None:
+        """An svbrdf fit's lights (:func:`parse_light_doc`); None for other fits."""
         doc = self.group.attrs.get(_LIGHTS)
         return None if doc is None else parse_light_doc(doc)
 

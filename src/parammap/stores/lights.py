@@ -12,6 +12,7 @@ import yaml
 
 from ..errors import InputError
 from ..models.radiometry import IrradianceGrid
+from ..models.svbrdf import LightRig
 from .common import read_document
 
 __all__ = ["LIGHTS_VERSION", "LightsError", "light_doc", "parse_light_doc", "read_lights",
@@ -25,17 +26,23 @@ class LightsError(InputError):
 
 
 # the lights a relightable map carries (fit-store attribute, EXR header as JSON)
-_POSITION, _INTENSITY, _IRRADIANCE = "position_mm", "intensity", "irradiance"
+_POSITION, _INTENSITY, _IRRADIANCE, _AMBIENT = ("position_mm", "intensity", "irradiance",
+                                                 "ambient")
 
 
 def light_doc(position_mm: np.ndarray, intensity: np.ndarray,
-              irradiance: IrradianceGrid | None = None) -> dict[str, Any]:
+              irradiance: IrradianceGrid | None = None,
+              ambient: np.ndarray | None = None) -> dict[str, Any]:
     """The lights of a relightable map as stored with it: positions (J, 3) mm, surface
-    frame, relative RGB intensities (J, 3) and, when the capture's frames had the
-    lights' fall-off divided out (a white card, :mod:`parammap.models.radiometry`), that
-    relative irradiance, which the map's renders of the capture divide out too."""
+    frame, relative RGB intensities (J, 3), the room's ambient irradiance (3,) where the
+    capture stated it (:func:`parammap.models.svbrdf.ambient_irradiance`) and, when the
+    capture's frames had the lights' fall-off divided out (a white card,
+    :mod:`parammap.models.radiometry`), that relative irradiance, which the map's renders
+    of the capture divide out too."""
     doc = {_POSITION: np.round(np.asarray(position_mm, float), 4).reshape(-1, 3).tolist(),
            _INTENSITY: np.round(np.asarray(intensity, float), 6).reshape(-1, 3).tolist()}
+    if ambient is not None:
+        doc[_AMBIENT] = np.round(np.asarray(ambient, float), 8).reshape(3).tolist()
     if irradiance is not None:
         doc[_IRRADIANCE] = {"grid": np.round(np.asarray(irradiance.grid), 6).tolist(),
                             "width_mm": irradiance.width_mm,
@@ -43,18 +50,19 @@ def light_doc(position_mm: np.ndarray, intensity: np.ndarray,
     return doc
 
 
-def parse_light_doc(doc: dict[str, Any] | str) -> tuple:
-    """(J, 3) positions and (J, 3) intensities of :func:`light_doc` (or its JSON), and
-    its :class:`~parammap.models.radiometry.IrradianceGrid` third where it has one."""
+def parse_light_doc(doc: dict[str, Any] | str) -> LightRig:
+    """The :class:`~parammap.models.svbrdf.LightRig` of :func:`light_doc` (or its
+    JSON)."""
     doc = json.loads(doc) if isinstance(doc, str) else doc
     try:
-        out = (np.asarray(doc[_POSITION], float).reshape(-1, 3),
-               np.asarray(doc[_INTENSITY], float).reshape(-1, 3))
-        irr = doc.get(_IRRADIANCE)
-        if irr is not None:
-            out += (IrradianceGrid(np.asarray(irr["grid"], float), float(irr["width_mm"]),
-                                   float(irr["height_mm"])),)
-        return out
+        irr, amb = doc.get(_IRRADIANCE), doc.get(_AMBIENT)
+        return LightRig(
+            np.asarray(doc[_POSITION], float).reshape(-1, 3),
+            np.asarray(doc[_INTENSITY], float).reshape(-1, 3),
+            None if irr is None else IrradianceGrid(
+                np.asarray(irr["grid"], float), float(irr["width_mm"]),
+                float(irr["height_mm"])),
+            None if amb is None else np.asarray(amb, float).reshape(3))
     except (KeyError, TypeError, ValueError):
         raise LightsError(f"malformed lights of a relightable map: {str(doc)[:80]}") from None
 

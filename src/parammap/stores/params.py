@@ -45,6 +45,7 @@ from ..conventions import (
     sh_channels,
 )
 from ..models.radiometry import RADIOMETRY_KEYS
+from ..models.svbrdf import LightRig
 from .common import HEIGHT_ATTR, S_ATTR, SOFTWARE_ATTR, T_ATTR, WIDTH_ATTR, software
 from .exr import ExrError, read_exr, write_exr
 from .fit import open_fit
@@ -116,11 +117,16 @@ class ParamMap:
     def shape(self) -> tuple[int, int]:
         return self.params.shape[:2]
 
-    def relit(self, position_mm: np.ndarray, intensity: np.ndarray) -> ParamMap:
+    def relit(self, position_mm: np.ndarray, intensity: np.ndarray,
+              ambient: np.ndarray | None | str = "same") -> ParamMap:
         """This svbrdf map under other lights: positions (J, 3) mm and relative RGB
-        intensities (J, 3) in its own lights' units."""
-        return replace(self, attrs={**self.attrs,
-                                    "lights": json.dumps(light_doc(position_mm, intensity))})
+        intensities (J, 3) in its own lights' units, in the same room (``ambient``
+        "same": the room's ambient light it was fitted under stays) or another (3,)
+        ambient irradiance (None: a dark room)."""
+        if isinstance(ambient, str):
+            ambient = (self.lights or (None,) * 4)[3]
+        return replace(self, attrs={**self.attrs, "lights": json.dumps(
+            light_doc(position_mm, intensity, ambient=ambient))})
 
     @property
     def radiometry(self) -> dict[str, str]:
@@ -130,12 +136,12 @@ class ParamMap:
         return {k: self.attrs[k] for k in RADIOMETRY_KEYS if k in self.attrs}
 
     @property
-    def lights(self) -> tuple | None:
-        """An svbrdf map's lights: positions (J, 3) mm and relative RGB intensities
-        (J, 3), from its header (``parammap_lights``), and the flat-field's irradiance
-        its renders of the capture divide by, where it has one
-        (:func:`parammap.stores.lights.parse_light_doc`); None for other maps. A
-        relit map (:meth:`relit`) has none: its renders are the light's."""
+    def lights(self) -> LightRig | None:
+        """An svbrdf map's lights from its header (``parammap_lights``,
+        :func:`parammap.stores.lights.parse_light_doc`): positions, relative RGB
+        intensities, the flat-field's irradiance its renders of the capture divide by
+        (a relit map (:meth:`relit`) has none: its renders are the light's) and the
+        room's ambient irradiance; None for other maps."""
         doc = self.attrs.get("lights")
         return None if doc is None else parse_light_doc(doc)
 

@@ -59,8 +59,8 @@ from .sampling import sample_directions
 logger = logging.getLogger(__name__)
 
 __all__ = ["PBR_PRESETS", "FilmicResponse", "Light", "PbrPreset", "generate_pbr",
-           "novel_lights", "patch_labels", "read_truth_radiance", "render_relit",
-           "render_white_card"]
+           "light_irradiance", "novel_lights", "patch_labels", "read_truth_radiance",
+           "render_relit", "render_white_card", "sky_share"]
 
 
 @dataclass(frozen=True)
@@ -341,6 +341,45 @@ def _marker_image(dictionary: str, marker_id: int, cell_px: int = 12) -> np.ndar
     return np.repeat(np.where(img > 127, 0.8, 0.04).astype(np.float32)[..., None], 3, -1)
 
 
+def _light_axes(L: Light) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The light's local x, y and emitting normal (toward the surface's centre), as
+    Mitsuba's ``look_at`` of :func:`_light` sets them."""
+    p = np.asarray(L.position_mm, float)
+    n = -p / np.linalg.norm(p)
+    up = np.array([0.0, 0.0, 1.0]) if abs(n[2]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(up, n)
+    x /= np.linalg.norm(x)
+    return x, np.cross(n, x), n
+
+
+def light_irradiance(L: Light, point_mm: np.ndarray, n: int = 48) -> np.ndarray:
+    """(3,) the irradiance an area light gives a point of the surface (mm relative to the
+    surface's centre; normal +z), by midpoint quadrature over the light's area."""
+    x, y, nl = _light_axes(L)
+    g = (np.arange(n) + 0.5) / n
+    if L.shape == "disc":
+        r, t = L.size_mm[0] * np.sqrt(g)[:, None], 2 * np.pi * g[None, :]
+        q = r[..., None] * (np.cos(t)[..., None] * x + np.sin(t)[..., None] * y)
+        area = np.pi * L.size_mm[0] ** 2
+    else:
+        u, v = (2 * g - 1)[:, None], (2 * g - 1)[None, :]
+        q = (u[..., None] * L.size_mm[0] / 2 * x + v[..., None] * L.size_mm[1] / 2 * y)
+        area = L.size_mm[0] * L.size_mm[1]
+    d = np.asarray(L.position_mm, float) + q - np.asarray(point_mm, float)
+    r2 = (d * d).sum(-1)
+    cos_s = np.clip(d[..., 2], 0, None) / np.sqrt(r2)
+    cos_l = np.clip(-(d @ nl), 0, None) / np.sqrt(r2)
+    return np.asarray(L.radiance, float) * float(np.mean(cos_s * cos_l / r2)) * area
+
+
+def sky_share(preset: PbrPreset) -> list[float]:
+    """(R, G, B) share of a white card's light at the surface's centre that its even
+    sky gives (what stays with the lamps off): ``pi sky / (E_lamps + pi sky)``."""
+    e = sum(light_irradiance(L, np.zeros(3)) for L in preset.lights)
+    sky = np.pi * preset.environment
+    return np.round(sky / (e + sky), 6).tolist()
+
+
 def _light(L: Light, target: np.ndarray) -> dict:
     import mitsuba as mi
 
@@ -608,8 +647,11 @@ def generate_pbr(
         _write_photo(tmp_out / f"calibration/board_{k:02d}.{ext}", img, preset)
     logger.info(f"  rendered {len(cposes)} board photos ({time.perf_counter() - t0:.0f} s)")
 
+    # the room's light as a lab measures it: a white card at the centre, lamps off / on
+    extra = {"ambient": {"share": sky_share(preset)}} if preset.environment > 0 else None
     write_capture_yaml(tmp_out, f"Physically based synthetic capture (Mitsuba 3; preset "
-                       f"{name}, seed {seed})", sid, preset, items, calib, ext, views_yaml)
+                       f"{name}, seed {seed})", sid, preset, items, calib, ext, views_yaml,
+                       extra)
 
     np.savez_compressed(
         tmp_truth / "response.npz", levels=np.arange(256),

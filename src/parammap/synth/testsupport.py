@@ -251,7 +251,7 @@ def relit_against_truth(capture: str | Path, truth: str | Path, processed: str |
     for m in models:
         pm = read_param_map(proc.params(m))
         if pm.lights is not None:
-            pos, w = pm.lights
+            pos, w = pm.lights[:2]
             near = [int(np.argmin(np.linalg.norm(true_pos - p, axis=1))) for p in pos]
             unit = np.mean([w[j] / _power(scene["lights"][k]) for j, k in enumerate(near)], 0)
             pm = pm.relit([centre + np.asarray(L["position_mm"]) for L in new],

@@ -54,7 +54,13 @@ import numpy as np
 
 from ..conventions import sh_norms
 from ..geometry import Intrinsics, undistort_normalized
-from ..models.svbrdf import ALPHA_RANGE, COAT_IOR, REFERENCE_MM
+from ..models.svbrdf import (
+    ALPHA_RANGE,
+    COAT_IOR,
+    REFERENCE_MM,
+    coat_sky_transmittance,
+    ggx_albedo_table,
+)
 from ..stores.camera import load_intrinsics, read_poses
 from ..stores.capture import Capture
 from ..stores.metrics import read_metrics
@@ -110,6 +116,8 @@ def read_payload_script(data: bytes) -> bytes:
 def glsl_constants() -> str:
     """GLSL ES 3.0 declarations of the conventions the fragment shader uses."""
     K = sh_norms(SH_MAX_BANDS)
+    mu, la, E = ggx_albedo_table()
+    alb = ", ".join(f"{x:.7e}" for x in E.ravel())  # a float literal even where 1
     klm = ", ".join(f"{K[l, m]:.9g}" if m <= l else "0.0"
                     for l in range(SH_MAX_BANDS) for m in range(SH_MAX_BANDS))
     return "\n".join([
@@ -121,6 +129,13 @@ def glsl_constants() -> str:
         f"const float SV_ALPHA_MIN = {ALPHA_RANGE[0]!r};",
         f"const float SV_REFERENCE_MM = {REFERENCE_MM!r};",
         f"const float SV_COAT_IOR = {COAT_IOR!r};",
+        f"const float SV_COAT_SKY = {coat_sky_transmittance()!r};",
+        f"const int SV_ALB_NMU = {E.shape[0]}; const int SV_ALB_NA = {E.shape[1]};",
+        f"const float SV_ALB_MU0 = {float(mu[0])!r}; "
+        f"const float SV_ALB_DMU = {float(mu[1] - mu[0])!r};",
+        f"const float SV_ALB_LA0 = {float(la[0])!r}; "
+        f"const float SV_ALB_DLA = {float(la[1] - la[0])!r};",
+        f"const float SV_ALB[{E.size}] = float[{E.size}]({alb});",
     ])
 
 

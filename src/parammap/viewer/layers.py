@@ -45,11 +45,13 @@ def layer_info(pm: ParamMap) -> tuple[dict, int]:
     if pm.model == "diffuse":
         return {"model": "diffuse"}, 1
     if pm.model == "svbrdf":  # (Kd, alpha), (Ks, coat); its lights for the shader
-        pos, w = pm.lights[:2]
-        if len(pos) > SV_MAX_LIGHTS:
+        rig = pm.lights
+        if len(rig.position_mm) > SV_MAX_LIGHTS:
             raise InputError(f"the viewer evaluates up to {SV_MAX_LIGHTS} lights")
-        return {"model": "svbrdf", "lights": np.round(pos, 4).tolist(),
-                "light_weights": np.round(w, 6).tolist()}, 2
+        return {"model": "svbrdf", "lights": np.round(rig.position_mm, 4).tolist(),
+                "light_weights": np.round(rig.intensity, 6).tolist(),
+                "ambient": [0.0] * 3 if rig.ambient is None
+                else np.round(rig.ambient, 8).tolist()}, 2
     if pm.model == "best":  # a choice map: its candidates are models of the page too
         return {"model": "best", "parts": list(pm.parts or {})}, 1
     raise InputError(f"unknown model {pm.model!r}")
