@@ -25,11 +25,11 @@ REAL = SHARED / "data" / "real"
 # The longest modules (rendering or a whole workflow in a module fixture), longest first:
 # `make test` runs the modules on parallel workers in collection order
 # (``--dist loadfile --no-loadscope-reorder``), so these start at once rather than
-# leaving one worker alone with a long tail; the worker that takes the relighting tests
-# waits for the other's pbr-tiny render (and leaves it both cores meanwhile).
-LONGEST_FIRST = ("test_pbr_capture.py", "test_demo_accuracy.py", "test_pbr_relight.py",
-                 "test_viewer.py",
-                 "test_svbrdf.py", "test_cluster.py", "test_paper.py")
+# leaving one worker alone with a long tail. The relighting tests come after the
+# viewer's and svbrdf's, by when the other worker has rendered pbr-tiny: a worker that
+# waits for it leaves a core idle through that fixture's single-threaded stages.
+LONGEST_FIRST = ("test_pbr_capture.py", "test_demo_accuracy.py", "test_viewer.py",
+                 "test_svbrdf.py", "test_pbr_relight.py", "test_cluster.py", "test_paper.py")
 
 
 def pytest_collection_modifyitems(items: list) -> None:
