@@ -60,6 +60,17 @@ def test_import_builds_the_capture_the_generator_described(camera_folder, tmp_pa
     with pytest.raises(InputError, match="IMG_9998.JPG"):
         run_import(photos, tmp_path / "bad", layout=lay, board=board,
                    holdout_photos=["IMG_9998.JPG"])
+    # the room's light measured with the lamps off: stated in the capture, or refused
+    # naming the key, with nothing written
+    assert main(["import", str(photos), "--layout", str(lay), "--board", str(board),
+                 "--ambient-share", "0.1", "0.12", "0.15", "--out",
+                 str(tmp_path / "lit")]) == 0
+    amb = load_capture(tmp_path / "lit").ambient
+    assert amb["share"] == [0.1, 0.12, 0.15] and amb["at_mm"] == [cap.width_mm / 2,
+                                                                  cap.height_mm / 2]
+    with pytest.raises(InputError, match="ambient.share"):
+        run_import(photos, tmp_path / "dark", layout=lay, board=board, ambient_share=1.0)
+    assert not (tmp_path / "dark").exists() and not list(tmp_path.glob(".dark*"))
 
 
 def test_brackets_split_on_a_repeated_time_and_on_a_pause(tmp_path):

@@ -375,7 +375,7 @@ def _import(a: argparse.Namespace) -> int:
 
     run_import(a.photos, a.out, layout=a.layout, board=a.board, holdout=a.holdout,
                seed=a.seed, surface_id=a.id, holdout_photos=a.holdout_photos or (),
-               flatfield=a.flatfield, chart=a.chart)
+               flatfield=a.flatfield, chart=a.chart, ambient_share=a.ambient_share)
     return 0
 
 
@@ -474,6 +474,10 @@ def _parser() -> argparse.ArgumentParser:
                                        "surface lies, under the capture's light")
     s.add_argument("--chart", help="folder of one bracket of a ColorChecker Classic under "
                                    "the capture's light")
+    s.add_argument("--ambient-share", type=float, nargs="+", metavar="S",
+                   help="the room's own light: the share (one value, or R G B, in [0, 1)) "
+                        "of a white card's light at the surface's centre that stays with "
+                        "the lamps off")
     s.add_argument("--out", required=True, help="capture directory to write")
 
     s = add("validate-capture", help="check a capture directory, images included")

@@ -219,7 +219,8 @@ def run_import(photos: str | Path, out: str | Path, *, layout: str | Path,
                board: str | Path | None = None, holdout: int | None = None, seed: int = 0,
                surface_id: str | None = None,
                holdout_photos: Sequence[str] = (), flatfield: str | Path | None = None,
-               chart: str | Path | None = None) -> dict[str, Any]:
+               chart: str | Path | None = None,
+               ambient_share: float | Sequence[float] | None = None) -> dict[str, Any]:
     """Build the capture ``out`` from a folder of camera files.
 
     Parameters
@@ -239,6 +240,9 @@ def run_import(photos: str | Path, out: str | Path, *, layout: str | Path,
         capture's ``flatfield`` section.
     chart : folder of one bracket of a ColorChecker Classic under the capture's light;
         the capture's ``colour_chart`` section.
+    ambient_share : the room's own light, as the share (one value or R, G, B in [0, 1))
+        of a white card's light at the surface's centre that stays with the lamps off;
+        the capture's ``ambient`` section (the relightable map keeps it off the albedo).
 
     Returns
     -------
@@ -288,7 +292,8 @@ def run_import(photos: str | Path, out: str | Path, *, layout: str | Path,
     shutil.rmtree(tmp, ignore_errors=True)
     try:
         doc = _write(tmp, views, boards, held, lay, calib, surface_id or out.name)
-        _write_radiometry(tmp, doc, card, chart_groups[0] if chart_groups else None)
+        _write_radiometry(tmp, doc, card, chart_groups[0] if chart_groups else None,
+                          ambient_share)
         load_capture(tmp, check_images=True)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -329,9 +334,13 @@ def _bracket_doc(root: Path, name: str, g: list[PhotoMeta]) -> list[dict[str, An
 
 
 def _write_radiometry(root: Path, doc: dict, card: list[list[PhotoMeta]],
-                      chart: list[PhotoMeta] | None) -> None:
-    """The white card's views and the chart's bracket into ``root`` and its
-    ``capture.yaml`` (``doc``, updated)."""
+                      chart: list[PhotoMeta] | None,
+                      ambient_share: float | Sequence[float] | None = None) -> None:
+    """The white card's views, the chart's bracket and the room's stated light into
+    ``root`` and its ``capture.yaml`` (``doc``, updated)."""
+    if ambient_share is not None:
+        share = np.atleast_1d(np.asarray(ambient_share, float)).tolist()
+        doc["ambient"] = {"share": share[0] if len(share) == 1 else share}
     if card:
         doc["flatfield"] = {"views": [{"id": f"card{k:02d}",
                                        "exposures": _bracket_doc(root, f"card{k:02d}", g)}
@@ -339,7 +348,7 @@ def _write_radiometry(root: Path, doc: dict, card: list[list[PhotoMeta]],
     if chart:
         doc["colour_chart"] = {"id": DEFAULT_CHART_ID, "chart": DEFAULT_CHART,
                                "exposures": _bracket_doc(root, DEFAULT_CHART_ID, chart)}
-    if card or chart:
+    if card or chart or ambient_share is not None:
         (root / "capture.yaml").write_text(
             "# written by parammap import\n"
             + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None))
