@@ -339,10 +339,13 @@ class _RangeGuard:
         self.esc = np.zeros(len(c), np.int8)
 
     def outside(self, basis: np.ndarray, idx: np.ndarray) -> np.ndarray:
-        # one product for all texels: (G, k^2) @ (k^2, 3 B)
+        # one product for all texels, (G, k^2) @ (k^2, 3 B), in single precision (the
+        # bounds carry a tolerance of a share of the range; this product was half of
+        # an rlsop fit's time), then each texel's extremes over the directions
         cc = np.swapaxes(self.c[idx], 0, 2).reshape(self.c.shape[2], -1)
-        f = (basis @ cc).reshape(len(basis), 3, len(idx))
-        return ((f < self.lo[idx].T[None]) | (f > self.hi[idx].T[None])).any((0, 1))
+        f = basis.astype(np.float32) @ cc.astype(np.float32)  # (G, 3 B)
+        return ((f.min(0).reshape(3, -1) < self.lo[idx].T)
+                | (f.max(0).reshape(3, -1) > self.hi[idx].T)).any(0)
 
     def run(self, basis: np.ndarray, steps: int, flag: int, refit) -> None:
         """Up to ``steps`` escalations checked at ``basis`` (G, k^2); ``refit(sel, esc)``
