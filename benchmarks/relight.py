@@ -12,7 +12,8 @@ ones) are rendered afresh at that noise level into ``<root>/<preset>.truth-<samp
 figure); the highlight speckle is reported against the truth used.
 
 Needs ``<root>/<preset>`` processed into ``<root>/<preset>.proc`` with the models'
-EXRs (``benchmarks/pbr_capture.py``, then ``parammap lights`` and ``fit-svbrdf``);
+EXRs (``benchmarks/pbr_capture.py``, then ``parammap lights --capture <root>/<preset>``,
+which passes on the sky's share the generator states, and ``fit-svbrdf``);
 renders ``<root>/<preset>.truth/relit`` when missing; prints both tables and writes
 ``<root>/<preset>.relight.json``.
 """
