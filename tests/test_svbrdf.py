@@ -238,6 +238,9 @@ def test_param_map_round_trip_and_render(tmp_path):
     assert np.allclose(got, want) and (got > 0).all()
     dark = svbrdf_eval(P[0, :2].reshape(2, -1), pts, d, pos, w)
     assert (got > dark).all()
+    # relit under another lamp: in the same room (the default) or a dark one
+    assert np.allclose(back.relit(pos + 50.0, w).lights.ambient, amb)
+    assert back.relit(pos + 50.0, w, ambient=None).lights.ambient is None
     with pytest.raises(InputError, match="lights"):
         evaluate("svbrdf", P[0, :2].reshape(2, -1), d)
 
