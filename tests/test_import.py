@@ -71,6 +71,9 @@ def test_import_builds_the_capture_the_generator_described(camera_folder, tmp_pa
     with pytest.raises(InputError, match="ambient.share"):
         run_import(photos, tmp_path / "dark", layout=lay, board=board, ambient_share=1.0)
     assert not (tmp_path / "dark").exists() and not list(tmp_path.glob(".dark*"))
+    # a white card's reflectance comes with the card's photos
+    with pytest.raises(InputError, match="--card-reflectance: .* needs its photos"):
+        run_import(photos, tmp_path / "white", layout=lay, board=board, card_reflectance=0.9)
 
 
 def test_brackets_split_on_a_repeated_time_and_on_a_pause(tmp_path):

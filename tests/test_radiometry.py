@@ -75,6 +75,8 @@ def test_flatfield_separates_lens_and_light():
     g = np.exp(log_g).reshape(ny, nx)
     np.testing.assert_allclose(g / g.mean(), g_true / g_true.mean(), rtol=3e-3)
     assert st["residual_rms"] < 0.003 and st["cells"] == ny * nx
+    # the level divided out is the card's luminance on the axis (V = 1), over the cells
+    np.testing.assert_allclose(st["level"] * g, 7.0 * g_true, rtol=3e-3)
 
 
 def test_irradiance_grid_interpolates_between_centres():
@@ -256,7 +258,9 @@ def test_capture_with_card_needs_its_radiometry(vignetted, tmp_path):
             (lambda d: d["colour_chart"].update(chart="SG140"),
              "colour_chart.chart: must be MCC24"),
             (lambda d: d["flatfield"].update(views=d["flatfield"]["views"][:1]),
-             "flatfield.views: must list at least two of the card's views")):
+             "flatfield.views: must list at least two of the card's views"),
+            (lambda d: d["flatfield"].update(reflectance=1.2),
+             r"flatfield.reflectance: must be a number in \(0, 1\]")):
         broken = yaml.safe_load(yaml.safe_dump(doc))
         change(broken)
         (bad / "capture.yaml").write_text(yaml.safe_dump(broken))
@@ -317,17 +321,20 @@ def test_colour_correction_keeps_the_exposure_scale():
 
 def test_import_takes_the_card_and_the_chart(vignetted, tmp_path):
     """A camera folder with the white card's and the chart's photos in their own folders
-    imports to a capture with its flat-field and colour chart, photos in place."""
+    imports to a capture with its flat-field (and the card's stated reflectance) and
+    colour chart, photos in place."""
     cap, _, _ = vignetted
     w = write_camera_folder(cap, tmp_path / "camera")
     assert main(["import", str(w["photos"]), "--layout", str(w["layout"]), "--board",
                  str(w["board"]), "--flatfield", str(w["flatfield"]), "--chart",
-                 str(w["chart"]), "--out", str(tmp_path / "imported")]) == 0
+                 str(w["chart"]), "--card-reflectance", "0.8",
+                 "--out", str(tmp_path / "imported")]) == 0
     got, want = load_capture(tmp_path / "imported"), load_capture(cap)
     # (the tiny preset's 320 x 240 board photos are too small for the board to be told
     # apart every time: one may join the views)
     assert len(got.flatfield) == len(want.flatfield) and len(got.views) >= len(want.views)
     assert all(len(v.exposures) == len(want.flatfield[0].exposures) for v in got.flatfield)
     assert got.chart is not None and got.chart_type == "MCC24"
+    assert got.card_reflectance == want.card_reflectance == (0.8, 0.8, 0.8)
     assert sorted(e.exposure_s for e in got.chart.exposures) == pytest.approx(
         sorted(e.exposure_s for e in want.chart.exposures), rel=1e-4)

@@ -375,7 +375,8 @@ def _import(a: argparse.Namespace) -> int:
 
     run_import(a.photos, a.out, layout=a.layout, board=a.board, holdout=a.holdout,
                seed=a.seed, surface_id=a.id, holdout_photos=a.holdout_photos or (),
-               flatfield=a.flatfield, chart=a.chart, ambient_share=a.ambient_share)
+               flatfield=a.flatfield, chart=a.chart, ambient_share=a.ambient_share,
+               card_reflectance=a.card_reflectance)
     return 0
 
 
@@ -478,6 +479,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="the room's own light: the share (one value, or R G B, in [0, 1)) "
                         "of a white card's light at the surface's centre that stays with "
                         "the lamps off")
+    s.add_argument("--card-reflectance", type=float, nargs="+", metavar="R",
+                   help="the white card's diffuse reflectance (one value, or R G B, in "
+                        "(0, 1]): sets the relightable map's albedo scale")
     s.add_argument("--out", required=True, help="capture directory to write")
 
     s = add("validate-capture", help="check a capture directory, images included")

@@ -69,6 +69,11 @@ class Radiometry:
         ``colour_model`` (:func:`parammap.radiometry.apply_colour`).
     colour_space : name of the scene-linear space of the matrix.
     colour_model : ``linear`` (3 x 3) or ``root-polynomial`` (3 x 6).
+    irradiance_scale : ``pi L / rho`` of a white card of stated reflectance ``rho``
+        where ``irradiance`` is 1 (its mean over the surface): the lights' absolute
+        irradiance there, in the merged frames' radiance units (luminance). Nothing
+        divides by it; it gives a relightable map's albedo its scale
+        (:func:`parammap.models.svbrdf.card_scale`).
     """
 
     vignetting: np.ndarray | None = None
@@ -77,6 +82,7 @@ class Radiometry:
     colour_space: str | None = None
     field_max: float | None = None
     colour_model: str | None = None
+    irradiance_scale: float | None = None
 
     @property
     def identity(self) -> bool:
@@ -157,8 +163,10 @@ def fit_flatfield(cell: np.ndarray, rho2: np.ndarray, log_y: np.ndarray, n_cells
     coeffs : (VIGNETTING_TERMS,) ``ln V`` coefficients.
     log_g : (n_cells,) ``ln G`` per cell (NaN where no sample), mean 0 over the
         cells seen.
-    stats : ``residual_rms`` (ln units), ``coeff_sd`` (their standard errors),
-        ``samples``, ``cells``.
+    stats : ``level``, the luminance ``exp(ln G)`` was divided by (the card's mean
+        over the cells seen, vignetting divided out, in ``log_y``'s units),
+        ``residual_rms`` (ln units), ``coeff_sd`` (their standard errors), ``samples``,
+        ``cells``.
 
     Notes
     -----
@@ -194,8 +202,9 @@ def fit_flatfield(cell: np.ndarray, rho2: np.ndarray, log_y: np.ndarray, n_cells
     cov = s2 * np.linalg.pinv(Xd[:, :k].T @ Xd[:, :k])
     log_g = np.full(n_cells, np.nan)
     log_g[seen] = (np.bincount(cell, log_y - X @ coeffs, n_cells) / np.maximum(counts, 1))[seen]
-    log_g -= np.log(np.mean(np.exp(log_g[seen])))
-    return coeffs, log_g, {"residual_rms": float(np.sqrt(s2)), "terms": k,
+    level = float(np.mean(np.exp(log_g[seen])))
+    log_g -= np.log(level)
+    return coeffs, log_g, {"level": level, "residual_rms": float(np.sqrt(s2)), "terms": k,
                            "coeff_sd": np.sqrt(np.diag(cov)).tolist(),
                            "field_max": float(rho2.max()),
                            "samples": int(len(yd)), "cells": int(seen.sum())}

@@ -68,7 +68,7 @@ from .residuals import mean_percentage_residual
 from .weights import noise_weights, reduced_chi2
 
 __all__ = ["ALPHA_RANGE", "COAT_F", "COAT_IOR", "COAT_WINDOW_F", "MIN_OBS", "OFF_HIGHLIGHT",
-           "ALBEDO_NODES", "LightRig", "alpha_grid", "ambient_irradiance",
+           "ALBEDO_NODES", "LightRig", "alpha_grid", "ambient_irradiance", "card_scale",
            "coat_regions", "coat_share", "coat_sky_transmittance", "coat_transmittance",
            "fit_svbrdf_batch", "fit_svbrdf_tile", "fresnel_dielectric", "ggx_albedo",
            "ggx_albedo_table", "ggx_vis", "light_terms",
@@ -1031,12 +1031,44 @@ CHROMA_MAX = 0.1  # a dielectric's highlight is the light's colour: Ks's RGB spr
 ALBEDO_CEILING = 0.9  # without a dielectric to scale by, the brightest texel's albedo
 
 
+#: points per side of the grid over the surface :func:`card_scale` averages over
+CARD_GRID = 32
+
+
+def card_scale(irradiance_scale: float, width_mm: float, height_mm: float,
+               lights_mm: np.ndarray, weights: np.ndarray,
+               ambient: np.ndarray | None = None) -> float:
+    """The scale ``k`` of :func:`metallic_roughness` from a white card of known
+    reflectance (:attr:`parammap.models.radiometry.Radiometry.irradiance_scale`).
+
+    The card measured the lights' absolute irradiance on average over the surface; the
+    map's lights give ``e w + a`` there in units of ``k`` (:func:`svbrdf_eval`). ``k`` is
+    the ratio of the two means (luminance), over a regular grid of points.
+
+    Parameters
+    ----------
+    irradiance_scale : the card's ``pi L / rho`` where its relative irradiance is 1
+        (the frames' radiance units).
+    width_mm, height_mm : the surface; lights_mm : (J, 3); weights : (J, 3);
+    ambient : (3,) or None, as in :func:`svbrdf_eval`.
+    """
+    f = (np.arange(CARD_GRID) + 0.5) / CARD_GRID
+    X, Y = np.meshgrid(f * width_mm, f * height_mm)
+    pts = np.stack([X.ravel(), Y.ravel(), np.zeros(X.size)], -1)
+    E = light_terms(pts, lights_mm)[1] @ np.asarray(weights, float)
+    if ambient is not None:
+        E = E + np.asarray(ambient, float)
+    return float(irradiance_scale / np.mean(E @ LUMINANCE))
+
+
 def metallic_roughness(P: np.ndarray, SD: np.ndarray | None = None,
+                       scale: float | None = None,
                        ) -> dict[str, np.ndarray | float | str]:
     """glTF's metallic-roughness parameters of an svbrdf map.
 
-    ``Kd = albedo / pi * k`` and ``Ks = F0 k`` share the unknown scale ``k`` of the
-    first light (the irradiance it gives a metre away, in the radiance's units). A
+    ``Kd = albedo / pi * k`` and ``Ks = F0 k`` share the scale ``k`` of the first light
+    (the irradiance it gives a metre away, in the radiance's units). A white card of
+    stated reflectance measures it (``scale``, :func:`card_scale`). Without one, a
     dielectric reflects ``F0 = 0.04`` of the light, uncoloured: over the texels whose Ks
     is determined (3 sds, where ``SD`` is given) and grey (RGB spread under ``CHROMA_MAX`` of its
     mean), ``k`` is the median of ``Ks / 0.04``; where no texel qualifies (every
@@ -1048,12 +1080,12 @@ def metallic_roughness(P: np.ndarray, SD: np.ndarray | None = None,
 
     Parameters
     ----------
-    P : (..., SV_SIZE); SD : its sds, or None.
+    P : (..., SV_SIZE); SD : its sds, or None; scale : ``k``, or None (from the map).
 
     Returns
     -------
     dict: ``base_color`` (..., 3) linear, ``metallic`` (...), ``roughness`` (...), ``scale``
-    (k) and ``scale_from`` (``dielectric`` or ``albedo_ceiling``).
+    (k) and ``scale_from`` (``white_card``, ``dielectric`` or ``albedo_ceiling``).
     """
     P = np.nan_to_num(np.asarray(P, float))
     kd, ks, alpha = P[..., SV_KD], P[..., SV_KS], P[..., SV_ALPHA]
@@ -1065,7 +1097,9 @@ def metallic_roughness(P: np.ndarray, SD: np.ndarray | None = None,
             det &= lum_s > KS_MIN_Z * np.sqrt(np.nan_to_num(SD[..., SV_KS], nan=np.inf) ** 2
                                               @ LUMINANCE ** 2)
     grey = det & (chroma < CHROMA_MAX)
-    if grey.sum() >= 16:
+    if scale is not None:
+        k, source = float(scale), "white_card"
+    elif grey.sum() >= 16:
         k, source = float(np.median(lum_s[grey])) / DIELECTRIC_F0, "dielectric"
     else:
         top = np.percentile(math.pi * (kd @ LUMINANCE), 99)

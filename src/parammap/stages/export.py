@@ -12,11 +12,12 @@ import numpy as np
 
 from ..conventions import SVBRDF_MODEL
 from ..errors import InputError
-from ..models.svbrdf import metallic_roughness
+from ..models.svbrdf import card_scale, metallic_roughness
 from ..stores.material import write_gltf, write_materialx
 from ..stores.metrics import write_metrics
 from ..stores.params import diffuse_map, param_map_from_fit, read_param_map, write_param_map
 from ..stores.paths import Processed
+from ..stores.radiometry import read_radiometry
 
 logger = logging.getLogger(__name__)
 
@@ -40,6 +41,18 @@ def run_export(source: str | Path, processed: str | Path, config: dict[str, Any]
     return paths
 
 
+def _card_scale(src: Processed, pm) -> float | None:
+    """The albedo's scale from the capture's white card, where its reflectance was
+    stated (``camera/radiometry.json``); None otherwise."""
+    path = src.radiometry
+    rad = read_radiometry(path if Path(path).is_file() else None)
+    rig = pm.lights
+    if rad.irradiance_scale is None or rig is None:
+        return None
+    return card_scale(rad.irradiance_scale, pm.width_mm, pm.height_mm, rig.position_mm,
+                      rig.intensity, rig.ambient)
+
+
 def run_material(source: str | Path, processed: str | Path, config: dict[str, Any], *,
                  model: str = SVBRDF_MODEL) -> dict[str, Any]:
     """A relightable map for renderers: ``params/<model>.gltf`` (glTF 2.0, textured quad)
@@ -52,7 +65,7 @@ def run_material(source: str | Path, processed: str | Path, config: dict[str, An
     if pm.model != "svbrdf":
         raise InputError(f"{src.params(model)}: a {pm.model} map has no material for "
                          f"renderers; only {SVBRDF_MODEL} is relightable")
-    mr = metallic_roughness(pm.params, pm.sd)
+    mr = metallic_roughness(pm.params, pm.sd, _card_scale(src, pm))
     extras = {"model": model, "albedo_scale": mr["scale"], "scale_from": mr["scale_from"]}
     gltf = write_gltf(proc.gltf(model), mr["base_color"], mr["metallic"],
                       mr["roughness"], pm.width_mm, pm.height_mm, extras)

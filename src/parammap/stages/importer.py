@@ -220,7 +220,8 @@ def run_import(photos: str | Path, out: str | Path, *, layout: str | Path,
                surface_id: str | None = None,
                holdout_photos: Sequence[str] = (), flatfield: str | Path | None = None,
                chart: str | Path | None = None,
-               ambient_share: float | Sequence[float] | None = None) -> dict[str, Any]:
+               ambient_share: float | Sequence[float] | None = None,
+               card_reflectance: float | Sequence[float] | None = None) -> dict[str, Any]:
     """Build the capture ``out`` from a folder of camera files.
 
     Parameters
@@ -243,6 +244,9 @@ def run_import(photos: str | Path, out: str | Path, *, layout: str | Path,
     ambient_share : the room's own light, as the share (one value or R, G, B in [0, 1))
         of a white card's light at the surface's centre that stays with the lamps off;
         the capture's ``ambient`` section (the relightable map keeps it off the albedo).
+    card_reflectance : the white card's diffuse reflectance (one value or R, G, B in
+        (0, 1]; a calibrated white standard's certificate), which sets the relightable
+        map's albedo scale; with ``flatfield`` only.
 
     Returns
     -------
@@ -257,6 +261,9 @@ def run_import(photos: str | Path, out: str | Path, *, layout: str | Path,
     if board and not calib:
         raise CameraFolderError(f"{board}: a board layout has a calibration section "
                            "(parammap board writes one)")
+    if card_reflectance is not None and not flatfield:
+        raise CameraFolderError("--card-reflectance: the white card's reflectance needs its "
+                                "photos (--flatfield)")
     extra = [Path(p).resolve() for p in (flatfield, chart) if p]
     files = [f for f in _files(photos)
              if not any(f.resolve().is_relative_to(e) for e in extra)]
@@ -293,7 +300,7 @@ def run_import(photos: str | Path, out: str | Path, *, layout: str | Path,
     try:
         doc = _write(tmp, views, boards, held, lay, calib, surface_id or out.name)
         _write_radiometry(tmp, doc, card, chart_groups[0] if chart_groups else None,
-                          ambient_share)
+                          ambient_share, card_reflectance)
         load_capture(tmp, check_images=True)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -335,16 +342,19 @@ def _bracket_doc(root: Path, name: str, g: list[PhotoMeta]) -> list[dict[str, An
 
 def _write_radiometry(root: Path, doc: dict, card: list[list[PhotoMeta]],
                       chart: list[PhotoMeta] | None,
-                      ambient_share: float | Sequence[float] | None = None) -> None:
+                      ambient_share: float | Sequence[float] | None = None,
+                      card_reflectance: float | Sequence[float] | None = None) -> None:
     """The white card's views, the chart's bracket and the room's stated light into
     ``root`` and its ``capture.yaml`` (``doc``, updated)."""
     if ambient_share is not None:
-        share = np.atleast_1d(np.asarray(ambient_share, float)).tolist()
-        doc["ambient"] = {"share": share[0] if len(share) == 1 else share}
+        doc["ambient"] = {"share": _one_or_rgb(ambient_share)}
     if card:
         doc["flatfield"] = {"views": [{"id": f"card{k:02d}",
                                        "exposures": _bracket_doc(root, f"card{k:02d}", g)}
                                       for k, g in enumerate(card)]}
+        if card_reflectance is not None:
+            doc["flatfield"] = {"reflectance": _one_or_rgb(card_reflectance),
+                                **doc["flatfield"]}
     if chart:
         doc["colour_chart"] = {"id": DEFAULT_CHART_ID, "chart": DEFAULT_CHART,
                                "exposures": _bracket_doc(root, DEFAULT_CHART_ID, chart)}
@@ -352,6 +362,12 @@ def _write_radiometry(root: Path, doc: dict, card: list[list[PhotoMeta]],
         (root / "capture.yaml").write_text(
             "# written by parammap import\n"
             + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None))
+
+
+def _one_or_rgb(value: float | Sequence[float]) -> float | list[float]:
+    """A stated value as capture.yaml holds it: one number, or R, G, B."""
+    v = np.atleast_1d(np.asarray(value, float)).tolist()
+    return v[0] if len(v) == 1 else v
 
 
 def _camera_settings(metas: list[PhotoMeta]) -> dict[str, Any]:

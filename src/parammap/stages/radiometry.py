@@ -10,6 +10,7 @@ flat-field needs the texel a pixel sees, not the sub-pixel pose the maps need).
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 from typing import Any
 
@@ -133,6 +134,13 @@ def _flatfield(cap: Capture, proc: Processed, intr, cfg: dict) -> tuple[dict, di
     stats["irradiance_cell_rms"] = float(np.sqrt(np.mean(
         (log_g[seen] - log_smooth.ravel()[seen]) ** 2)))
     edge = float(vignetting(np.array(stats["field_max"]), coeffs))
+    # the card's luminance where the relative irradiance is 1, over its stated
+    # reflectance: the light's absolute irradiance (a Lambertian card, L = rho E / pi)
+    scale = None
+    if cap.card_reflectance is not None:
+        scale = math.pi * stats["level"] / float(np.asarray(cap.card_reflectance) @ LUMINANCE)
+        stats["card_reflectance"] = list(cap.card_reflectance)
+        stats["irradiance_scale"] = scale
     rec = {"card_views": used, "card_views_left_out": dropped, "grid": list(shape),
            "vignetting_at_field_max": 1 - edge, "irradiance_min": float(grid.min()),
            "irradiance_max": float(grid.max()), **stats}
@@ -141,8 +149,12 @@ def _flatfield(cap: Capture, proc: Processed, intr, cfg: dict) -> tuple[dict, di
                 f"light {grid.min():.3f}-{grid.max():.3f} of its mean over the surface "
                 f"(degree {degree}; cells {stats['irradiance_cell_rms']:.4f} about it in ln), "
                 f"{len(used)} card views, residual {stats['residual_rms']:.4f} in ln")
+    if scale is not None:
+        logger.info(f"radiometry: the card's stated reflectance makes the light's "
+                    f"irradiance absolute: {scale:.5g} (radiance units) on average")
     return {"vignetting": coeffs, "field_max": stats["field_max"],
-            "irradiance": grid if cfg["light_falloff"] else None}, rec
+            "irradiance": grid if cfg["light_falloff"] else None,
+            "irradiance_scale": scale}, rec
 
 
 def _colour(cap: Capture, proc: Processed, cfg: dict, lens: tuple | None,

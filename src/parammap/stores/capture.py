@@ -79,6 +79,9 @@ class Capture:
     ambient: dict[str, Any] | None = None
     # white-card views (flat-field) and the colour chart's bracket, merged as views are
     flatfield: list[View] = field(default_factory=list)
+    # the card's diffuse reflectance (R, G, B) where the lab states it (a calibrated
+    # white standard): it makes the flat-field's irradiance absolute
+    card_reflectance: tuple[float, float, float] | None = None
     chart: View | None = None
     chart_type: str = DEFAULT_CHART
     chart_reference: str | None = None  # colour-science's name; None: the chart's own
@@ -357,7 +360,7 @@ def load_capture(directory: str | Path, check_images: bool = False) -> Capture:
         marker_corners=corners, calibration=calib, calibration_images=calib_images,
         intrinsics_path=intr_path, response=response, views=views, raw=raw,
         lights=[dict(lt) for lt in raw.get("lights") or []], ambient=_ambient(raw),
-        flatfield=card, chart=chart,
+        flatfield=card, card_reflectance=_card_reflectance(raw), chart=chart,
         chart_type=chart_raw.get("chart", DEFAULT_CHART),
         chart_reference=chart_raw.get("reference"),
     )
@@ -376,6 +379,13 @@ def _ambient(raw: dict) -> dict[str, Any] | None:
     return {"share": np.broadcast_to(np.asarray(a["share"], float), (3,)).tolist(),
             "at_mm": [float(x) for x in a.get("at_mm") or (s["width_mm"] / 2,
                                                             s["height_mm"] / 2)]}
+
+
+def _card_reflectance(raw: dict) -> tuple[float, float, float] | None:
+    """The white card's stated reflectance (schema-checked) as (R, G, B), or None."""
+    r = (raw.get("flatfield") or {}).get("reflectance")
+    return None if r is None else tuple(
+        float(x) for x in np.broadcast_to(np.asarray(r, float), (3,)))
 
 
 def _check_images(c: _Ctx, cap: Capture, views_raw: list) -> None:

@@ -31,8 +31,9 @@ __all__ = ["INTEROP_ATTR", "RADIOMETRY_VERSION", "RadiometryError", "colour_inte
 
 RADIOMETRY_VERSION = 1
 
-_VIGNETTING, _IRRADIANCE, _MATRIX, _SPACE, _FIELD, _MODEL = (
-    "vignetting", "irradiance", "colour_matrix", "colour_space", "field_max", "colour_model")
+_VIGNETTING, _IRRADIANCE, _MATRIX, _SPACE, _FIELD, _MODEL, _SCALE = (
+    "vignetting", "irradiance", "colour_matrix", "colour_space", "field_max", "colour_model",
+    "irradiance_scale")
 
 
 #: the OpenEXR header attribute that names the colour space of an image's RGB
@@ -59,7 +60,7 @@ def write_radiometry(path: str | Path, rad: Radiometry, info: dict[str, Any]) ->
            _MATRIX: None if rad.colour_matrix is None else np.asarray(
                rad.colour_matrix).tolist(),
            _SPACE: rad.colour_space, _FIELD: rad.field_max,
-           _MODEL: rad.colour_model, "info": info}
+           _MODEL: rad.colour_model, _SCALE: rad.irradiance_scale, "info": info}
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(json.dumps(doc, indent=1) + "\n")
     tmp.replace(path)
@@ -75,7 +76,7 @@ def read_radiometry(path: str | Path | None) -> Radiometry:
     try:
         rad = Radiometry(_array(doc[_VIGNETTING]), _array(doc[_IRRADIANCE]),
                          _array(doc[_MATRIX]), doc[_SPACE], doc.get(_FIELD),
-                         doc.get(_MODEL))
+                         doc.get(_MODEL), doc.get(_SCALE))
     except (KeyError, TypeError, ValueError):
         raise RadiometryError(f"{path}: not a radiometry record") from None
     if rad.vignetting is not None and (rad.vignetting.shape != (VIGNETTING_TERMS,)

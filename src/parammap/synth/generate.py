@@ -684,7 +684,7 @@ def _radiometry_photos(tmp_out: Path, world: _World, preset: Preset, K: np.ndarr
             vid = f"card{k:02d}"
             views.append({"id": vid, "exposures": _write_bracket(tmp_out, vid, photos,
                                                                   times, ext)})
-        extra["flatfield"] = {"views": views}
+        extra["flatfield"] = {"reflectance": CARD_ALBEDO, "views": views}
     if preset.chart_camera:
         sc = world.scene
         cw, ch = chart_size_mm()

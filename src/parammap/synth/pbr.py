@@ -32,6 +32,7 @@ import math
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -59,8 +60,8 @@ from .sampling import sample_directions
 logger = logging.getLogger(__name__)
 
 __all__ = ["PBR_PRESETS", "FilmicResponse", "Light", "PbrPreset", "generate_pbr",
-           "light_irradiance", "novel_lights", "patch_labels", "read_truth_radiance",
-           "render_relit", "render_white_card", "sky_share"]
+           "light_irradiance", "normal_reflectance", "novel_lights", "patch_labels",
+           "read_truth_radiance", "render_relit", "render_white_card", "sky_share"]
 
 
 @dataclass(frozen=True)
@@ -773,7 +774,7 @@ def render_white_card(capture: str | Path, truth: str | Path, views: int = 6,
         entries.append({"id": vid, "exposures": exps})
     path = capture / "capture.yaml"
     doc = yaml.safe_load(path.read_text())
-    doc["flatfield"] = {"views": entries}
+    doc["flatfield"] = {"reflectance": CARD_ALBEDO, "views": entries}
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(f"# {name}, seed {gen['seed']}, with {views} white-card views\n"
                    + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=100))
@@ -786,6 +787,36 @@ def read_truth_radiance(truth_dir: str | Path, view_id: str, clean: bool = False
     """The radiance (H, W, 3) a generated photo was exposed from (``clean``: the
     high-sample render of a held-out view)."""
     return read_rgb(Path(truth_dir) / ("clean" if clean else "radiance") / f"{view_id}.exr")
+
+
+def normal_reflectance(truth_dir: str | Path) -> list[dict[str, Any]]:
+    """Per patch of a generated capture (``scene.json``'s order), its reflectance lit
+    and seen along the normal, from Mitsuba's own BSDFs: what a relightable map's
+    albedo should come out as. ``specular`` (R, G, B): a conductor's Fresnel
+    reflectance (glTF's base colour of a metal); ``diffuse``: the factor on the albedo
+    texture of the diffuse light (1 on a matte patch; a rough plastic's coating lets
+    less in and out); None where a patch has neither (``principled``, a mix)."""
+    mi = _mitsuba()
+    si = mi.SurfaceInteraction3f()
+    si.wi = mi.Vector3f(0, 0, 1)
+    out = []
+    for p in json.loads((Path(truth_dir) / "scene.json").read_text())["patches"]:
+        r: dict[str, Any] = {"specular": None, "diffuse": None}
+        if p["kind"] == "roughconductor":
+            bsdf = mi.load_dict({"type": "conductor", "material": p["material"]})
+            _, w = bsdf.sample(mi.BSDFContext(), si, 0.5, mi.Point2f(0.5, 0.5))
+            r["specular"] = [float(w[c]) for c in range(3)]
+        elif p["kind"] == "roughplastic":
+            bsdf = mi.load_dict({"type": "roughplastic", "distribution": "ggx",
+                                 "alpha": p["alpha"], "int_ior": p["int_ior"],
+                                 "diffuse_reflectance": {"type": "rgb", "value": [1, 1, 1]},
+                                 "specular_reflectance": 0.0})
+            r["diffuse"] = math.pi * float(bsdf.eval(mi.BSDFContext(), si,
+                                                     mi.Vector3f(0, 0, 1))[0])
+        elif p["kind"] == "diffuse":
+            r["diffuse"] = 1.0
+        out.append(r)
+    return out
 
 
 def patch_labels(truth_dir: str | Path, S: int, T: int, width_mm: float,
