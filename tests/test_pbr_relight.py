@@ -30,7 +30,7 @@ def test_svbrdf_relit_from_its_lights(pbr_tiny, tmp_path):
     """The microfacet SVBRDF on a capture whose materials are microfacet ones, in a room
     whose sky the capture states (``ambient``): the light (an area light 90 x 60 mm)
     placed within 2 % of its distance (measured 0.4 %), the held-out views against the
-    clean renders closer than MH-1's on every view (measured 5.6 / 5.6 / 4.9 against
+    clean renders closer than MH-1's on every view (measured 4.8 / 5.1 / 4.7 against
     6.0 / 10.6 / 8.5), its highlights no more speckled than 1.5x the clean render's
     (measured 0.66; that render's own Monte Carlo noise is most of its variation:
     against a 5x cleaner one every map, diffuse included, is 2.2-2.8x,
@@ -63,7 +63,7 @@ def test_svbrdf_relit_from_its_lights(pbr_tiny, tmp_path):
     assert sp["svbrdf-ggx"]["ratio"] < 1.5, sp
     # under lights the capture never had (the first turned 120 deg, a disc added) in
     # the same room: the relightable map follows them (issue 48: within 1.5x of its
-    # captured figure; measured 4.4, 0.81x its captured 5.4, against a truth with a
+    # captured figure; measured 4.0, 0.81x its captured 4.9, against a truth with a
     # fifth of the captured one's Monte Carlo noise; 9.9, 1.83x, with the sky put on
     # the lamps), MH and SH cannot (40-56)
     from parammap.synth.pbr import render_relit
@@ -143,7 +143,8 @@ def test_white_card_flattens_the_area_light(carded):
 def test_white_card_of_stated_reflectance_scales_the_albedo(carded):
     """The card's stated reflectance makes the light's irradiance absolute, and with it
     the relightable map's albedo: each conductor's base colour against its Fresnel
-    reflectance (measured 0.1 % and 1.0 % off) and each rough plastic's albedo against
+    reflectance (measured 0.1 % and 1.0 % off), the matte patch's albedo (0.4 % low:
+    its texels keep no lobe their views do not call for) and each rough plastic's against
     its diffuse reflectance along the normal (Mitsuba's own BSDFs: the coating passes
     0.74-0.88 of the texture; measured 5.3 % and 5.4 % low, where issue 48 asks 5 %:
     the model's lobe has no Fresnel rise toward grazing, docs/results.md). Scaled by
@@ -176,9 +177,11 @@ def test_white_card_of_stated_reflectance_scales_the_albedo(carded):
         inner = cv2.erode((lab == k).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
         if want["specular"] is not None:
             ratio[k] = np.median(base[inner]) / (np.asarray(want["specular"]) @ LUMINANCE)
-        elif want["diffuse"] is not None and want["diffuse"] < 1:  # a highlight to see
+        elif want["diffuse"] is not None:
             rho = base * (1 - mr["metallic"])
             ratio[k] = np.median(rho[inner] / (want["diffuse"] * albedo[inner]))
-    metal = [k for k, w in enumerate(normal_reflectance(truth)) if w["specular"]]
-    assert len(ratio) == 4 and all(abs(ratio[k] - 1) < 0.03 for k in metal), ratio
+    plastic = [k for k, w in enumerate(normal_reflectance(truth)) if w["diffuse"] not in (
+        None, 1.0)]
+    assert len(ratio) == 5 and all(abs(r - 1) < 0.03 for k, r in ratio.items()
+                                   if k not in plastic), ratio
     assert all(abs(r - 1) < 0.08 for r in ratio.values()), ratio

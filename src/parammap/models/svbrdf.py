@@ -87,6 +87,9 @@ COAT_IOR = 1.5
 #: the F statistic (one parameter) a texel's coat must reach to be kept on its own
 #: evidence: chi-square's 99 % point for one degree of freedom
 COAT_F = 6.63
+#: the F statistic (two parameters) a texel's lobe must reach to be kept: chi-square's
+#: 99 % point for two degrees of freedom, over two
+LOBE_F = 4.61
 #: a view is off a texel's highlight where the lobe gives under this share of its
 #: diffuse light: the coat's evidence is judged there (a tenth left a rough plastic,
 #: whose broad lobe reaches most views, with too few views to show its coat)
@@ -650,10 +653,27 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
     # the amplitudes and their sds at the chosen alpha and coat
     dif = mixed(coat, every)
     c, rss, _, _ = objective(alpha, _diffuse_moments(y, omega, [dif]))
+    lobe = np.ones(B, bool)
+    if prior is None and shared:
+        # the lobe is kept where it explains the views better than a texel without one,
+        # by an F test of its two parameters (alpha, and its amplitude: one across the
+        # channels, as the coat's): on a matte texel a lobe fits the views' noise and,
+        # broad, trades against the diffuse term, taking part of the albedo with it
+        wd = omega[..., None] * dif
+        kd0 = np.maximum(np.einsum("bnc,bnc->bc", wd, y) / np.maximum(
+            np.einsum("bnc,bnc->bc", wd, dif), 1e-300), 0.0)
+        rss0 = np.einsum("bn,bnc->bc", omega, (y - kd0[:, None, :] * dif) ** 2)
+        dof1 = np.maximum(nobs - 3 - keep, 1)[:, None]
+        f_lobe = ((rss0 - rss) / 2 / np.maximum(rss / dof1, 1e-300)).mean(1)
+        lobe = (f_lobe > LOBE_F) | (nobs < MIN_OBS)
+        c[~lobe, 0], c[~lobe, 1:] = kd0[~lobe], 0.0
+        rss[~lobe] = rss0[~lobe]
+        alpha = np.where(lobe, alpha, ALPHA_RANGE[1])
     # a matte texel's coat is not a parameter of its fit (the F test fixed it)
     d_coat = np.where(keep[:, None, None], coated - e_w[:, None, :], 0.0)
     sd_all = _sandwich_sd(y, omega, dif, d_coat, c, bases, alpha)
     sd_all[:, -2] = np.where(keep, sd_all[:, -2], np.nan)
+    sd_all[~lobe, -1] = np.nan
     Q = c.shape[1] - 1
     dof = np.maximum(3 * nobs - (3 * (1 + Q) + 1 + keep), 1)
     sd_c = sd_all[:, :-2].reshape(B, 3, 1 + Q)  # per channel: Kd, amplitudes
@@ -672,7 +692,7 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
     params[:, SV_COAT] = coat
     sd = np.empty((B, SV_SIZE))
     sd[:, SV_KD] = sd_c[:, :, 0]
-    sd[:, SV_KS] = sd_c[:, :, 1]
+    sd[:, SV_KS] = np.where(lobe[:, None], sd_c[:, :, 1], np.nan)
     sd[:, SV_ALPHA] = alpha * sd_u
     sd[:, SV_COAT] = sd_coat
     ks = (c[:, 1:2] * w[None]) if shared else c[:, 1:]
