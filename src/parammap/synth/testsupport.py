@@ -18,6 +18,7 @@ import numpy as np
 import yaml
 
 from ..config import default
+from ..conventions import LUMINANCE, SV_ALPHA
 from ..geometry import plane_to_texel, texel_centres, unit
 from ..render import evaluate, render, surface_points, tone_map
 from ..stages.hdr import load_bracket, merge_bracket
@@ -29,11 +30,11 @@ from ..stores.observation import open_observation_map
 from ..stores.params import best_shares, read_param_map
 from ..stores.paths import Processed
 from .generate import true_view_radiance
-from .pbr import Light, patch_labels, read_truth_radiance
+from .pbr import Light, normal_reflectance, patch_labels, read_truth_radiance
 from .scene import KIND_NAMES, load_scene, true_radiance
 
-__all__ = ["directions_against_truth", "hdr_errors", "holdout_against_truth",
-           "relit_against_truth",
+__all__ = ["albedo_against_truth", "directions_against_truth", "hdr_errors",
+           "holdout_against_truth", "relit_against_truth",
            "intrinsics_errors", "pose_errors",
            "true_directions", "angle_deg"]
 
@@ -391,4 +392,43 @@ def directions_against_truth(truth: str | Path, processed: str | Path, models: l
             continue
         for k in np.unique(kind):
             out.setdefault(KIND_NAMES[k], {})[name] = float(err[kind == k].mean())
+    return out
+
+
+def albedo_against_truth(truth: str | Path, processed: str | Path,
+                         scale: float | None = None) -> dict[int, dict]:
+    """A physically based capture's relightable map in glTF's terms against its truth,
+    per material patch (median over its inner texels, 2 texels in from its edges):
+    ``albedo``, a conductor's base colour over its Fresnel reflectance or another
+    patch's ``baseColor (1 - metallic)`` over its diffuse reflectance along the normal
+    (:func:`parammap.synth.pbr.normal_reflectance`; luminance), and ``alpha`` (fitted,
+    true) where the patch has one. ``scale``: the albedo's scale k (default the one
+    ``parammap material`` recorded). Patches with no such truth (``principled``) are
+    left out."""
+    from ..models.svbrdf import metallic_roughness
+
+    proc = Processed(processed)
+    rec = json.loads(proc.metrics("material-svbrdf-ggx").read_text())
+    pm = read_param_map(proc.params("svbrdf-ggx"))
+    mr = metallic_roughness(pm.params, pm.sd, rec["albedo_scale"] if scale is None else scale)
+    T, S = pm.shape
+    lab = patch_labels(truth, S, T, pm.width_mm, pm.height_mm)
+    tex = cv2.resize(np.load(Path(truth) / "albedo.npz")["albedo"].astype(np.float32), (S, T),
+                     interpolation=cv2.INTER_AREA) @ LUMINANCE
+    base = mr["base_color"] @ LUMINANCE
+    patches = json.loads((Path(truth) / "scene.json").read_text())["patches"]
+    out = {}
+    for k, (p, want) in enumerate(zip(patches, normal_reflectance(truth), strict=True)):
+        inner = cv2.erode((lab == k).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        if want["specular"] is not None:
+            ratio = np.median(base[inner]) / (np.asarray(want["specular"]) @ LUMINANCE)
+        elif want["diffuse"] is not None:
+            rho = base * (1 - mr["metallic"])
+            ratio = np.median(rho[inner] / (want["diffuse"] * tex[inner]))
+        else:
+            continue
+        out[k] = {"kind": p["kind"], "albedo": float(ratio), "scale_from": rec["scale_from"]
+                  if scale is None else "given",
+                  "alpha": (float(np.median(pm.params[..., SV_ALPHA][inner])), p["alpha"])
+                  if "alpha" in p else None}
     return out
