@@ -20,6 +20,7 @@ import yaml
 from ..config import default
 from ..conventions import LUMINANCE, SV_ALPHA
 from ..geometry import plane_to_texel, texel_centres, unit
+from ..models.svbrdf import metallic_roughness
 from ..render import evaluate, render, surface_points, tone_map
 from ..stages.hdr import load_bracket, merge_bracket
 from ..stages.holdout import choose_gamma, compare, marker_pixels, pixel_regions, region_errors
@@ -405,8 +406,6 @@ def albedo_against_truth(truth: str | Path, processed: str | Path,
     true) where the patch has one. ``scale``: the albedo's scale k (default the one
     ``parammap material`` recorded). Patches with no such truth (``principled``) are
     left out."""
-    from ..models.svbrdf import metallic_roughness
-
     proc = Processed(processed)
     rec = json.loads(proc.metrics("material-svbrdf-ggx").read_text())
     pm = read_param_map(proc.params("svbrdf-ggx"))
