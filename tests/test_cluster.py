@@ -44,7 +44,10 @@ def test_workflow_through_a_fake_sbatch(tiny_capture, tmp_path):
            "HOME": str(tmp_path)}
     r = subprocess.run([sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"),
                         "--directory", str(work), "--profile", str(ROOT / "profiles" / "sbatch"),
-                        "--configfile", str(work / "run.yaml"), "--", *targets],
+                        "--configfile", str(work / "run.yaml"),
+                        # the fake sbatch has finished each job when it returns: no need
+                        # to wait the default 10 s a round to see it
+                        "--seconds-between-status-checks", "1", "--", *targets],
                        capture_output=True, text=True, env=env, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     for t in targets:

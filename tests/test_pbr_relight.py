@@ -136,7 +136,12 @@ def test_white_card_flattens_the_area_light(carded):
         _radiometry_and_map(cap, out, flat)
         tilt[flat] = _diffuse_patch_tilt(out, truth)
     rec = json.loads((out / "metrics" / "radiometry.json").read_text())["flatfield"]
-    assert rec["card_views"] == cards and rec["vignetting_at_field_max"] < 0.02
+    assert rec["card_views"] == cards
+    # the renders are a pinhole's: no vignetting, within the estimate's own 3 sd (its sd
+    # at the field's edge: 1.2 % with the photos' Monte Carlo noise)
+    sd = float(np.hypot.reduce(np.array(rec["coeff_sd"]) * rec["field_max"] ** np.arange(
+        1, len(rec["coeff_sd"]) + 1)))
+    assert sd < 0.02 and abs(rec["vignetting_at_field_max"]) < 3 * sd, rec
     assert tilt["false"] > 0.05 and tilt["true"] < 0.3 * tilt["false"], tilt
 
 

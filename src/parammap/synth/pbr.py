@@ -14,7 +14,10 @@ response with a toe and a shoulder, sensor noise.
 Mitsuba has no lens distortion: each view is rendered through a pinhole camera wide
 enough to cover the distorted image at ``render_scale`` times the resolution, then
 resampled through OpenCV's distortion model, ``render_scale**2`` bilinear samples per
-photo pixel (a box filter over the pixel's area).
+photo pixel (a box filter over the pixel's area). Only the render pixels that see the
+surface or a marker (the board, in a board photo) get the preset's samples; the card or
+wall around them, which no measurement reads, is rendered at a quarter of the
+resolution and smoothed (most of a view's pixels, and of its time).
 
 The capture follows ``docs/reference/capture-format.md`` exactly. The ground truth goes
 to a separate folder the pipeline never reads: ``camera.yaml`` (K, distortion), ``poses.npz`` (R, t
@@ -332,6 +335,22 @@ def _marker_layout(preset: PbrPreset, rng) -> list[dict]:
     return items
 
 
+def _regions_mm(preset: PbrPreset, items: list[dict]) -> list[np.ndarray]:
+    """What a view's measurements read, as (4, 3) world corners (mm, z = 0) of
+    rectangles: the surface, and each marker with its quiet zone."""
+    cell = min(abs(it["corners_mm"][1][0] - it["corners_mm"][0][0]) for it in items) \
+        / (aruco_dictionary(preset.marker_dictionary).markerSize + 2)
+    boxes = [np.array([[0.0, 0.0], [preset.width_mm, preset.height_mm]])]
+    boxes += [np.array(it["corners_mm"], float) for it in items]
+    return [_rect_mm(b.min(0) - 2 * cell, b.max(0) + 2 * cell) for b in boxes]
+
+
+def _rect_mm(lo, hi) -> np.ndarray:
+    """(4, 3) the corners of the rectangle [lo, hi] (mm) in the plane z = 0."""
+    (x0, y0), (x1, y1) = lo, hi
+    return np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
+
+
 def _marker_image(dictionary: str, marker_id: int, cell_px: int = 12) -> np.ndarray:
     """Marker with a one-cell white quiet zone, albedo 0.04 / 0.8, (h, w, 3)."""
     d = aruco_dictionary(dictionary)
@@ -511,19 +530,56 @@ class _Camera:
         return cls(f, (rw, rh), mx, my)
 
     def sensor(self, mi, R: np.ndarray, t: np.ndarray, spp: int,
-               sampler: str = "independent") -> object:
+               sampler: str = "independent", crop: tuple[int, int, int, int] | None = None,
+               coarse: int = 1) -> object:
+        """Mitsuba's pinhole for pose (R, t): the whole render, or ``crop`` (x0, y0, x1,
+        y1) of it in render pixels, or the whole at ``coarse`` times the pixel pitch."""
         C = -R.T @ t
         M = np.eye(4)
         # Mitsuba's camera looks down +z with x left and y up; OpenCV's x right, y down
         M[:3, :3] = R.T @ np.diag([-1.0, -1.0, 1.0])
         M[:3, 3] = C
-        fov = math.degrees(2 * math.atan(self.size[0] / 2 / self.f))
+        w, h = (-(-n // coarse) for n in self.size)
+        fov = math.degrees(2 * math.atan(w * coarse / 2 / self.f))
+        film = {"type": "hdrfilm", "width": w, "height": h, "rfilter": {"type": "box"},
+                "pixel_format": "rgb"}
+        if crop is not None:
+            x0, y0, x1, y1 = crop
+            film |= {"crop_offset_x": x0, "crop_offset_y": y0, "crop_width": x1 - x0,
+                     "crop_height": y1 - y0}
         return mi.load_dict({
             "type": "perspective", "fov": fov, "fov_axis": "x", "near_clip": 1.0,
-            "far_clip": 1e5, "to_world": mi.ScalarTransform4f(M.tolist()),
-            "film": {"type": "hdrfilm", "width": self.size[0], "height": self.size[1],
-                     "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+            "far_clip": 1e5, "to_world": mi.ScalarTransform4f(M.tolist()), "film": film,
             "sampler": {"type": sampler, "sample_count": spp}})
+
+    def region(self, R: np.ndarray, t: np.ndarray, points: np.ndarray,
+               margin: int = 8) -> tuple[int, int, int, int] | None:
+        """(x0, y0, x1, y1) the render pixels that see the convex hull of ``points``
+        (n, 3) in the world, ``margin`` pixels around them (the photo's bilinear
+        resampling reaches one render pixel out); None where a point is behind the
+        camera or the region is most of the render."""
+        X = np.asarray(points, float) @ np.asarray(R, float).T + np.asarray(t, float)
+        if (X[:, 2] <= 1.0).any():
+            return None
+        u = self.f * X[:, 0] / X[:, 2] + self.size[0] / 2 - 0.5
+        v = self.f * X[:, 1] / X[:, 2] + self.size[1] / 2 - 0.5
+        x0, y0 = (max(0, int(math.floor(a.min())) - margin) for a in (u, v))
+        x1 = min(self.size[0], int(math.ceil(u.max())) + margin + 1)
+        y1 = min(self.size[1], int(math.ceil(v.max())) + margin + 1)
+        if x1 <= x0 or y1 <= y0 or (x1 - x0) * (y1 - y0) > 0.6 * self.size[0] * self.size[1]:
+            return None
+        return x0, y0, x1, y1
+
+    def upsample(self, coarse_img: np.ndarray, coarse: int) -> np.ndarray:
+        """A render at ``coarse`` times the pixel pitch (:meth:`sensor`) resampled to the
+        render's pixels (both centred on the optical axis)."""
+        h, w = coarse_img.shape[:2]
+        rw, rh = self.size
+        A = np.array([[1 / coarse, 0.0, (0.5 - rw / 2) / coarse + w / 2 - 0.5],
+                      [0.0, 1 / coarse, (0.5 - rh / 2) / coarse + h / 2 - 0.5]])
+        return cv2.warpAffine(np.ascontiguousarray(coarse_img[..., :3], np.float32), A,
+                              (rw, rh), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                              borderMode=cv2.BORDER_REPLICATE)
 
     def photo(self, render: np.ndarray) -> np.ndarray:
         """Resample a pinhole render (rh, rw, 3) into the distorted photo (H, W, 3)."""
@@ -535,10 +591,31 @@ class _Camera:
         return acc / self.map_x.shape[2]
 
 
+#: the pitch, in render pixels, of the render outside the regions that matter: a plain
+#: background that no measurement reads (a sixteenth of the samples, then smoothed)
+COARSE = 4
+
+
 def _render(mi, scene, cam: _Camera, R, t, spp: int, seed: int,
-            sampler: str = "independent") -> np.ndarray:
-    img = mi.render(scene, sensor=cam.sensor(mi, R, t, spp, sampler), seed=seed, spp=spp)
-    return cam.photo(np.array(img))
+            sampler: str = "independent", regions_mm: list[np.ndarray] | None = None,
+            ) -> np.ndarray:
+    """The photo (H, W, 3) of pose (R, t). With ``regions_mm`` (a list of (n, 3) world
+    points), the render pixels that see each one's hull get ``spp`` samples and the rest
+    of the frame (the card or the wall around) is rendered at :data:`COARSE` times the
+    pixel pitch and smoothed: most of a view's pixels and of its time."""
+    crops = [cam.region(R, t, r) for r in regions_mm or []]
+    if not crops or None in crops:
+        img = np.array(mi.render(scene, sensor=cam.sensor(mi, R, t, spp, sampler),
+                                 seed=seed, spp=spp))
+        return cam.photo(img)
+    low = np.array(mi.render(scene, sensor=cam.sensor(mi, R, t, spp, sampler, coarse=COARSE),
+                             seed=(seed + 104729) % 2**31, spp=spp))[..., :3]
+    img = cam.upsample(cv2.GaussianBlur(low, (0, 0), 1.0), COARSE)
+    for k, (x0, y0, x1, y1) in enumerate(crops):
+        img[y0:y1, x0:x1] = np.array(mi.render(
+            scene, sensor=cam.sensor(mi, R, t, spp, sampler, crop=(x0, y0, x1, y1)),
+            seed=(seed + 7919 * k) % 2**31, spp=spp))[..., :3]
+    return cam.photo(img)
 
 
 def _write_photo(path: Path, img: np.ndarray, preset: PbrPreset) -> None:
@@ -596,16 +673,17 @@ def generate_pbr(
                 f"{len(mats)} material patches, {len(items)} {preset.marker_dictionary} markers, "
                 f"{len(preset.lights)} light(s), Mitsuba {mi.__version__} scalar_rgb")
 
+    regions = _regions_mm(preset, items)
     radiance = []
     for k, (R, t) in enumerate(poses):
         rad = _render(mi, scene, cam, R, t, preset.spp, int(seeds[k]) % 2**31,
-                      preset.sampler)
+                      preset.sampler, regions)
         radiance.append(rad)
         write_rgb(tmp_truth / "radiance" / f"{view_ids[k]}.exr", rad,
                   {"view_id": view_ids[k], "units": "scene radiance (exposure = radiance * t)"})
         if is_hold[k]:
             clean = _render(mi, scene, cam, R, t, preset.clean_spp, int(seeds[k]) % 2**31 + 1,
-                            preset.clean_sampler)
+                            preset.clean_sampler, regions)
             write_rgb(tmp_truth / "clean" / f"{view_ids[k]}.exr", clean,
                       {"view_id": view_ids[k], "spp": str(preset.clean_spp),
                        "sampler": preset.clean_sampler})
@@ -638,11 +716,13 @@ def generate_pbr(
     ppmm = 40.0 / sq  # 40 texture pixels per square
     board_img = board.generateImage((int(sx * sq * ppmm), int(sy * sq * ppmm)), marginSize=0)
     bscene = _board_scene(mi, calib, board_img)
+    bw, bh = sx * sq, sy * sq
+    board_mm = np.array([[0.0, 0.0, 0.0], [bw, 0.0, 0.0], [bw, bh, 0.0], [0.0, bh, 0.0]])
     cposes = board_poses(rng, preset.calib_images, sx * sq, sy * sq, preset.focal_px, (w, h),
                          preset.board_max_tilt_deg)
     for k, (R, t) in enumerate(cposes):
         rad = _render(mi, bscene, cam, R, t, BOARD_SPP, int(seeds[len(all_dirs) + k]) % 2**31,
-                      "multijitter")
+                      "multijitter", [board_mm])
         img = _expose(rad, 0.6 / 0.8, preset.response, preset,
                       np.random.default_rng(int(seeds[len(all_dirs) + k])))
         _write_photo(tmp_out / f"calibration/board_{k:02d}.{ext}", img, preset)
@@ -720,12 +800,13 @@ def render_relit(truth: str | Path, lights: tuple[Light, ...] | None = None,
     cam = _Camera.build(np.array(cam_doc["K"]), tuple(cam_doc["dist"]),
                         tuple(cam_doc["image_size"]), preset.render_scale)
     rig = np.load(truth / "poses.npz")
+    regions = _regions_mm(preset, items)
     out = truth / folder
     out.mkdir(exist_ok=True)
     for k in np.flatnonzero(rig["holdout"]):
         vid = str(rig["view_ids"][k])
         img = _render(mi, scene, cam, rig["R"][k], rig["t"][k], spp,
-                      (gen["seed"] * 7919 + int(k)) % 2**31, sampler)
+                      (gen["seed"] * 7919 + int(k)) % 2**31, sampler, regions)
         write_rgb(out / f"{vid}.exr", img, {"view_id": vid, "spp": str(spp), "sampler": sampler})
     (out / "lights.json").write_text(json.dumps([asdict(L) for L in lights], indent=1))
     logger.info(f"synth {name}: relit {int(rig['holdout'].sum())} held-out views under "
@@ -763,7 +844,7 @@ def render_white_card(capture: str | Path, truth: str | Path, views: int = 6,
     for k, d in enumerate(dirs):
         R, t = view_pose(d, preset, K, items, crng)
         rad = _render(mi, scene, cam, R, t, preset.spp, int(crng.integers(2**31)),
-                      preset.sampler)
+                      preset.sampler, _regions_mm(preset, items))
         nrng = np.random.default_rng(int(crng.integers(2**31)))
         vid, exps = f"card{k:02d}", []
         for e, te in enumerate(times):
