@@ -20,6 +20,7 @@ import yaml
 from ..config import default
 from ..conventions import LUMINANCE, SV_ALPHA
 from ..geometry import plane_to_texel, texel_centres, unit
+from ..models.radiometry import correct_frame
 from ..models.svbrdf import metallic_roughness
 from ..render import evaluate, render, surface_points, tone_map
 from ..stages.hdr import load_bracket, merge_bracket
@@ -30,6 +31,7 @@ from ..stores.hdr import read_hdr, read_rgb
 from ..stores.observation import open_observation_map
 from ..stores.params import best_shares, read_param_map
 from ..stores.paths import Processed
+from ..stores.radiometry import radiometry_for
 from .generate import true_view_radiance
 from .pbr import Light, normal_reflectance, patch_labels, read_truth_radiance
 from .scene import KIND_NAMES, load_scene, true_radiance
@@ -205,18 +207,28 @@ def _held_out_renders(cap, truth: str | Path, processed: str | Path, models: lis
     proc = Processed(processed)
     intr = load_intrinsics(proc.intrinsics)
     maps = maps or {m: read_param_map(proc.params(m)) for m in models}
+    radiometry = radiometry_for(cap, proc)
     for r in read_poses(proc.poses)["views"]:
         if not (r.get("holdout") and r.get("kept")):
             continue
         R, t = np.asarray(r["R"], float), np.asarray(r["t"], float)
+
+        def frame(radiance: np.ndarray, R=R, t=t) -> np.ndarray:
+            # as the held-out stage reads a frame, and the maps were fitted: the
+            # flat-field and colour out
+            return correct_frame(radiance, intr, R, t, cap.width_mm, cap.height_mm,
+                                 radiometry)
+
         photo, sat, _ = read_hdr(proc.hdr(r["id"]))
-        clean = read_truth_radiance(truth, r["id"], clean=True)
+        photo = frame(photo)
+        clean = frame(read_truth_radiance(truth, r["id"], clean=True))
         P, inside = surface_points(intr, R, t, cap.width_mm, cap.height_mm,
                                    (photo.shape[1], photo.shape[0]))
         mask = inside & ~sat & ~marker_pixels(cap, P)
         ok = mask[..., None] & (clean > 0) & (photo > 0)
         scale = float(np.median(photo[ok] / clean[ok]))
-        clean = scale * (read_rgb(Path(truth) / "relit" / f"{r['id']}.exr") if relit else clean)
+        clean = scale * (frame(read_rgb(Path(truth) / "relit" / f"{r['id']}.exr")) if relit
+                         else clean)
         images = {name: render(pm, intr, R, t, surface=(P, inside))[0]
                   for name, pm in maps.items()}
         yield r["id"], clean, images, mask, choose_gamma(photo, mask), P, inside
