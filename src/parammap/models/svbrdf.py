@@ -180,15 +180,33 @@ def ggx_albedo(n_v, alpha) -> np.ndarray:
     ``alpha`` (broadcastable), interpolated bilinearly in (cosine, ln alpha) from
     :func:`ggx_albedo_table`: 1 for a mirror, 0.5-0.6 at alpha 1 (energy the single
     scattering loses)."""
+    n_v, alpha = np.broadcast_arrays(np.asarray(n_v, float), np.asarray(alpha, float))
+    return _albedo_at(_albedo_rows(n_v), alpha)
+
+
+def _albedo_rows(n_v) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`ggx_albedo`'s table interpolated at view cosines ``n_v`` (...): (..., n)
+    at each of its alpha nodes, and the nodes' ln alpha (n,). Taken once for views
+    whose albedo is wanted at many alphas."""
     mu, la, E = ggx_albedo_table()
     x = np.clip((np.asarray(n_v, float) - mu[0]) / (mu[1] - mu[0]), 0, len(mu) - 1.000001)
+    i = x.astype(int)
+    fx = (x - i)[..., None]
+    return E[i] * (1 - fx) + E[i + 1] * fx, la
+
+
+def _albedo_at(rows: tuple[np.ndarray, np.ndarray], alpha) -> np.ndarray:
+    """:func:`ggx_albedo` from :func:`_albedo_rows` at ``alpha`` (broadcastable to the
+    rows' leading shape)."""
+    Ev, la = rows
     y = np.clip((np.log(np.clip(np.asarray(alpha, float), *ALPHA_RANGE)) - la[0])
                 / (la[1] - la[0]), 0, len(la) - 1.000001)
-    x, y = np.broadcast_arrays(x, y)
-    i, j = x.astype(int), y.astype(int)
-    fx, fy = x - i, y - j
-    return ((E[i, j] * (1 - fx) + E[i + 1, j] * fx) * (1 - fy)
-            + (E[i, j + 1] * (1 - fx) + E[i + 1, j + 1] * fx) * fy)
+    y = np.broadcast_to(y, Ev.shape[:-1])
+    j = y.astype(int)[..., None]
+    fy = y - j[..., 0]
+    lo = np.take_along_axis(Ev, j, -1)[..., 0]
+    hi = np.take_along_axis(Ev, j + 1, -1)[..., 0]
+    return lo * (1 - fy) + hi * fy
 
 
 def ambient_irradiance(share, at_mm: np.ndarray, lights_mm: np.ndarray,
@@ -247,6 +265,42 @@ def _ggx_dvis(c: tuple[np.ndarray, ...], a2) -> np.ndarray:
     ch2, nv, nl, nv2, nl2 = c
     D = a2 / (math.pi * (ch2 * (a2 - 1) + 1) ** 2)
     return D * 0.5 / (nl * np.sqrt(nv2 * (1 - a2) + a2) + nv * np.sqrt(nl2 * (1 - a2) + a2))
+
+
+def _dvis_seen_loop(ch2, nv, nl, nv2, nl2, e_seen, a2):
+    out = np.empty(ch2.shape)
+    for b in range(ch2.shape[0]):
+        a = a2[b]
+        for n in range(ch2.shape[1]):
+            for j in range(ch2.shape[2]):
+                d = ch2[b, n, j] * (a - 1) + 1
+                vis = 0.5 / (nl[b, n, j] * math.sqrt(nv2[b, n, j] * (1 - a) + a)
+                             + nv[b, n, j] * math.sqrt(nl2[b, n, j] * (1 - a) + a))
+                out[b, n, j] = e_seen[b, n, j] * a / (math.pi * d * d) * vis
+    return out
+
+
+def ggx_dvis_seen(c: tuple[np.ndarray, ...], e_seen: np.ndarray, a2: np.ndarray
+                  ) -> np.ndarray:
+    """``e_seen D Vis`` (B, N, J): the cosines ``c`` of :func:`_ggx_cosines` and the
+    irradiance ``e_seen`` (B, N, J) at each texel's alpha squared ``a2`` (B,). One
+    compiled pass (numba; a fit's grid search spends most of its time here), numpy where
+    numba is missing."""
+    kernel = _compiled(_dvis_seen_loop)
+    if kernel is None:
+        return e_seen * _ggx_dvis(c, np.asarray(a2, float)[:, None, None])
+    return kernel(*c, e_seen, np.ascontiguousarray(a2, float))
+
+
+@cache
+def _compiled(f):
+    """``f`` compiled by numba (cached on disk, GIL released), or None where numba is
+    missing (the caller's numpy path)."""
+    try:
+        from numba import njit
+    except ImportError:  # pragma: no cover - exercised only without numba
+        return None
+    return njit(cache=True, nogil=True)(f)
 
 
 def specular_basis(l: np.ndarray, e: np.ndarray, views: np.ndarray, alpha) -> np.ndarray:
@@ -368,13 +422,47 @@ def _diffuse_moments(y: np.ndarray, omega: np.ndarray, D: list[np.ndarray]) -> d
             else:
                 g = np.einsum("bnc,bnc->bc", Dw[p], D[q])
             G[:, :, p, q] = G[:, :, q, p] = g
-    return {"D": D, "G": G, "r": r, "yy": np.einsum("bn,bnc->bc", omega, y * y)}
+    # every basis over the views, for the compiled specular sums
+    Dn = np.stack([np.broadcast_to(d[:, None, :] if d.ndim == 2 else d, y.shape) for d in D])
+    return {"D": D, "Dn": Dn, "G": G, "r": r, "yy": np.einsum("bn,bnc->bc", omega, y * y)}
+
+
+def _spec_moments_loop(y, omega, S, Dn):
+    B, N, Q, C = S.shape
+    P = Dn.shape[0]
+    rs = np.empty((B, C, Q))
+    Gss = np.empty((B, C, Q, Q))
+    Gds = np.empty((B, C, P, Q))
+    for b in range(B):
+        for c in range(C):
+            for q in range(Q):
+                r = 0.0
+                for n in range(N):
+                    r += omega[b, n] * S[b, n, q, c] * y[b, n, c]
+                rs[b, c, q] = r
+                for k in range(q, Q):
+                    g = 0.0
+                    for n in range(N):
+                        g += omega[b, n] * S[b, n, q, c] * S[b, n, k, c]
+                    Gss[b, c, q, k] = g
+                    Gss[b, c, k, q] = g
+                for p in range(P):
+                    g = 0.0
+                    for n in range(N):
+                        g += omega[b, n] * S[b, n, q, c] * Dn[p, b, n, c]
+                    Gds[b, c, p, q] = g
+    return rs, Gss, Gds
 
 
 def _spec_moments(y: np.ndarray, omega: np.ndarray, D: list[np.ndarray], S: np.ndarray,
-                  ) -> dict:
+                  Dn: np.ndarray | None = None) -> dict:
     """The sums of :func:`_amplitudes` that involve the Q specular bases S (B, N, Q, 3):
-    against the data, themselves and each diffuse basis of D (:func:`_diffuse_moments`)."""
+    against the data, themselves and each diffuse basis of D (:func:`_diffuse_moments`;
+    ``Dn`` its (P, B, N, 3) stack, for the compiled pass)."""
+    kernel = None if Dn is None else _compiled(_spec_moments_loop)
+    if kernel is not None:
+        rs, Gss, Gds = kernel(y, omega, S, Dn)
+        return {"rs": rs, "Gss": Gss, "Gds": Gds}
     B, N, Q, _ = S.shape
     P = len(D)
     Sw = S * omega[:, :, None, None]
@@ -406,7 +494,7 @@ def _amplitudes(y: np.ndarray, omega: np.ndarray, dm: dict, S: np.ndarray,
     Returns coefficients (B, P + Q, 3) (diffuse first), RSS (B, 3) and the normal
     matrices (B, 3, P + Q, P + Q) (without the prior)."""
     B, N, Q, _ = S.shape
-    sm = _spec_moments(y, omega, dm["D"], S) if sm is None else sm
+    sm = _spec_moments(y, omega, dm["D"], S, dm.get("Dn")) if sm is None else sm
     use = list(range(len(dm["D"]))) if use is None else use
     P = len(use)
     K = P + Q
@@ -509,14 +597,18 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
     cos = _ggx_cosines(n_h, n_v, n_l)
     e_seen = np.where((n_v > 0) & (n_l > 0), e[:, None, :], 0.0)  # (B, N, J)
 
-    def bases(alpha, sel=slice(None)):
-        a = np.asarray(alpha, float).reshape(-1, 1, 1)
-        s = e_seen[sel] * _ggx_dvis(tuple(x[sel] for x in cos), a * a)  # (B, N, J)
+    def bases(alpha, sel=slice(None), geo=None):
+        """(n, N, 1, 3) or (n, N, J, 3) the specular bases of the texels ``sel`` at their
+        alphas (n,); ``geo``: their (cosines, e_seen), when already taken out."""
+        c, es, rows = geo or (tuple(x[sel] for x in cos), e_seen[sel], None)
+        a = np.broadcast_to(np.asarray(alpha, float).ravel(), es.shape[:1])
+        s = ggx_dvis_seen(c, es, a * a)  # (n, N, J)
         if shared:
-            s = s @ w  # (B, N, 3)
+            s = s @ w  # (n, N, 3)
             if sky is not None:  # the sky's share of the lobe, an even sky's
-                s = s + ggx_albedo(cos[1][sel][..., 0], a[:, :, 0])[..., None] * (sky / math.pi)
-            return s[:, :, None, :]  # (B, N, 1, 3)
+                rows = rows or _albedo_rows(c[1][..., 0])
+                s = s + _albedo_at(rows, a[:, None])[..., None] * (sky / math.pi)
+            return s[:, :, None, :]  # (n, N, 1, 3)
         return np.broadcast_to(s[..., None], s.shape + (3,))
 
     u = np.log(grid)
@@ -526,11 +618,16 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
         """(n, grid) each texel's least objective at every alpha of the grid, one per
         diffuse model (``uses``: which of dm's bases it has; the specular sums once)."""
         profs = [np.empty((len(idx), len(grid))) for _ in uses]
+        # the texels' data and geometry taken out once, not once an alpha
+        yi, oi = y[idx], omega[idx]
+        c = tuple(x[idx] for x in cos)
+        geo = (c, e_seen[idx], _albedo_rows(c[1][..., 0]) if shared and sky is not None
+               else None)
         for g, a in enumerate(grid):
-            S = bases(np.full(len(idx), a), idx)
-            sm = _spec_moments(y[idx], omega[idx], dm["D"], S)
+            S = bases(np.full(len(idx), a), geo=geo)
+            sm = _spec_moments(yi, oi, dm["D"], S, dm.get("Dn"))
             for prof, use in zip(profs, uses, strict=True):
-                rss_g = _amplitudes(y[idx], omega[idx], dm, S, ap, sm, use)[1]
+                rss_g = _amplitudes(yi, oi, dm, S, ap, sm, use)[1]
                 prof[:, g] = rss_g.sum(1) if pen is None else \
                     (rss_g / sig2[idx]).sum(1) + pen[:, g]
         return profs
