@@ -14,10 +14,12 @@ response with a toe and a shoulder, sensor noise.
 Mitsuba has no lens distortion: each view is rendered through a pinhole camera wide
 enough to cover the distorted image at ``render_scale`` times the resolution, then
 resampled through OpenCV's distortion model, ``render_scale**2`` bilinear samples per
-photo pixel (a box filter over the pixel's area). Only the render pixels that see the
-surface or a marker (the board, in a board photo) get the preset's samples; the card or
-wall around them, which no measurement reads, is rendered at a quarter of the
-resolution and smoothed (most of a view's pixels, and of its time).
+photo pixel (a box filter over the pixel's area). The clean and relit truths, which are
+compared with renders of the maps only on the surface, give the preset's samples only to
+the render pixels that see the surface or a marker; the card around is rendered at a
+quarter of the resolution and smoothed (most of a view's pixels, and of its time). The
+photos are rendered whole: cropped, they cost pbr-bench's poses a factor of 2-4
+(docs/results.md, session 45).
 
 The capture follows ``docs/reference/capture-format.md`` exactly. The ground truth goes
 to a separate folder the pipeline never reads: ``camera.yaml`` (K, distortion), ``poses.npz`` (R, t
@@ -608,13 +610,16 @@ def _render(mi, scene, cam: _Camera, R, t, spp: int, seed: int,
         img = np.array(mi.render(scene, sensor=cam.sensor(mi, R, t, spp, sampler),
                                  seed=seed, spp=spp))
         return cam.photo(img)
+    # each render its own seed, far apart: Mitsuba seeds its pixels' samples from the seed
+    # and their index, and nearby seeds would repeat one crop's noise in another
+    seeds = np.random.SeedSequence(seed).generate_state(len(crops) + 1) % 2**31
     low = np.array(mi.render(scene, sensor=cam.sensor(mi, R, t, spp, sampler, coarse=COARSE),
-                             seed=(seed + 104729) % 2**31, spp=spp))[..., :3]
+                             seed=int(seeds[-1]), spp=spp))[..., :3]
     img = cam.upsample(cv2.GaussianBlur(low, (0, 0), 1.0), COARSE)
     for k, (x0, y0, x1, y1) in enumerate(crops):
         img[y0:y1, x0:x1] = np.array(mi.render(
             scene, sensor=cam.sensor(mi, R, t, spp, sampler, crop=(x0, y0, x1, y1)),
-            seed=(seed + 7919 * k) % 2**31, spp=spp))[..., :3]
+            seed=int(seeds[k]), spp=spp))[..., :3]
     return cam.photo(img)
 
 
@@ -677,7 +682,7 @@ def generate_pbr(
     radiance = []
     for k, (R, t) in enumerate(poses):
         rad = _render(mi, scene, cam, R, t, preset.spp, int(seeds[k]) % 2**31,
-                      preset.sampler, regions)
+                      preset.sampler)
         radiance.append(rad)
         write_rgb(tmp_truth / "radiance" / f"{view_ids[k]}.exr", rad,
                   {"view_id": view_ids[k], "units": "scene radiance (exposure = radiance * t)"})
@@ -716,13 +721,11 @@ def generate_pbr(
     ppmm = 40.0 / sq  # 40 texture pixels per square
     board_img = board.generateImage((int(sx * sq * ppmm), int(sy * sq * ppmm)), marginSize=0)
     bscene = _board_scene(mi, calib, board_img)
-    bw, bh = sx * sq, sy * sq
-    board_mm = np.array([[0.0, 0.0, 0.0], [bw, 0.0, 0.0], [bw, bh, 0.0], [0.0, bh, 0.0]])
     cposes = board_poses(rng, preset.calib_images, sx * sq, sy * sq, preset.focal_px, (w, h),
                          preset.board_max_tilt_deg)
     for k, (R, t) in enumerate(cposes):
         rad = _render(mi, bscene, cam, R, t, BOARD_SPP, int(seeds[len(all_dirs) + k]) % 2**31,
-                      "multijitter", [board_mm])
+                      "multijitter")
         img = _expose(rad, 0.6 / 0.8, preset.response, preset,
                       np.random.default_rng(int(seeds[len(all_dirs) + k])))
         _write_photo(tmp_out / f"calibration/board_{k:02d}.{ext}", img, preset)
@@ -844,7 +847,7 @@ def render_white_card(capture: str | Path, truth: str | Path, views: int = 6,
     for k, d in enumerate(dirs):
         R, t = view_pose(d, preset, K, items, crng)
         rad = _render(mi, scene, cam, R, t, preset.spp, int(crng.integers(2**31)),
-                      preset.sampler, _regions_mm(preset, items))
+                      preset.sampler)
         nrng = np.random.default_rng(int(crng.integers(2**31)))
         vid, exps = f"card{k:02d}", []
         for e, te in enumerate(times):
