@@ -16,18 +16,22 @@ import cv2
 import numpy as np
 
 from ..config import default
-from ..conventions import LUMINANCE
 from ..geometry import (
     Intrinsics,
 )
 from ..parallel import executor, progress
 from ..stores.camera import CalibrationError, load_intrinsics, save_intrinsics
 from ..stores.capture import Capture, aruco_dictionary
-from ..stores.hdr import read_hdr
 from ..stores.images import ImageReadError, read_image
 from ..stores.metrics import write_metrics
 from ..stores.paths import Processed
-from ..vision.markers import detect_markers, refine_marker_corners, to_gray8
+from ..vision.markers import (
+    detect_markers,
+    luminance,
+    read_marker_frame,
+    refine_marker_corners,
+    to_gray8,
+)
 from ..vision.pattern import (
     PATTERN_JOINT_MAX_VIEWS,
     PATTERN_JOINT_MIN_VIEWS,
@@ -149,7 +153,8 @@ def marker_views(cap: Capture, intr: Intrinsics, frames, min_markers: int = 4,
                  ) -> list[tuple[str, np.ndarray, np.ndarray]]:
     """Surface-marker correspondences of captured views, for :func:`calibrate`.
 
-    ``frames`` yields (view id, linear radiance (H, W, 3)). Corners are edge-refined
+    ``frames`` yields (view id, linear radiance (H, W, 3) or a RAW frame's (H, W) marker
+    image, :func:`~parammap.vision.markers.marker_image`). Corners are edge-refined
     with the board intrinsics ``intr``; only markers measured on all four edges are
     used, and views with fewer than ``min_markers`` of them are skipped.
     """
@@ -170,7 +175,7 @@ def _marker_view(cap: Capture, intr: Intrinsics, vid: str, rad: np.ndarray,
     use = [k for k, i in enumerate(ids) if int(i) in known]
     if len(use) < min_markers:
         return None
-    lum = np.asarray(rad, np.float32) @ LUMINANCE.astype(np.float32)
+    lum = luminance(rad)
     c, measured = refine_marker_corners(lum, np.asarray(corners, float)[use], intr, cells,
                                         return_measured=True)
     # only markers measured on all four edges: ArUco's corners would bias the focal
@@ -188,13 +193,13 @@ def _pattern_view_job(job: tuple) -> tuple[str, PatternView, list, np.ndarray, f
     view, blurred textures, pose (6,), residual noise), or None without a pattern pose.
     A process pool's job."""
     cap, intr, vid, path, max_pixels = job
-    rad = read_hdr(path)[0]
-    rec = estimate_pose(cap, intr, to_gray8(rad), radiance=rad,
+    img = read_marker_frame(path, cap)
+    rec = estimate_pose(cap, intr, to_gray8(img), radiance=img,
                         pattern_max_pixels=max_pixels)
     if not rec["ok"] or rec["solution"] != "pattern":
         return None
     rvec, _ = cv2.Rodrigues(rec["R"])
-    lum = np.asarray(rad, np.float32) @ LUMINANCE.astype(np.float32)
+    lum = luminance(img)
     view = PatternView(lum, cap, rec["pattern_markers"] or rec["detected"], rvec, rec["t"], intr,
                        max_pixels)
     if not view.markers:
@@ -234,7 +239,7 @@ def pattern_views(cap: Capture, intr: Intrinsics, frames: list[tuple[str, Path]]
 def _marker_view_job(job: tuple) -> tuple[str, np.ndarray, np.ndarray] | None:
     """:func:`_marker_view` of a view's HDR frame on disk (a process pool's job)."""
     cap, intr, vid, path, min_markers = job
-    return _marker_view(cap, intr, vid, read_hdr(path)[0], min_markers)
+    return _marker_view(cap, intr, vid, read_marker_frame(path, cap), min_markers)
 
 
 def run_calibration(cap: Capture, processed: str | Path, config: dict[str, Any], *,

@@ -32,7 +32,7 @@ from ..stores.hdr import (
     save_response,
     write_hdr,
 )
-from ..stores.images import ImageReadError, read_image
+from ..stores.images import RAW_FULL, ImageReadError, is_raw, read_image, read_raw_mosaic
 from ..stores.metrics import digest, write_metrics
 from ..stores.paths import Processed
 from ..stores.radiometry import merged_frame_radiometry
@@ -673,6 +673,29 @@ def _merge_in_strips(stack: np.ndarray, t: np.ndarray, g: np.ndarray, low: int, 
     return rad, saturated, dark, noise, summary
 
 
+def merge_mosaic(paths: list[Path], t: np.ndarray, low: int = default("hdr.low"),
+                 high: int = default("hdr.high")) -> tuple[np.ndarray, np.ndarray]:
+    """The photosites of a bracket of camera RAWs merged as :func:`merge_linear` merges
+    pixels, before any demosaicing, with the sensor's noise measured on them: where the
+    scene is grey (the markers) they sample it at every pixel, which the demosaiced
+    frame's interpolation does not.
+
+    Returns
+    -------
+    mosaic : (H, W) float32, value per second over the white level, in the units of
+        :func:`merge_linear`'s radiance.
+    colors : (H, W) uint8, each photosite's filter (0 R, 1 G, 2 B).
+    """
+    sites = [read_raw_mosaic(p) for p in paths]
+    stack = np.stack([m for m, _ in sites])[..., None]
+    model = fit_sensor_noise(stack, t, RAW_FULL, high)
+    H, W = stack.shape[1:3]
+    out = np.empty((H, W), np.float32)
+    for rows in _strips(H, W):
+        out[rows] = merge_linear(stack[:, rows], t, RAW_FULL, low, high, model)[0][..., 0]
+    return out, sites[0][1]
+
+
 def merge_view(
     view: View, g: np.ndarray | None, out: str | Path, low: int = default("hdr.low"),
     high: int = default("hdr.high"),
@@ -680,7 +703,10 @@ def merge_view(
 ) -> dict:
     """Merge one view into ``out`` (EXR: R, G, B, saturated, dark, noise). ``g`` None
     means linear input (16-bit or RAW): radiance = value / t, averaged over unsaturated
-    exposures. ``provenance``: extra header attributes (:func:`hdr_provenance`)."""
+    exposures; a bracket of camera RAWs also keeps its merged photosites
+    (:func:`merge_mosaic`). ``provenance``: extra header attributes
+    (:func:`hdr_provenance`)."""
+    mosaic = None
     if g is None:
         kept, left_out = bracket(view)
         stack = np.stack([read_image(e.path) for e in kept])
@@ -694,10 +720,12 @@ def merge_view(
         for rows in _strips(H, W):
             rad[rows], saturated[rows], dark[rows], noise[rows] = merge_linear(
                 stack[:, rows], t, full, low, high, model)
+        if all(is_raw(e.path) for e in kept):
+            mosaic = merge_mosaic([e.path for e in kept], t, low, high)
     else:
         stack, t, left_out = load_bracket_checked(view)
         rad, saturated, dark, noise, reexposure = _merge_in_strips(stack, t, g, low, high)
-    write_hdr(out, rad, saturated, dark, noise, view.id, provenance)
+    write_hdr(out, rad, saturated, dark, noise, view.id, provenance, mosaic)
     stats = {"view": view.id, "saturated_fraction": float(saturated.mean()),
              "dark_fraction": float(dark.mean())}
     if g is not None:

@@ -53,11 +53,10 @@ from ..stores.camera import load_intrinsics
 from ..stores.capture import Capture
 from ..stores.common import free_disk_gib
 from ..stores.exr import ExrError
-from ..stores.hdr import read_hdr
 from ..stores.metrics import write_metrics
 from ..stores.observation import BYTES_PER_OBSERVATION
 from ..stores.paths import Processed
-from ..vision.markers import to_gray8
+from ..vision.markers import read_marker_frame, to_gray8
 from ..vision.pattern import PATTERN_NOISE_FACTOR
 from ..vision.pose import _plane_jac, estimate_pose, point_uncertainty
 
@@ -165,10 +164,10 @@ def _view_pose(job: tuple) -> dict[str, Any]:
     """The pose of one view from its HDR frame (a process pool's job)."""
     cap, intr, path, cfg = job
     try:
-        rad, _, _ = read_hdr(path)
+        img = read_marker_frame(path, cap)
     except ExrError as exc:
         return {"ok": False, "reason": str(exc)}
-    return estimate_pose(cap, intr, to_gray8(rad), cfg["min_markers"], radiance=rad)
+    return estimate_pose(cap, intr, to_gray8(img), cfg["min_markers"], radiance=img)
 
 
 def corner_gate(recs: list[dict], max_rms_px: float) -> None:

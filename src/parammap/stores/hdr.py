@@ -2,7 +2,9 @@
 
 A frame holds linear relative radiance ``R, G, B``, the ``saturated`` and ``dark`` masks
 and the relative noise sd per pixel (``noise``); frames written before the merge
-recorded the noise read with ``noise`` None. The response is the log-exposure curve
+recorded the noise read with ``noise`` None. A frame merged from camera RAWs also holds
+the merged photosites before demosaicing (``cfa``), their filters' repeating pattern in
+the header (``cfa_pattern``). The response is the log-exposure curve
 ``g[z, c] = ln X`` per 8-bit level z and channel c (``docs/reference/conventions.md``).
 """
 
@@ -17,8 +19,9 @@ from ..errors import InputError
 from .common import SOFTWARE_ATTR, UNITS_ATTR, software
 from .exr import read_exr, write_exr
 
-__all__ = ["HDR_CHANNELS", "NOISE_CHANNEL", "HdrError", "is_linear_response",
-           "load_reference_response", "load_response", "read_hdr", "read_hdr_noise",
+__all__ = ["CFA_CHANNEL", "HDR_CHANNELS", "NOISE_CHANNEL", "HdrError", "is_linear_response",
+           "load_reference_response", "load_response", "read_hdr", "read_hdr_mosaic",
+           "read_hdr_noise",
            "read_rgb", "save_linear_response", "save_response", "hdr_provenance",
            "write_hdr", "write_rgb"]
 
@@ -27,6 +30,10 @@ __all__ = ["HDR_CHANNELS", "NOISE_CHANNEL", "HdrError", "is_linear_response",
 RGB = ("R", "G", "B")
 SATURATED, DARK, NOISE_CHANNEL = "saturated", "dark", "noise"
 HDR_CHANNELS = (*RGB, SATURATED, DARK, NOISE_CHANNEL)
+#: The merged photosites of a RAW capture's frame, and the header attribute that names
+#: each one's filter: the pattern's rows and columns, then its filters row by row
+#: (``"2x2:RGGB"``; X-Trans ``"6x6:..."``).
+CFA_CHANNEL, CFA_ATTR = "cfa", "cfa_pattern"
 
 
 def write_rgb(path: str | Path, rgb: np.ndarray, attrs: dict | None = None) -> Path:
@@ -51,18 +58,44 @@ def hdr_provenance(config_digest: str, response_digest: str,
             **{f"parammap_{k}": v for k, v in (radiometry or {}).items()}}
 
 
+def _cfa_pattern(colors: np.ndarray) -> str:
+    """``"RxC:FILTERS"`` of an (H, W) filter index (0 R, 1 G, 2 B) that repeats."""
+    H, W = colors.shape
+    for n in (2, 4, 6):
+        period = colors[:n, :n]
+        if np.array_equal(np.tile(period, (H // n + 1, W // n + 1))[:H, :W], colors):
+            return f"{n}x{n}:" + "".join("RGB"[int(c)] for c in period.ravel())
+    raise ValueError("the colour filter array does not repeat within 6 x 6 photosites")
+
+
+def _cfa_colors(pattern: str, shape: tuple[int, int]) -> np.ndarray:
+    """The (H, W) filter index that :func:`_cfa_pattern` describes."""
+    dims, names = pattern.split(":")
+    n, m = (int(x) for x in dims.split("x"))
+    period = np.array(["RGB".index(c) for c in names], np.uint8).reshape(n, m)
+    H, W = shape
+    return np.tile(period, (H // n + 1, W // m + 1))[:H, :W]
+
+
 def write_hdr(path: str | Path, radiance: np.ndarray, saturated: np.ndarray,
               dark: np.ndarray, noise: np.ndarray, view_id: str,
-              provenance: dict[str, str] | None = None) -> Path:
+              provenance: dict[str, str] | None = None,
+              mosaic: tuple[np.ndarray, np.ndarray] | None = None) -> Path:
     """Write a merged HDR frame: (H, W, 3) radiance, (H, W) bool masks of saturated and
     dark pixels, (H, W) relative noise sd; the header names the view, the units and
-    ``provenance`` (:func:`hdr_provenance`)."""
-    return write_exr(path, {**{c: radiance[..., i] for i, c in enumerate(RGB)},
-                            SATURATED: saturated.astype(np.float32),
-                            DARK: dark.astype(np.float32), NOISE_CHANNEL: noise},
-                     {"view_id": view_id, UNITS_ATTR: "relative radiance (response exp(g)/t)",
-                      NOISE_CHANNEL: "relative sd of the radiance per pixel (merge_noise)",
-                      **(provenance or {})})
+    ``provenance`` (:func:`hdr_provenance`). ``mosaic``: a RAW capture's merged
+    photosites (H, W) in the radiance's units and each one's filter (H, W) (0 R, 1 G,
+    2 B)."""
+    chans = {**{c: radiance[..., i] for i, c in enumerate(RGB)},
+             SATURATED: saturated.astype(np.float32), DARK: dark.astype(np.float32),
+             NOISE_CHANNEL: noise}
+    attrs = {"view_id": view_id, UNITS_ATTR: "relative radiance (response exp(g)/t)",
+             NOISE_CHANNEL: "relative sd of the radiance per pixel (merge_noise)",
+             **(provenance or {})}
+    if mosaic is not None:
+        chans[CFA_CHANNEL] = mosaic[0]
+        attrs[CFA_ATTR] = _cfa_pattern(mosaic[1])
+    return write_exr(path, chans, attrs)
 
 
 class HdrError(InputError):
@@ -81,6 +114,16 @@ def read_hdr_noise(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray
     ch, _ = read_exr(path)
     rad = np.stack([ch[c] for c in RGB], -1).astype(np.float32)
     return rad, ch[SATURATED] > 0.5, ch[DARK] > 0.5, ch.get(NOISE_CHANNEL)
+
+
+def read_hdr_mosaic(path: str | Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """A RAW capture frame's merged photosites (H, W) float32 and their filters (H, W)
+    uint8 (0 R, 1 G, 2 B); None for a frame merged from demosaiced or 8-bit photos."""
+    ch, header = read_exr(path)
+    if CFA_CHANNEL not in ch or CFA_ATTR not in header:
+        return None
+    m = np.asarray(ch[CFA_CHANNEL], np.float32)
+    return m, _cfa_colors(str(header[CFA_ATTR]), m.shape)
 
 
 def save_response(path: str | Path, g: np.ndarray, meta: dict | None = None) -> Path:

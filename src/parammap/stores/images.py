@@ -18,6 +18,7 @@ from ..errors import InputError
 
 __all__ = ["PHOTO_SUFFIXES", "RAW_SUFFIXES", "ImageReadError", "PhotoMeta",
            "exif_exposure_time", "image_size", "is_raw", "photo_meta", "read_image", "read_raw",
+           "read_raw_mosaic",
            "write_image_atomic"]
 
 # camera RAW files, read through LibRaw (rawpy)
@@ -102,18 +103,15 @@ def _demosaic(mosaic: np.ndarray, colors: np.ndarray) -> np.ndarray:
     return out
 
 
-def read_raw(path: str | Path) -> np.ndarray:
-    """A camera RAW (DNG or a proprietary format, through LibRaw) as linear RGB.
-
-    The visible photosites less their black level (per colour filter), over the white
-    level less black, demosaiced bilinearly (:func:`_demosaic`) in the camera's own
-    colour space (no white balance, no colour matrix, no tone curve) and scaled so that
-    the white level is 65535. A pixel with a saturated photosite anywhere in its 3 x 3
-    neighbourhood is 65535 in every channel, so a merge sees it as saturated.
+def read_raw_mosaic(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """A camera RAW's visible photosites, linear: less their black level (per colour
+    filter), over the white level less black, scaled so that the white level is 65535
+    (a saturated photosite is 65535); no demosaicing, white balance or colour matrix.
 
     Returns
     -------
-    (H, W, 3) uint16, linear in the sensor's exposure.
+    mosaic : (H, W) uint16, linear in the sensor's exposure.
+    colors : (H, W) uint8, each photosite's filter, 0 R, 1 G, 2 B.
 
     Raises
     ------
@@ -130,12 +128,33 @@ def read_raw(path: str | Path) -> np.ndarray:
         white = float(max(whites) if whites and max(whites) > 0 else raw.white_level)
         if raw.num_colors not in (3, 4) or any(c not in "RGB" for c in desc[:4]):
             raise ImageReadError(f"{path}: colour filter array {desc!r} is not RGB")
-    colors = np.array(["RGB".index(c) for c in desc[:4]])[cidx]
+    colors = np.array(["RGB".index(c) for c in desc[:4]], np.uint8)[cidx]
     level = black[cidx]
-    sat_site = mosaic >= white
     lin = np.clip((mosaic - level) / np.maximum(white - level, 1.0), 0, 1)
-    rgb = _demosaic(lin, colors)
-    sat = cv2.dilate(sat_site.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    lin[mosaic >= white] = 1.0
+    return np.round(lin * RAW_FULL).astype(np.uint16), colors
+
+
+def read_raw(path: str | Path) -> np.ndarray:
+    """A camera RAW (DNG or a proprietary format, through LibRaw) as linear RGB.
+
+    :func:`read_raw_mosaic` demosaiced bilinearly (:func:`_demosaic`) in the camera's
+    own colour space (no white balance, no colour matrix, no tone curve), the white
+    level at 65535. A pixel with a saturated photosite anywhere in its 3 x 3
+    neighbourhood is 65535 in every channel, so a merge sees it as saturated.
+
+    Returns
+    -------
+    (H, W, 3) uint16, linear in the sensor's exposure.
+
+    Raises
+    ------
+    ImageReadError
+        If LibRaw cannot read the file or its filter array is not an RGB one.
+    """
+    mosaic, colors = read_raw_mosaic(path)
+    rgb = _demosaic(mosaic.astype(np.float32) / RAW_FULL, colors)
+    sat = cv2.dilate((mosaic >= RAW_FULL).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
     rgb[sat] = 1.0
     return np.round(rgb * RAW_FULL).astype(np.uint16)
 

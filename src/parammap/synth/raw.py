@@ -31,6 +31,9 @@ class Sensor:
     # the optical low-pass filter in front of the mosaic (Gaussian sd, pixels): a
     # camera's lens and filter band-limit the image so the mosaic does not alias
     olpf_px: float = 0.0
+    # each filter's sensitivity to the linear exposure (R, G, B): a camera's green
+    # photosites collect more of a white light than its red and blue ones
+    gains: tuple[float, float, float] = (1.0, 1.0, 1.0)
 
     def colors(self, H: int, W: int) -> np.ndarray:
         """(H, W) colour index (0 R, 1 G, 2 B) of each photosite."""
@@ -47,8 +50,8 @@ class Sensor:
 def expose_raw(v: np.ndarray, sensor: Sensor, rng: np.random.Generator) -> np.ndarray:
     """The mosaic a sensor records of the (H, W, 3) linear exposure ``v`` (1 = the white
     level, per channel): blurred by the optical low-pass filter, each photosite takes
-    its filter's channel, Poisson electrons and Gaussian read noise, the black level,
-    clipped at the white level.
+    its filter's channel times the filter's gain, Poisson electrons and Gaussian read
+    noise, the black level, clipped at the white level.
 
     Returns
     -------
@@ -58,7 +61,9 @@ def expose_raw(v: np.ndarray, sensor: Sensor, rng: np.random.Generator) -> np.nd
     v = np.asarray(v, np.float32)
     if sensor.olpf_px > 0:
         v = cv2.GaussianBlur(v, (0, 0), sensor.olpf_px, borderType=cv2.BORDER_REFLECT)
-    site = np.take_along_axis(v.astype(float), sensor.colors(H, W)[..., None], 2)[..., 0]
+    cidx = sensor.colors(H, W)
+    site = np.take_along_axis(v.astype(float), cidx[..., None], 2)[..., 0]
+    site *= np.asarray(sensor.gains, float)[cidx]
     e = rng.poisson(np.clip(site, 0, 2) * sensor.full_well).astype(float)
     e += rng.normal(0, sensor.read_noise_e, e.shape)
     dn = sensor.black + e * (sensor.white - sensor.black) / sensor.full_well

@@ -12,10 +12,9 @@ import cv2
 import numpy as np
 
 from ..config import default
-from ..conventions import LUMINANCE
 from ..geometry import Intrinsics, camera_centre
 from ..stores.capture import Capture, aruco_dictionary
-from .markers import detect_markers, refine_marker_corners, refine_pose_edges
+from .markers import detect_markers, luminance, refine_marker_corners, refine_pose_edges
 from .pattern import refine_pose_pattern
 
 logger = logging.getLogger(__name__)
@@ -50,9 +49,10 @@ def estimate_pose(
     """Pose of one view from the surface markers.
 
     IPPE on all detected corners (planar), then Levenberg-Marquardt refinement. With
-    ``radiance`` (H, W, 3 linear) the corners are first refined on the marker edges
-    (:func:`refine_marker_corners`), and when at least ``MIN_MEASURED_MARKERS``
-    markers had all four edges measured only those enter the solve.
+    ``radiance`` (H, W, 3 linear, or its (H, W) luminance) the corners are first
+    refined on the marker edges (:func:`refine_marker_corners`), and when at least
+    ``MIN_MEASURED_MARKERS`` markers had all four edges measured only those enter the
+    solve.
 
     Returns
     -------
@@ -85,7 +85,7 @@ def estimate_pose(
                 "markers": [int(ids[k]) for k in use]}
     edges = None
     if radiance is not None and len(use):
-        lum = np.asarray(radiance, np.float32) @ LUMINANCE.astype(np.float32)
+        lum = luminance(radiance)
         cells = aruco_dictionary(cap.marker_dictionary).markerSize + 2
         corners = np.array(corners, float)
         corners[use], measured, edges = refine_marker_corners(
@@ -130,7 +130,7 @@ def estimate_pose(
                 edge_points = ref["n"]
     pattern_pixels, blur_px, pattern_ids = 0, None, []
     if radiance is not None and np.isfinite(cov).all():
-        lum = np.asarray(radiance, np.float32) @ LUMINANCE.astype(np.float32)
+        lum = luminance(radiance)
         ref = refine_pose_pattern(lum, cap, detected, R, t, intr, pattern_max_pixels,
                                   others=[int(i) for i in cap.marker_ids])
         if ref is not None:
