@@ -72,7 +72,8 @@ __all__ = ["ALPHA_RANGE", "COAT_F", "COAT_IOR", "COAT_WINDOW_F", "MIN_OBS", "OFF
            "coat_regions", "coat_share", "coat_sky_transmittance", "coat_transmittance",
            "fit_svbrdf_batch", "fit_svbrdf_tile", "fresnel_dielectric", "ggx_albedo",
            "ggx_albedo_table", "ggx_vis", "light_terms",
-           "light_weights", "metallic_roughness", "neighbour_priors", "pool_svbrdf_tile",
+           "light_weights", "lobe_rejected", "metallic_roughness", "neighbour_priors",
+           "pool_svbrdf_tile",
            "refine_lights", "specular_basis", "svbrdf_eval", "svbrdf_outputs"]
 
 #: GGX alpha searched: from a near-mirror (a lobe about 0.3 deg wide) to fully rough.
@@ -90,6 +91,10 @@ COAT_F = 6.63
 #: the F statistic (two parameters) a texel's lobe must reach to be kept: chi-square's
 #: 99 % point for two degrees of freedom, over two
 LOBE_F = 4.61
+#: chi-square's 99 % point for two degrees of freedom: a texel fitted without a lobe
+#: keeps none where its own views reject its neighbours' lobe by this much
+#: (:func:`lobe_rejected`)
+PRIOR_REJECT_CHI2 = 9.21
 #: a view is off a texel's highlight where the lobe gives under this share of its
 #: diffuse light: the coat's evidence is judged there (a tenth left a rough plastic,
 #: whose broad lobe reaches most views, with too few views to show its coat)
@@ -937,6 +942,73 @@ def coat_regions(f: np.ndarray, r: int | None = None) -> np.ndarray:
     return ok & (med > COAT_WINDOW_F)
 
 
+def _tile_inputs(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray,
+                 noise: np.ndarray | None, origin: tuple[int, int],
+                 grid: tuple[int, int, float, float], irradiance) -> tuple[np.ndarray, ...]:
+    """A tile's observations as the fits take them, flattened over its texels: texel
+    centres (n, 3) mm, radiance with the flat-field's irradiance put back (n, N, 3),
+    directions (n, N, 3), valid (n, N), noise (n, N) or None, weights (n, N)
+    (:func:`fit_svbrdf_tile`'s arguments)."""
+    t, u, N, _ = radiance.shape
+    S, T, width, height = grid
+    r0, c0 = origin
+    pts = texel_centres(S, T, width, height, np.arange(r0, r0 + t),
+                        np.arange(c0, c0 + u)).reshape(-1, 3)
+    L = np.asarray(radiance, float).reshape(t * u, N, 3)
+    if irradiance is not None:
+        L = L * irradiance(pts)[:, None, None]
+    V = np.asarray(direction, float).reshape(t * u, N, 3)
+    W = np.asarray(valid, bool).reshape(t * u, N) & np.isfinite(L).all(-1) \
+        & np.isfinite(V).all(-1) & (V[..., 2] > 0)
+    NZ = None if noise is None else np.asarray(noise, float).reshape(t * u, N)
+    omega = noise_weights(NZ, W)
+    L = np.where(W[..., None], L, 0.0)
+    V = np.where(W[..., None], V, np.array([0.0, 0.0, 1.0]))
+    return pts, L, V, W, NZ, omega
+
+
+def lobe_rejected(y: np.ndarray, views: np.ndarray, omega: np.ndarray, points: np.ndarray,
+                  lights_mm: np.ndarray, weights: np.ndarray, own: np.ndarray,
+                  alpha: np.ndarray, ks: np.ndarray,
+                  ambient: np.ndarray | None = None) -> np.ndarray:
+    """Whether texels fitted without a lobe reject a lobe of the given ``alpha`` (B,)
+    and ``Ks`` (B, 3) (their neighbours'): the lobe imposed and Kd refitted raises the
+    weighted residual over the lobe-less fit's by more than chi-square's 99 % point for
+    the lobe's two parameters (:data:`PRIOR_REJECT_CHI2`, in units of the lobe-less
+    fit's residual variance; the mean over the channels, whose noise is one pixel's).
+    Where the views never look where the lobe shows, nothing changes and nothing is
+    rejected; where they do, a matte texel's flat views reject it.
+
+    Parameters
+    ----------
+    y : (B, N, 3) radiance; views : (B, N, 3); omega : (B, N) weights (0: not seen);
+    points : (B, 3) mm; own : (B, ``SV_SIZE``) the texels' own parameters (their coat
+    is kept).
+
+    Returns
+    -------
+    (B,) bool.
+    """
+    B, N, _ = y.shape
+    flat_p, flat_v = np.repeat(points, N, 0), views.reshape(-1, 3)
+    dif = np.array(own, float)
+    dif[:, SV_KD], dif[:, SV_KS] = 1.0, 0.0
+    lobe = dif.copy()
+    lobe[:, SV_KD], lobe[:, SV_KS], lobe[:, SV_ALPHA] = 0.0, ks, alpha
+    d, s = (svbrdf_eval(np.repeat(x, N, 0), flat_p, flat_v, lights_mm, weights,
+                        ambient=ambient).reshape(B, N, 3) for x in (dif, lobe))
+    wd = omega[..., None] * d
+    den = np.maximum(np.einsum("bnc,bnc->bc", wd, d), 1e-300)
+
+    def rss(target):
+        kd = np.maximum(np.einsum("bnc,bnc->bc", wd, target) / den, 0.0)
+        return np.einsum("bn,bnc->bc", omega, (target - kd[:, None] * d) ** 2)
+
+    rss0 = rss(y)
+    sig2 = np.maximum(rss0 / np.maximum((omega > 0).sum(1) - 1, 1)[:, None], 1e-300)
+    return ((rss(y - s) - rss0) / sig2).mean(1) > PRIOR_REJECT_CHI2
+
+
 def fit_svbrdf_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, *,
                     origin: tuple[int, int], grid: tuple[int, int, float, float],
                     lights_mm: np.ndarray, weights: np.ndarray,
@@ -967,20 +1039,8 @@ def fit_svbrdf_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarr
     out = {k: np.full((t, u) + shp, fill, dtype)
            for k, (shp, dtype, fill) in svbrdf_outputs().items()}
     flat = {k: v.reshape((t * u,) + v.shape[2:]) for k, v in out.items()}
-    S, T, width, height = grid
-    r0, c0 = origin
-    pts = texel_centres(S, T, width, height, np.arange(r0, r0 + t),
-                        np.arange(c0, c0 + u)).reshape(-1, 3)
-    L = np.asarray(radiance, float).reshape(t * u, N, 3)
-    if irradiance is not None:
-        L = L * irradiance(pts)[:, None, None]
-    V = np.asarray(direction, float).reshape(t * u, N, 3)
-    W = np.asarray(valid, bool).reshape(t * u, N) & np.isfinite(L).all(-1) \
-        & np.isfinite(V).all(-1) & (V[..., 2] > 0)
-    NZ = None if noise is None else np.asarray(noise, float).reshape(t * u, N)
-    omega = noise_weights(NZ, W)
-    L = np.where(W[..., None], L, 0.0)
-    V = np.where(W[..., None], V, np.array([0.0, 0.0, 1.0]))
+    pts, L, V, W, NZ, omega = _tile_inputs(radiance, direction, valid, noise, origin, grid,
+                                           irradiance)
     nobs = W.sum(1)
     flat[FitArray.STATUS][nobs < MIN_OBS] = FitStatus.TOO_FEW
     todo = np.flatnonzero(nobs >= MIN_OBS)
@@ -1126,6 +1186,16 @@ def pool_svbrdf_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
         rej_k = dk > WALD_Z * np.sqrt((sd_own[:, SV_KS] ** 2 + pri["ks_var"]) @ lum ** 2)
     take = ok[i0:i0 + t, j0:j0 + u].ravel() & (pri["n"] >= POOL_MIN) \
         & np.isfinite(pri["u_mean"]) & ~(rej_u & np.isfinite(su)) & ~(rej_k & np.isfinite(dk))
+    # a texel fitted without a lobe has no sd to test the neighbours' values by: its own
+    # views are asked whether they would have shown that lobe (a matte texel among a
+    # few false lobes must not take theirs)
+    bare = np.flatnonzero(take & ~(own[:, SV_KS] @ lum > 0))
+    if bare.size:
+        pts, L, V, _, _, omega = _tile_inputs(radiance, direction, valid, noise, origin,
+                                              grid, irradiance)
+        take[bare[lobe_rejected(L[bare], V[bare], omega[bare], pts[bare], lights_mm,
+                                weights, own[bare], np.exp(pri["u_mean"][bare]),
+                                np.nan_to_num(pri["ks_mean"][bare]), ambient)]] = False
     if not take.any():
         return None
     base = {k: fields[k][i0:i0 + t, j0:j0 + u].copy() for k in svbrdf_outputs()}
