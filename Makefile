@@ -17,25 +17,27 @@ setup: $(VENV)/.installed
 setup-pbr: $(VENV)/.installed-pbr
 
 $(VENV)/.installed-pbr: $(VENV)/.installed requirements-pbr.lock
-	$(BIN)/python -m pip install --quiet -r requirements-pbr.lock
+	$(BIN)/python -m pip install --quiet --no-compile -r requirements-pbr.lock
 	touch $@
 
 # The documentation site (MkDocs Material, API pages from the docstrings).
 setup-docs: $(VENV)/.installed-docs
 
 $(VENV)/.installed-docs: $(VENV)/.installed requirements-docs.lock
-	$(BIN)/python -m pip install --quiet -r requirements-docs.lock
+	$(BIN)/python -m pip install --quiet --no-compile -r requirements-docs.lock
 	touch $@
 
 # Warnings are errors, so that a broken link or docstring cannot land.
 docs: setup-docs
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet
 
+# --no-compile: pip would byte-compile every module of every package (a third of the
+# set-up's time); Python compiles the ones a run imports, once
 $(VENV)/.installed: pyproject.toml requirements.lock
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -r requirements.lock
-	$(BIN)/python -m pip install --quiet --no-deps -e .
+	$(BIN)/python -m pip install --quiet --no-compile --upgrade pip
+	$(BIN)/python -m pip install --quiet --no-compile -r requirements.lock
+	$(BIN)/python -m pip install --quiet --no-compile --no-deps -e .
 	touch $@
 
 demo: setup
