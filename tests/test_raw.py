@@ -217,7 +217,10 @@ def test_a_raw_bracket_keeps_its_white_balanced_photosites(tmp_path):
     X = np.full((H, W, 3), 0.8)
     X[40:80, 60:100] = 0.05  # a black marker on white paper
     files = _bracket(tmp_path, sensor, [1.0, 0.5, 0.25], X)
-    mosaic, colors = merge_mosaic(files, np.array([1.0, 0.5, 0.25]))
+    from parammap.stores.images import read_raw_mosaic
+
+    mosaic, colors = merge_mosaic([read_raw_mosaic(f) for f in files],
+                                  np.array([1.0, 0.5, 0.25]))
     np.testing.assert_array_equal(colors, sensor.colors(H, W))
     z = np.zeros((H, W))
     write_hdr(tmp_path / "f.exr", np.zeros((H, W, 3)), z > 0, z > 0, z, "v",

@@ -32,7 +32,14 @@ from ..stores.hdr import (
     save_response,
     write_hdr,
 )
-from ..stores.images import RAW_FULL, ImageReadError, is_raw, read_image, read_raw_mosaic
+from ..stores.images import (
+    RAW_FULL,
+    ImageReadError,
+    demosaic,
+    is_raw,
+    read_image,
+    read_raw_mosaic,
+)
 from ..stores.metrics import digest, write_metrics
 from ..stores.paths import Processed
 from ..stores.radiometry import merged_frame_radiometry
@@ -673,12 +680,14 @@ def _merge_in_strips(stack: np.ndarray, t: np.ndarray, g: np.ndarray, low: int, 
     return rad, saturated, dark, noise, summary
 
 
-def merge_mosaic(paths: list[Path], t: np.ndarray, low: int = default("hdr.low"),
-                 high: int = default("hdr.high")) -> tuple[np.ndarray, np.ndarray]:
+def merge_mosaic(sites: list[tuple[np.ndarray, np.ndarray]], t: np.ndarray,
+                 low: int = default("hdr.low"), high: int = default("hdr.high"),
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """The photosites of a bracket of camera RAWs merged as :func:`merge_linear` merges
     pixels, before any demosaicing, with the sensor's noise measured on them: where the
     scene is grey (the markers) they sample it at every pixel, which the demosaiced
-    frame's interpolation does not.
+    frame's interpolation does not. ``sites``: each exposure's photosites and filters
+    (:func:`parammap.stores.images.read_raw_mosaic`), in the order of ``t``.
 
     Returns
     -------
@@ -686,7 +695,6 @@ def merge_mosaic(paths: list[Path], t: np.ndarray, low: int = default("hdr.low")
         :func:`merge_linear`'s radiance.
     colors : (H, W) uint8, each photosite's filter (0 R, 1 G, 2 B).
     """
-    sites = [read_raw_mosaic(p) for p in paths]
     stack = np.stack([m for m, _ in sites])[..., None]
     model = fit_sensor_noise(stack, t, RAW_FULL, high)
     H, W = stack.shape[1:3]
@@ -709,7 +717,11 @@ def merge_view(
     mosaic = None
     if g is None:
         kept, left_out = bracket(view)
-        stack = np.stack([read_image(e.path) for e in kept])
+        # a bracket of RAWs is decoded once: its photosites, and the frame demosaiced
+        sites = [read_raw_mosaic(e.path) for e in kept] \
+            if all(is_raw(e.path) for e in kept) else None
+        stack = np.stack([demosaic(*x) for x in sites] if sites
+                         else [read_image(e.path) for e in kept])
         full = 65535.0 if stack.max() > 255 else 255.0
         t = np.array([e.exposure_s for e in kept])
         H, W = stack.shape[1:3]
@@ -720,8 +732,8 @@ def merge_view(
         for rows in _strips(H, W):
             rad[rows], saturated[rows], dark[rows], noise[rows] = merge_linear(
                 stack[:, rows], t, full, low, high, model)
-        if all(is_raw(e.path) for e in kept):
-            mosaic = merge_mosaic([e.path for e in kept], t, low, high)
+        if sites:
+            mosaic = merge_mosaic(sites, t, low, high)
     else:
         stack, t, left_out = load_bracket_checked(view)
         rad, saturated, dark, noise, reexposure = _merge_in_strips(stack, t, g, low, high)

@@ -16,7 +16,7 @@ from PIL import Image
 
 from ..errors import InputError
 
-__all__ = ["PHOTO_SUFFIXES", "RAW_SUFFIXES", "ImageReadError", "PhotoMeta",
+__all__ = ["PHOTO_SUFFIXES", "RAW_SUFFIXES", "ImageReadError", "PhotoMeta", "demosaic",
            "exif_exposure_time", "image_size", "is_raw", "photo_meta", "read_image", "read_raw",
            "read_raw_mosaic",
            "write_image_atomic"]
@@ -152,7 +152,18 @@ def read_raw(path: str | Path) -> np.ndarray:
     ImageReadError
         If LibRaw cannot read the file or its filter array is not an RGB one.
     """
-    mosaic, colors = read_raw_mosaic(path)
+    return demosaic(*read_raw_mosaic(path))
+
+
+def demosaic(mosaic: np.ndarray, colors: np.ndarray) -> np.ndarray:
+    """:func:`read_raw`'s RGB from :func:`read_raw_mosaic`'s photosites (H, W) uint16
+    and filters (H, W): bilinear, a pixel with a saturated photosite in its 3 x 3
+    neighbourhood saturated in every channel.
+
+    Returns
+    -------
+    (H, W, 3) uint16, linear, the white level at 65535.
+    """
     rgb = _demosaic(mosaic.astype(np.float32) / RAW_FULL, colors)
     sat = cv2.dilate((mosaic >= RAW_FULL).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
     rgb[sat] = 1.0
