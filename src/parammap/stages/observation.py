@@ -63,12 +63,12 @@ import numpy as np
 from .. import __version__
 from ..config import default
 from ..geometry import Intrinsics, sample_image, unit
-from ..models.radiometry import correct_frame, describe_radiometry
+from ..models.radiometry import correct_frame, describe_radiometry, frame_gain
 from ..parallel import executor, progress
 from ..stores.camera import PosesError, kept_poses, load_intrinsics, read_poses
 from ..stores.capture import Capture
 from ..stores.common import COMPLETE_ATTR, mtime_ns, store_bytes
-from ..stores.hdr import read_hdr_noise
+from ..stores.hdr import read_hdr_mosaic, read_hdr_noise
 from ..stores.metrics import digest, write_metrics
 from ..stores.observation import (
     BYTES_PER_OBSERVATION,
@@ -90,7 +90,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["COMPLETE_ATTR", "ObservationError", "build_observation_map", "kept_poses",
            "run_observation", "marker_texel_mask", "blend_bias", "outside_fraction",
-           "frontal_width", "texel_pixels", "sample_view", "texel_grid"]
+           "frontal_width", "photosite_planes", "texel_pixels", "sample_view", "texel_grid"]
 
 
 def texel_grid(cap: Capture, texels_x: int | str, texels_y: int | None = None,
@@ -224,6 +224,28 @@ def texel_pixels(intr: Intrinsics, R: np.ndarray, t: np.ndarray, S: int, T: int,
     return float(frontal_width(du, dv, np.array([d[2] / np.linalg.norm(d)]))[0])
 
 
+# The least share of a texel's footprint samples that one filter's photosites must carry
+# for its channel to be read from them (a Bayer filter's red carries a quarter)
+MIN_FILTER_SHARE = 0.1
+
+
+def photosite_planes(mosaic: tuple[np.ndarray, np.ndarray],
+                     gain: np.ndarray | None = None) -> np.ndarray:
+    """A RAW frame's merged photosites (:func:`parammap.stores.hdr.read_hdr_mosaic`) as
+    (H, W, 6) float32 planes for :func:`sample_view`: each filter's photosites (0
+    elsewhere), then each filter's mask; divided by the flat-field's ``gain`` (H, W)
+    where given."""
+    m, colors = mosaic
+    if gain is not None:
+        m = m / gain
+    out = np.zeros(m.shape + (6,), np.float32)
+    for c in range(3):
+        mask = colors == c
+        out[..., c] = np.where(mask, m, 0.0)
+        out[..., 3 + c] = mask
+    return out
+
+
 def sample_view(
     radiance: np.ndarray,
     saturated: np.ndarray,
@@ -242,6 +264,7 @@ def sample_view(
     max_blend: float | None = None,
     stats: dict[str, int] | None = None,
     resolved: bool | None = None,
+    sites: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
     """Sample one HDR frame at the texels of rows ``rows`` of the map.
 
@@ -259,6 +282,10 @@ def sample_view(
         ``max_blend`` times its noise sd, is not valid (:func:`blend_bias`); None keeps
         every one.
     stats : counts added to: ``blended`` (observations dropped by ``max_blend``).
+    sites : (H, W, 6) a RAW frame's photosites by filter and the filters' masks
+        (:func:`photosite_planes`): each channel is read from its own photosites, the
+        footprint's bilinear samples of them over those of their mask, instead of from
+        the demosaiced ``radiance``, whose interpolation reaches a photosite further.
     resolved : whether the photos resolve the map's texels (:func:`texel_pixels` at
         the median view at least 3 px); None: this view's frontal width of the band's
         texels decides. A map as fine as the photos keeps every read: each view blurs
@@ -325,6 +352,12 @@ def sample_view(
     if near.any():
         samp[near] = sample_image(radiance, uv[near][..., 0], uv[near][..., 1], nearest=True)
     rad = samp.mean(axis=2)
+    if sites is not None:
+        ps = sample_image(sites, uv[..., 0], uv[..., 1]).mean(axis=2)  # (r, S, 6)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            own = ps[..., :3] / ps[..., 3:]
+        # a footprint that holds too few of a filter's photosites keeps the demosaiced read
+        rad = np.where((ps[..., 3:] >= MIN_FILTER_SHARE) & ~near[..., None], own, rad)
     sat = sample_image(saturated.astype(np.uint8), uv[..., 0], uv[..., 1], nearest=True,
                        border=0) > 0
     sat = sat.reshape(uv.shape[:3]).any(axis=2)
@@ -371,6 +404,13 @@ def _pass1_view(job: tuple) -> tuple[str, float, int, float, int]:
     if (rad.shape[1], rad.shape[0]) != tuple(intr.image_size):
         raise ObservationError(f"{view.hdr}: frame {rad.shape[1]}x{rad.shape[0]} does not "
                                f"match the intrinsics image size {intr.image_size}")
+    sites = None
+    mosaic = read_hdr_mosaic(view.hdr)
+    # the photosites are read where no colour matrix mixes the channels per pixel
+    if mosaic is not None and (radiometry is None or radiometry.colour_matrix is None):
+        gain = None if radiometry is None else frame_gain(
+            intr, view.R, view.t, w_mm, h_mm, radiometry, (rad.shape[1], rad.shape[0]))
+        sites = photosite_planes(mosaic, gain)
     rad = correct_frame(rad, intr, view.R, view.t, w_mm, h_mm, radiometry)
     g = open_scratch(scratch)
     nvalid = 0
@@ -379,7 +419,7 @@ def _pass1_view(job: tuple) -> tuple[str, float, int, float, int]:
         rows = slice(r0, min(r0 + band, T))
         r, _, v, sd = sample_view(rad, sat, intr, view.R, view.t, rows, S, T, w_mm, h_mm,
                                   max_zen, max_ss, noise, view.cov, view.max_texel_shift,
-                                  max_blend, stats, resolved)
+                                  max_blend, stats, resolved, sites)
         write_view_rows(g, n, rows, r, v, sd)
         nvalid += int(v.sum())
     return (view.id, nvalid / (S * T), rad.nbytes + sat.nbytes, time.perf_counter() - t0,
