@@ -73,7 +73,7 @@ __all__ = ["ALPHA_RANGE", "COAT_F", "COAT_IOR", "COAT_WINDOW_F", "MIN_OBS", "OFF
            "fit_svbrdf_batch", "fit_svbrdf_tile", "fresnel_dielectric", "ggx_albedo",
            "ggx_albedo_table", "ggx_vis", "light_terms",
            "light_weights", "lobe_rejected", "metallic_roughness", "neighbour_priors",
-           "pool_svbrdf_tile",
+           "pool_svbrdf_tile", "lobe_profiles", "shared_lobe_alpha",
            "refine_lights", "specular_basis", "svbrdf_eval", "svbrdf_outputs"]
 
 #: GGX alpha searched: from a near-mirror (a lobe about 0.3 deg wide) to fully rough.
@@ -530,6 +530,51 @@ def coat_share(kd: np.ndarray) -> np.ndarray:
         return np.where(tot > 0, np.clip(lum[:, 1] / tot, 0, 1), 0.0)
 
 
+def _diffuse_and_cosines(views: np.ndarray, l: np.ndarray, e: np.ndarray, w: np.ndarray,
+                         ambient: np.ndarray | None) -> tuple:
+    """What a batch's fit needs whatever alpha: the matte diffuse basis ``e_w`` (B, 3)
+    and the coated one (B, N, 3) (each with the room's ``ambient`` light, (3,) or
+    None), the GGX term's cosines (:func:`_ggx_cosines`, each (B, N, J)), the lights'
+    irradiance where light and view are above the surface (B, N, J) (0 elsewhere), and
+    the ambient light as given. ``l``, ``e``: :func:`light_terms` at the texels;
+    ``w`` (J, 3) the lights' intensities."""
+    e_w = e @ w  # (B, 3)
+    t_v = coat_transmittance(np.asarray(views, float)[..., 2])[..., None]  # (B, N, 1)
+    coated = ((e * coat_transmittance(l[..., 2])) @ w)[:, None, :] * t_v  # (B, N, 3)
+    sky = None
+    if ambient is not None:
+        sky = np.asarray(ambient, float)
+        e_w = e_w + sky
+        coated = coated + sky * coat_sky_transmittance() * t_v
+    # the half vectors do not depend on alpha: their cosines once for every alpha tried
+    v = np.asarray(views, float)[:, :, None, :]
+    h = v + l[:, None]
+    n_h = h[..., 2] / np.maximum(np.linalg.norm(h, axis=-1), 1e-12)  # (B, N, J)
+    n_v = np.broadcast_to(v[..., 2], n_h.shape)
+    n_l = np.broadcast_to(l[:, None, :, 2], n_h.shape)
+    e_seen = np.where((n_v > 0) & (n_l > 0), e[:, None, :], 0.0)  # (B, N, J)
+    return e_w, coated, _ggx_cosines(n_h, n_v, n_l), e_seen, sky
+
+
+def _lobe_bases(c: tuple[np.ndarray, ...], e_seen: np.ndarray, alpha,
+                w: np.ndarray | None, sky: np.ndarray | None,
+                rows: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """The specular bases of n texels at their alphas (n,) (or one for all), from the
+    cosines ``c`` and ``e_seen`` of :func:`_diffuse_and_cosines`: (n, N, 1, 3) with the
+    lights' intensities ``w`` (J, 3) (and the sky's share of the lobe, ``sky`` (3,) or
+    None; ``rows``: :func:`_albedo_rows` at the views, when already taken), or one per
+    light (n, N, J, 3) with ``w`` None."""
+    a = np.broadcast_to(np.asarray(alpha, float).ravel(), e_seen.shape[:1])
+    s = ggx_dvis_seen(c, e_seen, a * a)  # (n, N, J)
+    if w is None:
+        return np.broadcast_to(s[..., None], s.shape + (3,))
+    s = s @ w  # (n, N, 3)
+    if sky is not None:  # the sky's share of the lobe, an even sky's
+        rows = rows or _albedo_rows(c[1][..., 0])
+        s = s + _albedo_at(rows, a[:, None])[..., None] * (sky / math.pi)
+    return s[:, :, None, :]  # (n, N, 1, 3)
+
+
 def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
                      points: np.ndarray, lights_mm: np.ndarray, weights: np.ndarray | None,
                      grid: np.ndarray | None = None, sd: bool = True,
@@ -581,40 +626,16 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
     J = e.shape[1]
     shared = weights is not None
     w = np.asarray(weights, float) if shared else np.ones((J, 3))
-    e_w = e @ w  # (B, 3)
     # the diffuse bases: matte (constant over the views) and coated
-    t_v = coat_transmittance(np.asarray(views, float)[..., 2])[..., None]  # (B, N, 1)
-    coated = ((e * coat_transmittance(l[..., 2])) @ w)[:, None, :] * t_v  # (B, N, 3)
-    sky = None
-    if ambient is not None and shared:
-        sky = np.asarray(ambient, float)
-        e_w = e_w + sky
-        coated = coated + sky * coat_sky_transmittance() * t_v
-
-    # the half vectors do not depend on alpha: their cosines once for every alpha tried
-    v = np.asarray(views, float)[:, :, None, :]
-    h = v + l[:, None]
-    n_h = h[..., 2] / np.maximum(np.linalg.norm(h, axis=-1), 1e-12)  # (B, N, J)
-    n_v = np.broadcast_to(v[..., 2], n_h.shape)
-    n_l = np.broadcast_to(l[:, None, :, 2], n_h.shape)
-    # and what the GGX term needs of them, with the irradiance where both are above the
-    # surface (0 elsewhere), also once
-    cos = _ggx_cosines(n_h, n_v, n_l)
-    e_seen = np.where((n_v > 0) & (n_l > 0), e[:, None, :], 0.0)  # (B, N, J)
+    e_w, coated, cos, e_seen, sky = _diffuse_and_cosines(views, l, e, w, ambient if shared
+                                                         else None)
 
     def bases(alpha, sel=slice(None), geo=None):
         """(n, N, 1, 3) or (n, N, J, 3) the specular bases of the texels ``sel`` at their
-        alphas (n,); ``geo``: their (cosines, e_seen), when already taken out."""
+        alphas (n,); ``geo``: their (cosines, e_seen, albedo rows), when already taken
+        out."""
         c, es, rows = geo or (tuple(x[sel] for x in cos), e_seen[sel], None)
-        a = np.broadcast_to(np.asarray(alpha, float).ravel(), es.shape[:1])
-        s = ggx_dvis_seen(c, es, a * a)  # (n, N, J)
-        if shared:
-            s = s @ w  # (n, N, 3)
-            if sky is not None:  # the sky's share of the lobe, an even sky's
-                rows = rows or _albedo_rows(c[1][..., 0])
-                s = s + _albedo_at(rows, a[:, None])[..., None] * (sky / math.pi)
-            return s[:, :, None, :]  # (n, N, 1, 3)
-        return np.broadcast_to(s[..., None], s.shape + (3,))
+        return _lobe_bases(c, es, alpha, w if shared else None, sky, rows)
 
     u = np.log(grid)
     every = np.arange(B)
@@ -1149,12 +1170,135 @@ def neighbour_priors(P: np.ndarray, SD: np.ndarray, ok: np.ndarray, r: int = POO
     return out
 
 
+def lobe_profiles(y: np.ndarray, views: np.ndarray, omega: np.ndarray, points: np.ndarray,
+                  lights_mm: np.ndarray, weights: np.ndarray, own: np.ndarray,
+                  grid: np.ndarray, ambient: np.ndarray | None = None,
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each texel's sums for a lobe it shares with other texels, at every alpha of the
+    grid, its own diffuse term (at its own coat share) eliminated.
+
+    A ``Ks`` common to texels t then fits them with the weighted residual sum
+    ``sum_t c_t - 2 Ks b_t + Ks^2 a_t`` (per channel), least at ``Ks = sum b / sum a``.
+
+    Parameters
+    ----------
+    y : (B, N, 3) radiance; views : (B, N, 3); omega : (B, N) weights (0: not seen);
+    points : (B, 3) mm; own : (B, ``SV_SIZE``) the texels' own fits (their coat share);
+    grid : (G,) alphas.
+
+    Returns
+    -------
+    a, b : (B, G, 3) ``S'S - (D'S)^2 / D'D`` and ``S'y - D'S D'y / D'D``; c : (B, 3)
+    ``y'y - (D'y)^2 / D'D`` (D the diffuse basis, S the lobe's at unit Ks).
+    """
+    l, e = light_terms(points, lights_mm)
+    w = np.asarray(weights, float)
+    e_w, coated, cos, e_seen, sky = _diffuse_and_cosines(views, l, e, w, ambient)
+    coat = np.clip(np.nan_to_num(own[:, SV_COAT]), 0, 1)[:, None, None]
+    D = (1 - coat) * e_w[:, None, :] + coat * coated  # (B, N, 3)
+    wD = omega[..., None] * D
+    DD = np.maximum(np.einsum("bnc,bnc->bc", wD, D), 1e-300)
+    Dy = np.einsum("bnc,bnc->bc", wD, y)
+    c = np.einsum("bn,bnc->bc", omega, y * y) - Dy ** 2 / DD
+    rows = _albedo_rows(cos[1][..., 0]) if sky is not None else None
+    a = np.empty((len(y), len(grid), 3))
+    b = np.empty_like(a)
+    Dn = np.ascontiguousarray(D[None])
+    for g, alpha in enumerate(grid):
+        sm = _spec_moments(y, omega, [D], _lobe_bases(cos, e_seen, alpha, w, sky, rows), Dn)
+        DS = sm["Gds"][:, :, 0, 0]
+        a[:, g] = sm["Gss"][:, :, 0, 0] - DS ** 2 / DD
+        b[:, g] = sm["rs"][:, :, 0] - DS * Dy / DD
+    return a, b, c
+
+
+def _box_sums(x: np.ndarray, r: int) -> np.ndarray:
+    """(T, S, ...) -> the same shape: each texel's sum over its (2 r + 1)^2 window less
+    itself (zero outside the array)."""
+    pad = np.pad(x, ((r + 1, r), (r + 1, r)) + ((0, 0),) * (x.ndim - 2))
+    c = pad.cumsum(0).cumsum(1)
+    k = 2 * r + 1
+    box = c[k:, k:] - c[:-k, k:] - c[k:, :-k] + c[:-k, :-k]
+    return box - x
+
+
+def shared_lobe_alpha(a: np.ndarray, b: np.ndarray, c: np.ndarray, sig2: np.ndarray,
+                      member: np.ndarray, grid: np.ndarray, r: int = POOL_RADIUS,
+                      ) -> np.ndarray:
+    """ln alpha of the lobe each texel's neighbours share.
+
+    The texels of each (2 r + 1)^2 window (itself left out) are fitted jointly: one
+    alpha and one Ks per channel over the window, each texel's own diffuse term
+    (:func:`lobe_profiles`' sums, in units of each texel's residual variance
+    ``sig2``). A narrow highlight is seen near its peak by few texels and in its tails
+    by the rest, whose views determine only about ``Ks alpha^2``: their own alphas
+    scatter, and broad ones pass the test of a determined Ks more often, so a median of
+    them is biased broad; their joint likelihood is as sharp as the peaks make it.
+
+    Parameters
+    ----------
+    a, b : (T, S, G, 3); c : (T, S, 3); sig2 : (T, S, 3); member : (T, S) bool, the
+    texels that take part; grid : (G,) alphas (even in log).
+
+    Returns
+    -------
+    (T, S) ln alpha at the joint profile's least (a parabola through the best grid
+    point and its neighbours), NaN where the window has no member.
+    """
+    wt = np.where(member[..., None], 1 / np.maximum(sig2, 1e-300), 0.0)
+    A = _box_sums(np.nan_to_num(a) * wt[:, :, None], r)
+    B = _box_sums(np.nan_to_num(b) * wt[:, :, None], r)
+    C = _box_sums(np.nan_to_num(c) * wt, r)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ks = np.maximum(B / A, 0.0)  # (T, S, G, 3)
+        prof = (C[:, :, None] - 2 * ks * B + ks * ks * A).sum(-1)  # (T, S, G)
+    prof = np.where(np.isfinite(prof), prof, np.inf)
+    G = len(grid)
+    h = math.log(grid[1] / grid[0])
+    j = np.argmin(prof, -1)
+    k = np.clip(j, 1, G - 2)
+    f0, f1, f2 = (np.take_along_axis(prof, (k + d)[..., None], -1)[..., 0] for d in (-1, 0, 1))
+    with np.errstate(invalid="ignore", over="ignore"):
+        curv = f0 - 2 * f1 + f2
+        step = np.where(curv > 0, -(f2 - f0) / 2 / np.where(curv > 0, curv, 1), 0.0)
+    u = np.log(grid)[k] + h * np.clip(np.nan_to_num(step), -1, 1)
+    u = np.where((j == 0) | (j == G - 1), np.log(grid)[j], u)
+    none = (_box_sums(member.astype(float), r) < 0.5) | ~np.isfinite(f1)
+    return np.where(none, np.nan, u)
+
+
+def _shared_alpha(P: np.ndarray, ok: np.ndarray, halo_obs: tuple, origin: tuple[int, int],
+                  grid: tuple[int, int, float, float], lights_mm: np.ndarray,
+                  weights: np.ndarray, irradiance, ambient: np.ndarray | None, r: int,
+                  ) -> np.ndarray:
+    """:func:`shared_lobe_alpha` (T, S) over a tile and its halo: P (T, S, SV_SIZE) and
+    ok (T, S) the tile pass's; ``halo_obs`` their radiance, directions, valid and noise
+    (or None), whose first texel is ``origin``."""
+    rad, dirs, valid, noise = halo_obs
+    T, S = P.shape[:2]
+    pts, L, V, _, _, omega = _tile_inputs(rad, dirs, valid, noise, origin, grid, irradiance)
+    own = np.nan_to_num(P.reshape(T * S, -1))
+    alphas = alpha_grid()  # the fit's: half as many steps put alpha 0.1 5 % low
+    a, b, c = lobe_profiles(L, V, omega, pts, lights_mm, weights, own, alphas, ambient)
+    N = L.shape[1]
+    fitted = svbrdf_eval(np.repeat(own, N, 0), np.repeat(pts, N, 0), V.reshape(-1, 3),
+                         lights_mm, weights, ambient=ambient).reshape(L.shape)
+    # each texel's weight: its own fit's residual variance per channel
+    sig2 = np.einsum("bn,bnc->bc", omega, (L - fitted) ** 2) / np.maximum(
+        (omega > 0).sum(1) - 3, 1)[:, None]
+    # the texels the tile pass gave a lobe: a matte neighbour's flat views would pull
+    # the joint fit toward lobes too narrow to show in them
+    lobed = ok & (np.nan_to_num(P[..., SV_KS]) @ LUMINANCE > 0)
+    return shared_lobe_alpha(a.reshape(T, S, *a.shape[1:]), b.reshape(T, S, *b.shape[1:]),
+                             c.reshape(T, S, 3), sig2.reshape(T, S, 3), lobed, alphas, r)
+
+
 def pool_svbrdf_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
                      direction: np.ndarray, valid: np.ndarray, offset: tuple[int, int], *,
                      origin: tuple[int, int], grid: tuple[int, int, float, float],
                      lights_mm: np.ndarray, weights: np.ndarray,
                      noise: np.ndarray | None = None, irradiance=None,
-                     ambient: np.ndarray | None = None,
+                     ambient: np.ndarray | None = None, halo_obs: tuple | None = None,
                      ) -> dict[str, np.ndarray] | None:
     """The repair pass of an svbrdf fit (:func:`parammap.stages.fit.fit_map`): every
     texel of a tile refitted with its neighbours' priors on ln alpha and Ks
@@ -1163,6 +1307,10 @@ def pool_svbrdf_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
     alpha or on Ks's luminance: a texel at a material's edge, or a scratch, keeps its
     own). A texel that saw its highlight in one view, or in none, takes its region's
     roughness and specular amplitude: the highlight is drawn as smooth as the region.
+    With ``halo_obs`` (the observations of the tile and its halo: radiance, direction,
+    valid, noise or None) the prior on ln alpha is centred on the joint fit of the
+    neighbours that have a lobe (:func:`shared_lobe_alpha`) where that is narrower than
+    their own values' median.
 
     Returns the tile's arrays as :func:`fit_svbrdf_tile` plus ``changed``, or None."""
     r = POOL_RADIUS
@@ -1174,6 +1322,14 @@ def pool_svbrdf_tile(fields: dict[str, np.ndarray], radiance: np.ndarray,
     pri = neighbour_priors(np.pad(P, pad, constant_values=np.nan),
                            np.pad(SD, pad, constant_values=np.nan),
                            np.pad(ok, pad[:2], constant_values=False), r)
+    if halo_obs is not None:
+        # the median of the determined neighbours' own alphas is biased broad where few
+        # of them saw the peak (shared_lobe_alpha): the prior is centred on their joint
+        # fit where that is narrower; its width stays their own values' spread
+        u_joint = _shared_alpha(P, ok, halo_obs, (origin[0] - i0, origin[1] - j0), grid,
+                                lights_mm, weights, irradiance, ambient, r)
+        pri["u_mean"] = np.where(np.isfinite(u_joint) & np.isfinite(pri["u_mean"]),
+                                 np.minimum(u_joint, pri["u_mean"]), pri["u_mean"])
     pri = {k: v[i0:i0 + t, j0:j0 + u].reshape((t * u,) + v.shape[2:]) for k, v in pri.items()}
     own = P[i0:i0 + t, j0:j0 + u].reshape(t * u, -1)
     sd_own = SD[i0:i0 + t, j0:j0 + u].reshape(t * u, -1)

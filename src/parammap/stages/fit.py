@@ -100,8 +100,9 @@ __all__ = ["RepairFn", "fit_map", "fit_mh_map", "fit_sh_map", "fit_summary",
 # (radiance, direction, valid of a tile; keyword noise: its relative sd per observation)
 TileFn = Callable[..., dict[str, np.ndarray]]
 # (fit arrays of the tile and its halo, radiance, direction, valid of the tile, offset of
-# the tile in the halo arrays; keyword noise as for TileFn) -> the tile's new arrays plus
-# "changed", or None
+# the tile in the halo arrays; keyword noise as for TileFn; keyword halo_obs, where the
+# function takes it: the radiance, direction, valid and noise of the tile and its halo)
+# -> the tile's new arrays plus "changed", or None
 RepairFn = Callable[..., dict[str, np.ndarray] | None]
 
 
@@ -123,7 +124,7 @@ def _fit_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path: s
     dirs = g.direction[r0:r1, c0:c1]
     # observation maps built before the merge recorded noise have none
     kw = {"noise": g.noise[r0:r1, c0:c1]} if g.noise is not None else {}
-    if _wants_origin(tile_fn):  # a model that needs its texels' positions
+    if _wants(tile_fn, "origin"):  # a model that needs its texels' positions
         kw["origin"] = (r0, c0)
     res = tile_fn(rad, dirs, np.asarray(valid), **kw)
     for name, arr in res.items():
@@ -140,9 +141,9 @@ def _fit_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path: s
     return np.asarray(res[FitArray.STATUS], np.int8)
 
 
-def _wants_origin(fn: Callable) -> bool:
+def _wants(fn: Callable, name: str) -> bool:
     try:
-        return "origin" in inspect.signature(fn).parameters
+        return name in inspect.signature(fn).parameters
     except (TypeError, ValueError):
         return False
 
@@ -184,8 +185,12 @@ def _repair_block(valid: np.ndarray, block_info=None, *, obs_path: str, out_path
     fields = _snapshot(done_dir, (R0, R1), (C0, C1), tile)
     g = tile_reader(obs_path)
     kw = {"noise": g.noise[r0:r1, c0:c1]} if g.noise is not None else {}
-    if _wants_origin(repair_fn):
+    if _wants(repair_fn, "origin"):
         kw["origin"] = (r0, c0)
+    if _wants(repair_fn, "halo_obs"):  # the halo's observations too
+        kw["halo_obs"] = (g.radiance[R0:R1, C0:C1], g.direction[R0:R1, C0:C1],
+                          np.asarray(g.valid[R0:R1, C0:C1]),
+                          None if g.noise is None else g.noise[R0:R1, C0:C1])
     res = repair_fn(fields, g.radiance[r0:r1, c0:c1], g.direction[r0:r1, c0:c1],
                     np.asarray(valid), (r0 - R0, c0 - C0), **kw)
     changed = np.zeros((r1 - r0, c1 - c0), np.int8)

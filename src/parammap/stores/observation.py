@@ -381,6 +381,7 @@ class TileReader:
     def __init__(self, path: str) -> None:
         g = zarr.open_group(path, mode="r")
         self.radiance, self.direction = _Decoded(g[RADIANCE]), _directions(g)
+        self.valid = g[VALID]
         self.noise = _Decoded(g[NOISE]) if NOISE in g else None
 
 
