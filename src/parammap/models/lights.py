@@ -20,7 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-__all__ = ["LightFit", "fit_light", "fit_lights", "mirror_to_light"]
+__all__ = ["AREA_MAX_SIDE", "AREA_SHAPES", "AREA_STEP_DEG", "LightFit", "area_light_points",
+           "expand_lights", "fit_light", "fit_lights", "mirror_to_light"]
 
 TUKEY_C = 4.685  # biweight cut-off, robust sd units (95 % efficiency at the normal)
 MIN_RAYS = 8  # fewer rays than this determine no light
@@ -215,3 +216,107 @@ def _full(f: LightFit, p: np.ndarray, u: np.ndarray, sd: np.ndarray) -> LightFit
     """``f`` with its misses and inliers over every ray."""
     z = _z(f.position_mm, p, u, sd)
     return LightFit(f.position_mm, f.cov_mm2, z < TUKEY_C * f.scale, z, f.scale)
+
+
+# --- area lights: each as quadrature points the point-light models sum over -----------
+
+#: an area light's quadrature points are at most this far apart as seen from the surface's
+#: centre: under the reflected half-maximum width of a GGX lobe (2.6 alpha rad) from alpha
+#: 0.013 up, so that such lobes draw the light's whole shape, not its points
+AREA_STEP_DEG = 2.0
+#: points across one side of a light at most (36 a light: the svbrdf fit's cost grows with
+#: them); a light wider than 12 deg is drawn coarser than AREA_STEP_DEG
+AREA_MAX_SIDE = 6
+AREA_SHAPES = ("rect", "disc")
+
+
+def _light_frame(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The light's (width, height) axes: height along the surface's y projected onto the
+    light's plane (x where the normal lies near y), width across it."""
+    up = np.array([0.0, 1.0, 0.0]) if abs(normal[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    v = up - normal * (up @ normal)
+    v /= np.linalg.norm(v)
+    return np.cross(v, normal), v
+
+
+def area_light_points(centre_mm: np.ndarray, shape: str, size_mm, normal=None,
+                      target_mm=None) -> tuple[np.ndarray, np.ndarray]:
+    """Equal-area quadrature points of one area light, a Lambertian emitter.
+
+    Parameters
+    ----------
+    centre_mm : (3,) the light's centre (surface frame, mm).
+    shape : ``rect`` (``size_mm`` width and height, the height along the surface's y as
+        seen in the light's plane) or ``disc`` (``size_mm[0]`` the diameter).
+    normal : (3,) the direction the light faces; default toward ``target_mm`` (the
+        surface's centre, (3,); default the origin).
+
+    Returns
+    -------
+    (Q, 6) each point's position (mm) and the light's unit normal, and (Q,) each point's
+    share of the light (sum 1). Seen from ``target_mm`` the points are at most
+    :data:`AREA_STEP_DEG` apart (up to :data:`AREA_MAX_SIDE` a side).
+    """
+    c = np.asarray(centre_mm, float)
+    tgt = np.zeros(3) if target_mm is None else np.asarray(target_mm, float)
+    n = tgt - c if normal is None else np.asarray(normal, float)
+    n = n / np.linalg.norm(n)
+    u, v = _light_frame(n)
+    step = np.radians(AREA_STEP_DEG) * float(np.linalg.norm(tgt - c))
+
+    def side(length: float) -> int:
+        return int(np.clip(np.ceil(length / step), 1, AREA_MAX_SIDE))
+
+    if shape == "rect":
+        w, h = float(size_mm[0]), float(size_mm[-1])
+        a = ((np.arange(side(w)) + 0.5) / side(w) - 0.5) * w
+        b = ((np.arange(side(h)) + 0.5) / side(h) - 0.5) * h
+        A, B = np.meshgrid(a, b, indexing="ij")
+        off = A.reshape(-1, 1) * u + B.reshape(-1, 1) * v
+        share = np.full(len(off), 1.0 / len(off))
+    elif shape == "disc":  # a sunflower (Vogel) spiral: equal areas, even spacing
+        radius = float(size_mm[0]) / 2
+        # a hexagonal packing spaced `step` takes 2 / sqrt(3) points a step^2; the
+        # spiral's spacing is a little less even
+        q = int(np.clip(np.ceil(4 / 3 * np.pi * radius * radius / (step * step)), 1,
+                        AREA_MAX_SIDE * AREA_MAX_SIDE))
+        k = np.arange(q)
+        r = radius * np.sqrt((k + 0.5) / q) if q > 1 else np.zeros(1)
+        t = k * np.pi * (3 - np.sqrt(5))
+        off = r[:, None] * (np.cos(t)[:, None] * u + np.sin(t)[:, None] * v)
+        share = np.full(q, 1.0 / q)
+    else:
+        raise ValueError(f"unknown light shape {shape!r}; one of {AREA_SHAPES}")
+    return np.c_[c + off, np.broadcast_to(n, off.shape)], share
+
+
+def expand_lights(centres_mm: np.ndarray, extents: list | None, target_mm=None,
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The point lights the models sum over for lights (J, 3) of which some have an
+    extent (``extents[j]``: None, a point light, or a dict with ``shape``, ``size_mm``
+    and maybe ``normal``, :func:`area_light_points`).
+
+    Returns
+    -------
+    (P, 3) positions where every light is a point, else (P, 6) positions and emitter
+    normals (zero for a point light, which shines alike in every direction); and (P, J)
+    each point's share of each light (the lights' intensities ``w`` (J, 3) become the
+    points' as ``group @ w``).
+    """
+    c = np.asarray(centres_mm, float).reshape(-1, 3)
+    ext = list(extents or []) + [None] * (len(c) - len(extents or []))
+    if not any(ext):
+        return c, np.eye(len(c))
+    pts, owner, share = [], [], []
+    for j, (cj, e) in enumerate(zip(c, ext, strict=True)):
+        if e:
+            p, s = area_light_points(cj, e["shape"], e["size_mm"], e.get("normal"), target_mm)
+        else:
+            p, s = np.r_[cj, 0.0, 0.0, 0.0][None], np.ones(1)
+        pts.append(p)
+        owner.append(np.full(len(p), j))
+        share.append(s)
+    owner, share = np.concatenate(owner), np.concatenate(share)
+    group = np.zeros((len(owner), len(c)))
+    group[np.arange(len(owner)), owner] = share
+    return np.vstack(pts), group

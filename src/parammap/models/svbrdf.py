@@ -64,6 +64,7 @@ from scipy.ndimage import median_filter
 
 from ..conventions import LUMINANCE, SV_ALPHA, SV_COAT, SV_KD, SV_KS, SV_SIZE, FitArray, FitStatus
 from ..geometry import texel_centres
+from .lights import expand_lights
 from .residuals import mean_percentage_residual
 from .weights import noise_weights, reduced_chi2
 
@@ -234,19 +235,26 @@ def light_terms(points: np.ndarray, lights_mm: np.ndarray) -> tuple[np.ndarray, 
 
     Parameters
     ----------
-    points : (..., 3) surface points (mm, z = 0); lights_mm : (J, 3) light positions.
+    points : (..., 3) surface points (mm, z = 0); lights_mm : (J, 3) light positions, or
+        (J, 6) positions and the unit normals of Lambertian emitters (an area light's
+        points, :func:`parammap.models.lights.expand_lights`; a zero normal: a point
+        that shines alike in every direction).
 
     Returns
     -------
     l : (..., J, 3) unit vectors toward each light; e : (..., J)
-    ``cos theta_j (R / r_j)^2`` (0 for a light below the plane).
+    ``cos theta_j (R / r_j)^2`` (0 for a light below the plane), times the emitter's
+    cosine toward the point where it has a normal.
     """
-    p = np.asarray(lights_mm, float)
-    d = p - np.asarray(points, float)[..., None, :]
-    r = np.linalg.norm(d, axis=-1)
-    l = d / np.maximum(r, 1e-12)[..., None]
-    r = np.maximum(r, 1e-12)
+    lights = np.asarray(lights_mm, float)
+    d = lights[:, :3] - np.asarray(points, float)[..., None, :]
+    r = np.maximum(np.linalg.norm(d, axis=-1), 1e-12)
+    l = d / r[..., None]
     e = np.where(d[..., 2] > 0, d[..., 2] / r * (REFERENCE_MM / r) ** 2, 0.0)
+    if lights.shape[1] == 6:
+        n = lights[:, 3:]
+        facing = -(l * n).sum(-1)
+        e = e * np.where((n * n).sum(-1) > 0, np.clip(facing, 0.0, None), 1.0)
     return l, e
 
 
@@ -558,15 +566,18 @@ def _diffuse_and_cosines(views: np.ndarray, l: np.ndarray, e: np.ndarray, w: np.
 
 def _lobe_bases(c: tuple[np.ndarray, ...], e_seen: np.ndarray, alpha,
                 w: np.ndarray | None, sky: np.ndarray | None,
-                rows: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+                rows: tuple[np.ndarray, np.ndarray] | None = None,
+                group: np.ndarray | None = None) -> np.ndarray:
     """The specular bases of n texels at their alphas (n,) (or one for all), from the
     cosines ``c`` and ``e_seen`` of :func:`_diffuse_and_cosines`: (n, N, 1, 3) with the
     lights' intensities ``w`` (J, 3) (and the sky's share of the lobe, ``sky`` (3,) or
     None; ``rows``: :func:`_albedo_rows` at the views, when already taken), or one per
-    light (n, N, J, 3) with ``w`` None."""
+    light (n, N, J, 3) with ``w`` None (``group`` (P, J): the lights' shares of the
+    P points the cosines are of, :func:`parammap.models.lights.expand_lights`)."""
     a = np.broadcast_to(np.asarray(alpha, float).ravel(), e_seen.shape[:1])
-    s = ggx_dvis_seen(c, e_seen, a * a)  # (n, N, J)
+    s = ggx_dvis_seen(c, e_seen, a * a)  # (n, N, P)
     if w is None:
+        s = s if group is None else s @ group
         return np.broadcast_to(s[..., None], s.shape + (3,))
     s = s @ w  # (n, N, 3)
     if sky is not None:  # the sky's share of the lobe, an even sky's
@@ -582,17 +593,22 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
                      with_coat: bool = True, evidence: bool = False,
                      start: dict[str, np.ndarray] | None = None,
                      coat_choice: np.ndarray | None = None,
-                     ambient: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                     ambient: np.ndarray | None = None,
+                     group: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Fit a batch of texels.
 
     Parameters
     ----------
     y : (B, N, 3) radiance; views : (B, N, 3) unit directions to the cameras;
     omega : (B, N) observation weights (0 where not observed);
-    points : (B, 3) texel centres (mm); lights_mm : (J, 3);
+    points : (B, 3) texel centres (mm); lights_mm : (J, 3), or (P, 6) an area light's
+        points (:func:`light_terms`);
     weights : (J, 3) relative intensities of the lights, or None: one specular
         amplitude per light and channel is fitted instead of a shared ``Ks`` (the pilot
-        fit of :func:`light_weights`).
+        fit of :func:`light_weights`); per light, not per point, with ``group``.
+    group : (P, J) the lights' shares of the points of ``lights_mm``
+        (:func:`parammap.models.lights.expand_lights`), for ``weights`` None; None: each
+        point its own light.
     grid : the alphas searched (:func:`alpha_grid`); sd : False: only ``alpha``,
         ``coat``, ``coeffs`` (B, 1 + Q, 3) and ``rss``.
     with_coat : False: every texel matte (the coat's share 0).
@@ -622,10 +638,11 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
     grid = alpha_grid() if grid is None else np.asarray(grid, float)
     y = np.asarray(y, float)
     B, N, _ = y.shape
-    l, e = light_terms(points, lights_mm)  # (B, J, 3), (B, J)
-    J = e.shape[1]
+    l, e = light_terms(points, lights_mm)  # (B, P, 3), (B, P)
     shared = weights is not None
-    w = np.asarray(weights, float) if shared else np.ones((J, 3))
+    group = None if shared or group is None else np.asarray(group, float)
+    w = np.asarray(weights, float) if shared else \
+        np.ones((e.shape[1], 3)) if group is None else group @ np.ones((group.shape[1], 3))
     # the diffuse bases: matte (constant over the views) and coated
     e_w, coated, cos, e_seen, sky = _diffuse_and_cosines(views, l, e, w, ambient if shared
                                                          else None)
@@ -635,7 +652,7 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
         alphas (n,); ``geo``: their (cosines, e_seen, albedo rows), when already taken
         out."""
         c, es, rows = geo or (tuple(x[sel] for x in cos), e_seen[sel], None)
-        return _lobe_bases(c, es, alpha, w if shared else None, sky, rows)
+        return _lobe_bases(c, es, alpha, w if shared else None, sky, rows, group)
 
     u = np.log(grid)
     every = np.arange(B)
@@ -860,20 +877,21 @@ def _sandwich_sd(y, omega, diffuse, d_coat, c, bases, alpha, rel_step: float = 1
     return np.sqrt(np.clip(np.diagonal(cov, axis1=1, axis2=2), 0, None))
 
 
-def _profile_objective(y, views, omega, points, lights_mm, grid) -> float:
+def _profile_objective(y, views, omega, points, lights_mm, grid, group=None) -> float:
     """Sum over texels of each one's least weighted residual (each light its own
     specular amplitude) relative to its weighted sum of squares: scale-free, so that
     a bright texel does not outweigh a dark one."""
     # matte: where the highlights are places the lights, and a coat's freedom on a matte
     # texel (its fall-off against a broad lobe) only blurs that
     r = fit_svbrdf_batch(y, views, omega, points, lights_mm, None, grid=grid, sd=False,
-                         with_coat=False)
+                         with_coat=False, group=group)
     ss = np.einsum("bn,bnc->b", omega, y * y)
     return float(np.sum(r["rss"] / np.maximum(ss, 1e-30)))
 
 
 def refine_lights(y: np.ndarray, views: np.ndarray, omega: np.ndarray, points: np.ndarray,
                   lights_mm: np.ndarray, reach: float = 0.5, max_evals: int = 200,
+                  extents: list | None = None, target_mm: np.ndarray | None = None,
                   ) -> tuple[np.ndarray, dict]:
     """The light positions (J, 3) that let the SVBRDF explain a sample of texels best.
 
@@ -887,6 +905,9 @@ def refine_lights(y: np.ndarray, views: np.ndarray, omega: np.ndarray, points: n
     Parameters
     ----------
     y, views : (B, N, 3); omega : (B, N); points : (B, 3) mm; lights_mm : (J, 3) start.
+    extents : per light None or its shape (:func:`parammap.models.lights.expand_lights`),
+        which moves with its centre and faces ``target_mm`` (3,) (the surface's centre)
+        unless it states its normal.
 
     Returns
     -------
@@ -900,7 +921,8 @@ def refine_lights(y: np.ndarray, views: np.ndarray, omega: np.ndarray, points: n
     grid = alpha_grid(REFINE_GRID_STEPS)
 
     def f(x, grad):
-        return _profile_objective(y, views, omega, points, x.reshape(-1, 3), grid)
+        pts, group = expand_lights(x.reshape(-1, 3), extents, target_mm)
+        return _profile_objective(y, views, omega, points, pts, grid, group)
 
     opt = nlopt.opt(nlopt.LN_BOBYQA, len(x0))
     opt.set_lower_bounds(lo)

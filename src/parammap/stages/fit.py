@@ -43,6 +43,7 @@ from ..config import default
 from ..conventions import SH_CAP_AWARE, SV_ALPHA, SVBRDF_MODEL, FitArray, FitStatus
 from ..errors import InputError
 from ..geometry import texel_centres
+from ..models.lights import expand_lights
 from ..models.mh import (
     ALGORITHMS,
     K_MAX_AUTO,
@@ -537,6 +538,7 @@ PILOT_TILES = 128  # tiles the pilot's texels come from
 def svbrdf_lights(obs_path: str | Path, lights_mm: np.ndarray,
                   texels: int = default("fit.svbrdf.pilot_texels"), refine: bool = True,
                   seed: int = 0, irradiance: IrradianceGrid | None = None,
+                  extents: list | None = None,
                   ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """The lights an svbrdf fit is made under, from a pilot of up to ``texels`` texels
     from tiles across the map: their positions refined from the found ones
@@ -544,9 +546,12 @@ def svbrdf_lights(obs_path: str | Path, lights_mm: np.ndarray,
     relative intensities (the first's 1), each texel given a specular amplitude per
     light and their ratios pooled (:func:`parammap.models.svbrdf.light_weights`).
     ``irradiance``: the flat-field's, put back into the observations (the lights'
-    fall-off is the model's). Returns positions (J, 3) mm, intensities and a record for
-    the metrics."""
+    fall-off is the model's). ``extents``: per light None or its shape, an area light
+    (:func:`parammap.models.lights.expand_lights`, facing the surface's centre unless it
+    states its normal). Returns positions (J, 3) mm (the area lights' centres),
+    intensities and a record for the metrics."""
     obs = open_observation_map(obs_path)
+    target = np.array([obs.width_mm / 2, obs.height_mm / 2, 0.0])
     rng = np.random.default_rng(seed)
     # texels from many tiles, a few from each: the highlights' positions over the whole
     # map place the lights
@@ -570,7 +575,8 @@ def svbrdf_lights(obs_path: str | Path, lights_mm: np.ndarray,
         views = float((w > 0).sum(1).mean())
         top = rng.permutation(len(L))[:max(64, min(REFINE_TEXELS,
                                                    int(REFINE_OBSERVATIONS / views)))]
-        lights_mm, rec = refine_lights(L[top], V[top], w[top], pts[top], lights_mm)
+        lights_mm, rec = refine_lights(L[top], V[top], w[top], pts[top], lights_mm,
+                                       extents=extents, target_mm=target)
         record |= {"refined_mm": np.round(lights_mm, 3).tolist(), **rec,
                    "refine_texels": len(top), "views_per_texel": views,
                    "seconds": time.perf_counter() - t0}
@@ -579,7 +585,8 @@ def svbrdf_lights(obs_path: str | Path, lights_mm: np.ndarray,
                     f"{rec['evaluations']} evaluations)")
     weights = np.ones((len(lights_mm), 3))
     if len(lights_mm) > 1:
-        r = fit_svbrdf_batch(L, V, w, pts, lights_mm, None)
+        points, group = expand_lights(lights_mm, extents, target)
+        r = fit_svbrdf_batch(L, V, w, pts, points, None, group=group)
         weights = svbrdf_weights(r["ks"], r["stdev_ks"])
     return lights_mm, weights, record
 
@@ -600,6 +607,7 @@ def fit_svbrdf_map(obs_path: str | Path, out_path: str | Path, lights_path: str 
                           else None)
     obs = open_observation_map(obs_path)
     refine = cfg.get("refine_lights", default("fit.svbrdf.refine_lights"))
+    extents = [lt.get("extent") for lt in doc["lights"]]
     if doc["lights"]:
         lights_mm = np.array([lt["position_mm"] for lt in doc["lights"]], float)
     else:  # a matte surface, or lobes that meet nowhere: the run goes on
@@ -612,24 +620,33 @@ def fit_svbrdf_map(obs_path: str | Path, out_path: str | Path, lights_path: str 
         rad.irradiance, obs.width_mm, obs.height_mm)
     lights_mm, weights, record = svbrdf_lights(
         obs_path, lights_mm, cfg.get("pilot_texels", default("fit.svbrdf.pilot_texels")),
-        refine, irradiance=irradiance)
+        refine, irradiance=irradiance, extents=extents)
     record["nominal"] = not doc["lights"]
+    lamps = None
+    if any(extents):  # from here on the models see each area light as its points
+        points, group = expand_lights(lights_mm, extents,
+                                      np.array([obs.width_mm / 2, obs.height_mm / 2, 0.0]))
+        lamps = (lights_mm, weights, extents)
+        record["area_points"] = group.astype(bool).sum(0).tolist()
+        logger.info(f"fit: area lights drawn as {record['area_points']} points")
+        lights_mm, weights = points, group @ weights
     ambient = None
     if doc.get("ambient"):  # the room's light, measured against the lamps' at one point
         amb = doc["ambient"]
         ambient = ambient_irradiance(amb["share"], np.r_[amb["at_mm"], 0.0], lights_mm,
                                      weights)
         record["ambient"] = np.round(ambient, 6).tolist()
-    logger.info(f"fit: {SVBRDF_MODEL} under {len(lights_mm)} light(s) at "
-                f"{np.round(lights_mm, 1).tolist()} mm, relative intensities "
-                f"{np.round(weights, 3).tolist()}"
+    shown = lamps[:2] if lamps else (lights_mm, weights)
+    logger.info(f"fit: {SVBRDF_MODEL} under {len(shown[0])} light(s) at "
+                f"{np.round(shown[0], 1).tolist()} mm, relative intensities "
+                f"{np.round(shown[1], 3).tolist()}"
                 + ("" if ambient is None else
                    f", the room's ambient irradiance {np.round(ambient, 4).tolist()}"))
     geom = {"grid": (obs.S, obs.T, obs.width_mm, obs.height_mm), "lights_mm": lights_mm,
             "weights": weights, "irradiance": irradiance, "ambient": ambient}
     pool = bool(cfg.get("pool_neighbours", default("fit.svbrdf.pool_neighbours")))
     res = fit_map(obs_path, out_path, partial(fit_svbrdf_tile, **geom), svbrdf_outputs(),
-                  svbrdf_attrs(lights_mm, weights, irradiance, ambient,
+                  svbrdf_attrs(lights_mm, weights, irradiance, ambient, lamps,
                                lights_source=doc.get("source"),
                                pool_radius=POOL_RADIUS if pool else 0),
                   scheduler, workers, start_method=start_method,
@@ -639,7 +656,7 @@ def fit_svbrdf_map(obs_path: str | Path, out_path: str | Path, lights_path: str 
     ok = g[FitArray.STATUS][:] == FitStatus.OK
     alpha = g[FitArray.PARAMS][:][ok][:, SV_ALPHA]
     return fit_summary(out_path, res, SVBRDF_MODEL, scheduler=scheduler, workers=workers,
-                       lights=len(lights_mm), light_weights=np.round(weights, 4).tolist(),
+                       lights=len(shown[0]), light_weights=np.round(shown[1], 4).tolist(),
                        light_positions=record, pooled_texels=int(res.get("repaired", 0)),
                        alpha_median=float(np.median(alpha)) if alpha.size else None)
 

@@ -39,7 +39,7 @@ from ..stores.paths import Processed
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["lobe_rays", "run_lights"]
+__all__ = ["lobe_rays", "measured_extents", "run_lights"]
 
 MIN_KS_SD = 3.0  # a lobe's Ks (summed over channels) this many of its sd above zero
 MIN_SHARE = 0.02  # a light gathers at least this share of the rays
@@ -165,6 +165,26 @@ def against_measured(found: list[dict[str, Any]], measured: list[dict[str, Any]]
     return out
 
 
+def measured_extents(found: list[dict[str, Any]], measured: list[dict[str, Any]]) -> None:
+    """Give each found light the extent (``shape``, ``size_mm``, maybe ``normal``) of the
+    measured light with a size that it is the nearest found light to and that is the
+    nearest such measured light to it (each pair mutual nearest neighbours): the lab's
+    measure of a light's shape, which the lobes do not give."""
+    sized = [m for m in measured if m.get("size_mm")]
+    if not found or not sized:
+        return
+    f = np.array([lt["position_mm"] for lt in found], float)
+    m = np.array([lt["position_mm"] for lt in sized], float)
+    d = np.linalg.norm(f[:, None] - m[None], axis=-1)
+    for i, j in enumerate(d.argmin(1)):
+        if d[:, j].argmin() == i:
+            lt = sized[j]
+            found[i]["extent"] = {"shape": lt.get("shape", "rect"),
+                                  "size_mm": [float(x) for x in lt["size_mm"]],
+                                  **({"normal": [float(x) for x in lt["normal"]]}
+                                     if lt.get("normal") else {})}
+
+
 def run_lights(processed: str | Path, config: dict[str, Any], *,
                figures: str | Path | None = None,
                measured: list[dict[str, Any]] | None = None,
@@ -197,6 +217,7 @@ def run_lights(processed: str | Path, config: dict[str, Any], *,
     if measured:
         centre = np.array([g.width_mm / 2, g.height_mm / 2, 0.0])
         info["measured"] = against_measured(records, measured, centre)
+        measured_extents(records, measured)
         for m in info["measured"]:
             logger.info(f"lights: measured light at {m['position_mm']} mm: "
                         + (f"the nearest found {m['distance_mm']:.1f} mm off "
@@ -205,7 +226,9 @@ def run_lights(processed: str | Path, config: dict[str, Any], *,
     write_lights(proc.lights, records, info)
     for k, lt in enumerate(records):
         logger.info(f"lights: light {k + 1} at {lt['position_mm']} mm (sd {lt['sd_mm']}), "
-                    f"{lt['rays']} of {info['lobes']} lobes")
+                    f"{lt['rays']} of {info['lobes']} lobes"
+                    + (f"; an area light, {lt['extent']['shape']} {lt['extent']['size_mm']} mm "
+                       "(the capture's)" if "extent" in lt else ""))
     if not records:
         logger.warning(f"lights: the {info['lobes']} determined lobes of {cfg['source']} "
                        "meet at no light")

@@ -115,15 +115,16 @@ SVBRDF_LAYOUT = " ".join(SVBRDF_CHANNELS)
 
 def svbrdf_attrs(lights_mm: np.ndarray, weights: np.ndarray,
                  irradiance: IrradianceGrid | None = None, ambient: np.ndarray | None = None,
-                 **settings: Any) -> dict[str, Any]:
+                 lamps: tuple | None = None, **settings: Any) -> dict[str, Any]:
     """The attributes that describe an svbrdf fit: the lights it was fitted under
-    (``lights``: ``position_mm`` (J, 3), ``weights`` (J, 3) relative RGB intensities,
+    (``lights``: ``position_mm`` (J, 3) (or (P, 6), area lights' points and ``lamps``),
+    ``weights`` (J, 3) relative RGB intensities,
     the flat-field's ``irradiance`` it put back, the room's ``ambient`` irradiance,
     :func:`parammap.stores.lights.light_doc`) and ``settings`` (where the lights came
     from)."""
     # version 2: the coat's share (a plastic's diffuse light dimmed toward grazing)
     return {_MODEL: "svbrdf", "model_version": 2, _LAYOUT: SVBRDF_LAYOUT,
-            _LIGHTS: light_doc(lights_mm, weights, irradiance, ambient), **settings}
+            _LIGHTS: light_doc(lights_mm, weights, irradiance, ambient, lamps), **settings}
 
 
 def grid_attrs(obs: ObservationMap, tile: int, provenance: bool = True) -> dict[str, Any]:

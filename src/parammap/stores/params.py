@@ -49,7 +49,7 @@ from ..models.svbrdf import LightRig
 from .common import HEIGHT_ATTR, S_ATTR, SOFTWARE_ATTR, T_ATTR, WIDTH_ATTR, software
 from .exr import ExrError, read_exr, write_exr
 from .fit import open_fit
-from .lights import light_doc, parse_light_doc
+from .lights import light_doc, parse_lamps, parse_light_doc
 from .observation import open_observation_map
 from .radiometry import colour_interop
 
@@ -144,6 +144,14 @@ class ParamMap:
         room's ambient irradiance; None for other maps."""
         doc = self.attrs.get("lights")
         return None if doc is None else parse_light_doc(doc)
+
+    @property
+    def lamps(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """An svbrdf map's area lights (centres (L, 3) mm, RGB intensities (L, 3)) whose
+        points :attr:`lights` are (:func:`parammap.stores.lights.parse_lamps`); None for
+        point lights and other maps."""
+        doc = self.attrs.get("lights")
+        return None if doc is None else parse_lamps(doc)
 
 
 def write_param_map(path: str | Path, pm: ParamMap, half: bool = False) -> Path:

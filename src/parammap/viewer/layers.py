@@ -46,10 +46,13 @@ def layer_info(pm: ParamMap) -> tuple[dict, int]:
         return {"model": "diffuse"}, 1
     if pm.model == "svbrdf":  # (Kd, alpha), (Ks, coat); its lights for the shader
         rig = pm.lights
-        if len(rig.position_mm) > SV_MAX_LIGHTS:
+        # area lights: the shader draws each at its centre (their points would outnumber
+        # its lights, and a light the user moves is one lamp)
+        pos, weights = pm.lamps or rig[:2]
+        if len(pos) > SV_MAX_LIGHTS:
             raise InputError(f"the viewer evaluates up to {SV_MAX_LIGHTS} lights")
-        return {"model": "svbrdf", "lights": np.round(rig.position_mm, 4).tolist(),
-                "light_weights": np.round(rig.intensity, 6).tolist(),
+        return {"model": "svbrdf", "lights": np.round(pos[:, :3], 4).tolist(),
+                "light_weights": np.round(weights, 6).tolist(),
                 "ambient": [0.0] * 3 if rig.ambient is None
                 else np.round(rig.ambient, 8).tolist()}, 2
     if pm.model == "best":  # a choice map: its candidates are models of the page too
