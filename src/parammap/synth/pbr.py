@@ -66,7 +66,8 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["PBR_PRESETS", "FilmicResponse", "Light", "PbrPreset", "generate_pbr",
            "light_irradiance", "normal_reflectance", "novel_lights", "patch_labels",
-           "read_truth_radiance", "render_relit", "render_white_card", "sky_share"]
+           "read_truth_radiance", "render_relit", "render_white_card", "sky_share",
+           "stated_lights"]
 
 
 @dataclass(frozen=True)
@@ -158,6 +159,8 @@ class PbrPreset:
     image_format: str = "png"
     jpeg_quality: int = 95
     holdout_specular: int = 0  # of the held-out views, near the first light's mirror direction
+    # capture.yaml lists the lights (shape, size, centre) as a lab that measured them would
+    state_lights: bool = False
     # GGX alpha drawn per patch: rough plastic, rough conductor
     plastic_alpha: tuple[float, float] = (0.06, 0.3)
     metal_alpha: tuple[float, float] = (0.1, 0.35)
@@ -392,6 +395,16 @@ def light_irradiance(L: Light, point_mm: np.ndarray, n: int = 48) -> np.ndarray:
     cos_s = np.clip(d[..., 2], 0, None) / np.sqrt(r2)
     cos_l = np.clip(-(d @ nl), 0, None) / np.sqrt(r2)
     return np.asarray(L.radiance, float) * float(np.mean(cos_s * cos_l / r2)) * area
+
+
+def stated_lights(preset: PbrPreset) -> list[dict]:
+    """The capture format's ``lights`` for a preset's lights, as a lab that measured
+    them would write them: centres in the surface frame (mm), a disc's size its
+    diameter."""
+    centre = np.array([preset.width_mm / 2, preset.height_mm / 2, 0.0])
+    return [{"position_mm": np.round(centre + L.position_mm, 3).tolist(), "shape": L.shape,
+             "size_mm": list(L.size_mm) if L.shape == "rect" else [2 * L.size_mm[0]] * 2}
+            for L in preset.lights]
 
 
 def sky_share(preset: PbrPreset) -> list[float]:
@@ -732,7 +745,9 @@ def generate_pbr(
     logger.info(f"  rendered {len(cposes)} board photos ({time.perf_counter() - t0:.0f} s)")
 
     # the room's light as a lab measures it: a white card at the centre, lamps off / on
-    extra = {"ambient": {"share": sky_share(preset)}} if preset.environment > 0 else None
+    extra = {"ambient": {"share": sky_share(preset)}} if preset.environment > 0 else {}
+    if preset.state_lights:
+        extra["lights"] = stated_lights(preset)
     write_capture_yaml(tmp_out, f"Physically based synthetic capture (Mitsuba 3; preset "
                        f"{name}, seed {seed})", sid, preset, items, calib, ext, views_yaml,
                        extra)
