@@ -119,7 +119,8 @@ class ParamMap:
 
     def relit(self, position_mm: np.ndarray, intensity: np.ndarray,
               ambient: np.ndarray | None | str = "same") -> ParamMap:
-        """This svbrdf map under other lights: positions (J, 3) mm and relative RGB
+        """This svbrdf map under other lights: positions (J, 3) mm (or (P, 6), area
+        lights' points, :func:`parammap.models.lights.expand_lights`) and relative RGB
         intensities (J, 3) in its own lights' units, in the same room (``ambient``
         "same": the room's ambient light it was fitted under stays) or another (3,)
         ambient irradiance (None: a dark room)."""

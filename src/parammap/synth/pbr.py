@@ -66,8 +66,8 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["PBR_PRESETS", "FilmicResponse", "Light", "PbrPreset", "generate_pbr",
            "light_irradiance", "normal_reflectance", "novel_lights", "patch_labels",
-           "read_truth_radiance", "render_relit", "render_white_card", "sky_share",
-           "stated_lights"]
+           "light_extent", "read_truth_radiance", "render_relit", "render_white_card",
+           "sky_share", "stated_lights"]
 
 
 @dataclass(frozen=True)
@@ -397,14 +397,20 @@ def light_irradiance(L: Light, point_mm: np.ndarray, n: int = 48) -> np.ndarray:
     return np.asarray(L.radiance, float) * float(np.mean(cos_s * cos_l / r2)) * area
 
 
+def light_extent(shape: str, size_mm) -> dict:
+    """A generator's light's shape as the capture format states it (a disc's size its
+    diameter, where :class:`Light` holds its radius)."""
+    return {"shape": shape,
+            "size_mm": list(map(float, size_mm)) if shape == "rect" else [2.0 * size_mm[0]] * 2}
+
+
 def stated_lights(preset: PbrPreset) -> list[dict]:
     """The capture format's ``lights`` for a preset's lights, as a lab that measured
-    them would write them: centres in the surface frame (mm), a disc's size its
-    diameter."""
+    them would write them: centres in the surface frame (mm) and their extents
+    (:func:`light_extent`)."""
     centre = np.array([preset.width_mm / 2, preset.height_mm / 2, 0.0])
-    return [{"position_mm": np.round(centre + L.position_mm, 3).tolist(), "shape": L.shape,
-             "size_mm": list(L.size_mm) if L.shape == "rect" else [2 * L.size_mm[0]] * 2}
-            for L in preset.lights]
+    return [{"position_mm": np.round(centre + L.position_mm, 3).tolist(),
+             **light_extent(L.shape, L.size_mm)} for L in preset.lights]
 
 
 def sky_share(preset: PbrPreset) -> list[float]:

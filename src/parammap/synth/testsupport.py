@@ -20,6 +20,7 @@ import yaml
 from ..config import default
 from ..conventions import LUMINANCE, SV_ALPHA
 from ..geometry import plane_to_texel, texel_centres, unit
+from ..models.lights import expand_lights
 from ..models.radiometry import correct_frame
 from ..models.svbrdf import metallic_roughness
 from ..render import evaluate, render, surface_points, tone_map
@@ -33,7 +34,7 @@ from ..stores.params import best_shares, read_param_map
 from ..stores.paths import Processed
 from ..stores.radiometry import radiometry_for
 from .generate import true_view_radiance
-from .pbr import Light, normal_reflectance, patch_labels, read_truth_radiance
+from .pbr import Light, light_extent, normal_reflectance, patch_labels, read_truth_radiance
 from .scene import KIND_NAMES, load_scene, true_radiance
 
 __all__ = ["albedo_against_truth", "directions_against_truth", "hdr_errors",
@@ -265,11 +266,17 @@ def relit_against_truth(capture: str | Path, truth: str | Path, processed: str |
     for m in models:
         pm = read_param_map(proc.params(m))
         if pm.lights is not None:
-            pos, w = pm.lights[:2]
-            near = [int(np.argmin(np.linalg.norm(true_pos - p, axis=1))) for p in pos]
+            # a map fitted under area lights holds their points; its lamps are the lights
+            pos, w = pm.lamps or pm.lights[:2]
+            near = [int(np.argmin(np.linalg.norm(true_pos - p[:3], axis=1))) for p in pos]
             unit = np.mean([w[j] / _power(scene["lights"][k]) for j, k in enumerate(near)], 0)
-            pm = pm.relit([centre + np.asarray(L["position_mm"]) for L in new],
-                          [unit * _power(L) for L in new])
+            at = np.array([centre + np.asarray(L["position_mm"]) for L in new])
+            power = np.array([unit * _power(L) for L in new])
+            if pm.lamps is not None:  # the new lamps drawn with their shapes too
+                at, group = expand_lights(at, [light_extent(L["shape"], L["size_mm"])
+                                               for L in new], centre)
+                power = group @ power
+            pm = pm.relit(at, power)
         maps[m] = pm
     return {vid: {m: compare(ref, img, mask, gamma)["mean_diff_8bit"]
                   for m, img in images.items()}
