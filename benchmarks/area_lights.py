@@ -26,7 +26,7 @@ import yaml
 
 from parammap.cli import main
 from parammap.conventions import SV_ALPHA
-from parammap.stages.lights import measured_extents
+from parammap.stages.lights import match_measured
 from parammap.stores.params import read_param_map
 from parammap.synth.pbr import PBR_PRESETS, patch_labels, stated_lights
 from parammap.synth.testsupport import highlight_speckle, holdout_against_truth
@@ -59,7 +59,7 @@ def run(root: Path, preset: str) -> dict:
         _copy(proc, work)
         if kind == "area":
             doc = yaml.safe_load((work / "camera" / "lights.yaml").read_text())
-            measured_extents(doc["lights"], stated_lights(PBR_PRESETS[preset]))
+            match_measured(doc["lights"], stated_lights(PBR_PRESETS[preset]))
             (work / "camera" / "lights.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
         t0 = time.perf_counter()
         assert main(["fit-svbrdf", "--out", str(work), "-q"]) == 0

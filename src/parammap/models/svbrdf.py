@@ -892,7 +892,7 @@ def _profile_objective(y, views, omega, points, lights_mm, grid, group=None) -> 
 def refine_lights(y: np.ndarray, views: np.ndarray, omega: np.ndarray, points: np.ndarray,
                   lights_mm: np.ndarray, reach: float = 0.5, max_evals: int = 200,
                   extents: list | None = None, target_mm: np.ndarray | None = None,
-                  ) -> tuple[np.ndarray, dict]:
+                  also_from: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """The light positions (J, 3) that let the SVBRDF explain a sample of texels best.
 
     A light found from Phong lobes is biased (a Phong lobe fitted to a microfacet
@@ -908,21 +908,34 @@ def refine_lights(y: np.ndarray, views: np.ndarray, omega: np.ndarray, points: n
     extents : per light None or its shape (:func:`parammap.models.lights.expand_lights`),
         which moves with its centre and faces ``target_mm`` (3,) (the surface's centre)
         unless it states its normal.
+    also_from : (J, 3) another start (the lab's measured positions, the found ones where
+        none was measured): the refinement starts from whichever explains the sample
+        better, within ``reach`` of it.
 
     Returns
     -------
-    (J, 3) positions and a record: ``start`` and ``final`` objective, ``evaluations``.
+    (J, 3) positions and a record: ``start`` and ``final`` objective, ``evaluations``
+    (and with ``also_from``, ``started_from``: ``given`` or ``also_from``).
     """
-    x0 = np.asarray(lights_mm, float).ravel()
-    centre = np.asarray(points, float).mean(0)
-    dist = np.repeat(np.linalg.norm(np.asarray(lights_mm, float) - centre, axis=1), 3)
-    lo, hi = x0 - reach * dist, x0 + reach * dist
-    lo[2::3] = np.maximum(lo[2::3], 1e-3 * dist[2::3])  # above the surface
     grid = alpha_grid(REFINE_GRID_STEPS)
 
     def f(x, grad):
         pts, group = expand_lights(x.reshape(-1, 3), extents, target_mm)
         return _profile_objective(y, views, omega, points, pts, grid, group)
+
+    x0 = np.asarray(lights_mm, float).ravel()
+    start = f(x0, np.empty(0))
+    took = {}
+    if also_from is not None:
+        x1 = np.asarray(also_from, float).ravel()
+        other = f(x1, np.empty(0))
+        took = {"started_from": "also_from" if other < start else "given"}
+        if other < start:
+            x0, start = x1, other
+    centre = np.asarray(points, float).mean(0)
+    dist = np.repeat(np.linalg.norm(x0.reshape(-1, 3) - centre, axis=1), 3)
+    lo, hi = x0 - reach * dist, x0 + reach * dist
+    lo[2::3] = np.maximum(lo[2::3], 1e-3 * dist[2::3])  # above the surface
 
     opt = nlopt.opt(nlopt.LN_BOBYQA, len(x0))
     opt.set_lower_bounds(lo)
@@ -931,7 +944,6 @@ def refine_lights(y: np.ndarray, views: np.ndarray, omega: np.ndarray, points: n
     opt.set_initial_step(0.05 * dist)
     opt.set_xtol_abs(5e-4 * dist)  # a tenth of the 0.5 % a light is placed to at best
     opt.set_maxeval(max_evals)
-    start = f(x0, np.empty(0))
     try:
         x = opt.optimize(x0)
     except (nlopt.RoundoffLimited, RuntimeError):
@@ -940,7 +952,7 @@ def refine_lights(y: np.ndarray, views: np.ndarray, omega: np.ndarray, points: n
     if final > start:
         x, final = x0, start
     return x.reshape(-1, 3), {"start": start, "final": final,
-                              "evaluations": int(opt.get_numevals())}
+                              "evaluations": int(opt.get_numevals()), **took}
 
 
 def light_weights(ks: np.ndarray, sd_ks: np.ndarray, min_z: float = 3.0) -> np.ndarray:

@@ -538,7 +538,7 @@ PILOT_TILES = 128  # tiles the pilot's texels come from
 def svbrdf_lights(obs_path: str | Path, lights_mm: np.ndarray,
                   texels: int = default("fit.svbrdf.pilot_texels"), refine: bool = True,
                   seed: int = 0, irradiance: IrradianceGrid | None = None,
-                  extents: list | None = None,
+                  extents: list | None = None, measured_mm: np.ndarray | None = None,
                   ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """The lights an svbrdf fit is made under, from a pilot of up to ``texels`` texels
     from tiles across the map: their positions refined from the found ones
@@ -548,7 +548,9 @@ def svbrdf_lights(obs_path: str | Path, lights_mm: np.ndarray,
     ``irradiance``: the flat-field's, put back into the observations (the lights'
     fall-off is the model's). ``extents``: per light None or its shape, an area light
     (:func:`parammap.models.lights.expand_lights`, facing the surface's centre unless it
-    states its normal). Returns positions (J, 3) mm (the area lights' centres),
+    states its normal). ``measured_mm``: (J, 3) the lab's measured centres (the found
+    ones where none was), a second start for the refinement. Returns positions (J, 3)
+    mm (the area lights' centres),
     intensities and a record for the metrics."""
     obs = open_observation_map(obs_path)
     target = np.array([obs.width_mm / 2, obs.height_mm / 2, 0.0])
@@ -576,7 +578,8 @@ def svbrdf_lights(obs_path: str | Path, lights_mm: np.ndarray,
         top = rng.permutation(len(L))[:max(64, min(REFINE_TEXELS,
                                                    int(REFINE_OBSERVATIONS / views)))]
         lights_mm, rec = refine_lights(L[top], V[top], w[top], pts[top], lights_mm,
-                                       extents=extents, target_mm=target)
+                                       extents=extents, target_mm=target,
+                                       also_from=measured_mm)
         record |= {"refined_mm": np.round(lights_mm, 3).tolist(), **rec,
                    "refine_texels": len(top), "views_per_texel": views,
                    "seconds": time.perf_counter() - t0}
@@ -608,6 +611,10 @@ def fit_svbrdf_map(obs_path: str | Path, out_path: str | Path, lights_path: str 
     obs = open_observation_map(obs_path)
     refine = cfg.get("refine_lights", default("fit.svbrdf.refine_lights"))
     extents = [lt.get("extent") for lt in doc["lights"]]
+    measured = None
+    if any("measured_mm" in lt for lt in doc["lights"]):
+        measured = np.array([lt.get("measured_mm", lt["position_mm"]) for lt in doc["lights"]],
+                            float)
     if doc["lights"]:
         lights_mm = np.array([lt["position_mm"] for lt in doc["lights"]], float)
     else:  # a matte surface, or lobes that meet nowhere: the run goes on
@@ -620,7 +627,7 @@ def fit_svbrdf_map(obs_path: str | Path, out_path: str | Path, lights_path: str 
         rad.irradiance, obs.width_mm, obs.height_mm)
     lights_mm, weights, record = svbrdf_lights(
         obs_path, lights_mm, cfg.get("pilot_texels", default("fit.svbrdf.pilot_texels")),
-        refine, irradiance=irradiance, extents=extents)
+        refine, irradiance=irradiance, extents=extents, measured_mm=measured)
     record["nominal"] = not doc["lights"]
     lamps = None
     if any(extents):  # from here on the models see each area light as its points

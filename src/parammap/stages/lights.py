@@ -39,7 +39,7 @@ from ..stores.paths import Processed
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["lobe_rays", "measured_extents", "run_lights"]
+__all__ = ["lobe_rays", "match_measured", "run_lights"]
 
 MIN_KS_SD = 3.0  # a lobe's Ks (summed over channels) this many of its sd above zero
 MIN_SHARE = 0.02  # a light gathers at least this share of the rays
@@ -165,20 +165,24 @@ def against_measured(found: list[dict[str, Any]], measured: list[dict[str, Any]]
     return out
 
 
-def measured_extents(found: list[dict[str, Any]], measured: list[dict[str, Any]]) -> None:
-    """Give each found light the extent (``shape``, ``size_mm``, maybe ``normal``) of the
-    measured light with a size that it is the nearest found light to and that is the
-    nearest such measured light to it (each pair mutual nearest neighbours): the lab's
-    measure of a light's shape, which the lobes do not give."""
-    sized = [m for m in measured if m.get("size_mm")]
-    if not found or not sized:
+def match_measured(found: list[dict[str, Any]], measured: list[dict[str, Any]]) -> None:
+    """Give each found light what the lab measured of the light it is (the measured
+    light it is the nearest found light to and that is the nearest measured light to
+    it, each pair mutual nearest neighbours): its centre as ``measured_mm`` (a start the
+    svbrdf fit's refinement weighs against the found one) and, where a size was
+    measured, its ``extent`` (``shape``, ``size_mm``, maybe ``normal``), which the lobes
+    do not give."""
+    if not found or not measured:
         return
     f = np.array([lt["position_mm"] for lt in found], float)
-    m = np.array([lt["position_mm"] for lt in sized], float)
+    m = np.array([lt["position_mm"] for lt in measured], float)
     d = np.linalg.norm(f[:, None] - m[None], axis=-1)
     for i, j in enumerate(d.argmin(1)):
-        if d[:, j].argmin() == i:
-            lt = sized[j]
+        if d[:, j].argmin() != i:
+            continue
+        lt = measured[j]
+        found[i]["measured_mm"] = [float(x) for x in lt["position_mm"]]
+        if lt.get("size_mm"):
             found[i]["extent"] = {"shape": lt.get("shape", "rect"),
                                   "size_mm": [float(x) for x in lt["size_mm"]],
                                   **({"normal": [float(x) for x in lt["normal"]]}
@@ -217,7 +221,7 @@ def run_lights(processed: str | Path, config: dict[str, Any], *,
     if measured:
         centre = np.array([g.width_mm / 2, g.height_mm / 2, 0.0])
         info["measured"] = against_measured(records, measured, centre)
-        measured_extents(records, measured)
+        match_measured(records, measured)
         for m in info["measured"]:
             logger.info(f"lights: measured light at {m['position_mm']} mm: "
                         + (f"the nearest found {m['distance_mm']:.1f} mm off "
