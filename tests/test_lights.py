@@ -54,11 +54,13 @@ def test_parallel_rays_determine_no_light():
     assert fit_light(p[:3], u[:3], np.full(3, 0.01)) is None  # too few rays
 
 
-def test_the_lights_of_the_tiny_capture_are_found(tiny_processed, tiny_copy, tmp_path):
+def test_the_lights_of_the_tiny_capture_are_found(tiny_processed, tiny_copy, tmp_path,
+                                                 monkeypatch):
     """The tiny capture's two point lights from its mh-auto fit (``parammap lights``):
     each within 2 % of its distance to the surface (measured 0.35 and 0.5 %), written
     to camera/lights.yaml with the figure, and compared with the lights a capture lists
-    as measured; a missing fit is one line naming it."""
+    as measured (each found one given its measured centre; where the lobes meet at no
+    light, the measured ones are used); a missing fit is one line naming it."""
     import yaml
 
     from parammap.cli import main
@@ -81,9 +83,23 @@ def test_the_lights_of_the_tiny_capture_are_found(tiny_processed, tiny_copy, tmp
     assert doc["source"] == "mh-auto" and (tmp_path / "fig" / "lights.png").is_file()
     assert [m["name"] for m in doc["measured"]] == ["lamp 0", "lamp 1"]
     assert all(m["relative"] < 0.02 for m in doc["measured"]), doc["measured"]
+    assert sorted(lt["measured_mm"] for lt in doc["lights"]) == sorted(
+        [float(x) for x in L] for L in scene.light_pos)
     centre = np.array([scene.width_mm / 2, scene.height_mm / 2, 0.0])
     found = np.array([lt["position_mm"] for lt in doc["lights"]])
     assert len(found) == len(scene.light_pos) == 2
     for L in scene.light_pos:
         err = np.linalg.norm(found - L, axis=1).min()
         assert err < 0.02 * np.linalg.norm(L - centre), (found, L)
+    # lobes that meet at no light: the capture's measured lights stand in
+    import parammap.stages.lights as lights_stage
+    from parammap.config import validate_config
+    from parammap.stores.capture import load_capture
+
+    monkeypatch.setattr(lights_stage, "find_lights", lambda *a, **k: [])
+    m = lights_stage.run_lights(work, validate_config({"captures": {"x": "."},
+                                                      "lights": {"source": "mh-auto"}}),
+                                measured=load_capture(tiny_copy).lights)
+    assert [lt["position_mm"] for lt in m["lights"]] == [
+        [float(x) for x in L] for L in scene.light_pos]
+    assert read_lights(work / "camera" / "lights.yaml")["lights"] == m["lights"]

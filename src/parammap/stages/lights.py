@@ -197,7 +197,9 @@ def run_lights(processed: str | Path, config: dict[str, Any], *,
     ``lights.max_lights``) into ``camera/lights.yaml`` and ``metrics/lights.json``; a
     figure of the rays in ``figures`` when given. ``measured``: the lights the capture
     lists (:attr:`parammap.stores.capture.Capture.lights`), recorded beside the found
-    ones with how far each is from the nearest found. ``ambient``: the room's light the
+    ones with how far each is from the nearest found, each found one given its measured
+    light's centre and shape (:func:`match_measured`), and used where the lobes meet at
+    no light. ``ambient``: the room's light the
     capture states (:attr:`parammap.stores.capture.Capture.ambient`), passed on to the
     relightable fit."""
     proc = Processed(processed)
@@ -222,6 +224,13 @@ def run_lights(processed: str | Path, config: dict[str, Any], *,
         centre = np.array([g.width_mm / 2, g.height_mm / 2, 0.0])
         info["measured"] = against_measured(records, measured, centre)
         match_measured(records, measured)
+        if not records:  # the lobes meet nowhere: the lab's lights, as it measured them
+            records = [{"position_mm": [float(x) for x in lt["position_mm"]],
+                        "sd_mm": None, "rays": 0, "measured": True} for lt in measured]
+            match_measured(records, measured)
+            logger.warning(f"lights: the {info['lobes']} determined lobes of "
+                           f"{cfg['source']} meet at no light; the capture's "
+                           f"{len(records)} measured light(s) are used")
         for m in info["measured"]:
             logger.info(f"lights: measured light at {m['position_mm']} mm: "
                         + (f"the nearest found {m['distance_mm']:.1f} mm off "
