@@ -338,18 +338,21 @@ def test_blend_bias_of_a_line_a_texel_wide_matches_its_blend(w):
     assert np.abs(blend_bias(grad, wx, wy, near, frontal)).max() < 1e-9
 
 
-def test_a_raw_frames_texels_are_read_from_their_own_photosites():
+@pytest.mark.parametrize("zenith_deg", [0.0, 40.0])
+def test_a_raw_frames_texels_are_read_from_their_own_photosites(zenith_deg):
     """A RAW frame's texels (3.2 px across, dark beside bright, a Bayer mosaic) read
     from their own photosites (:func:`photosite_planes`) are within 2 % of their value
     at the median; read from the demosaiced frame, whose interpolation reaches a
-    photosite further, the dark ones take in their bright neighbours."""
+    photosite further, the dark ones take in their bright neighbours. Seen from 40 deg
+    the texels are 2.5 px across one axis and read by whole pixels: each point's own
+    photosite (0.008 % off at the median; the demosaiced pixel there: 310 %)."""
     from parammap.stages.observation import photosite_planes, sample_view
     from parammap.stores.images import RAW_FULL, demosaic
     from parammap.synth.raw import Sensor
 
     S, T = 20, 15
     a, b = 0.05, 0.8
-    frame, intr, R, t = _checker_photo(0.0, S, T, a, b)
+    frame, intr, R, t = _checker_photo(zenith_deg, S, T, a, b)
     colors = Sensor(pattern="GBRG").colors(*frame.shape[:2])
     mosaic = np.round(np.take_along_axis(frame, colors[..., None], 2)[..., 0]
                       * RAW_FULL).astype(np.uint16)
@@ -360,7 +363,7 @@ def test_a_raw_frames_texels_are_read_from_their_own_photosites():
     own = sample_view(*args, sites=photosite_planes((mosaic.astype(np.float32), colors)))[0]
     rr, cc = np.meshgrid(np.arange(T), np.arange(S), indexing="ij")
     expect = RAW_FULL * np.where((rr + cc) % 2 == 0, a, b)[..., None]
-    dark = np.broadcast_to(((rr + cc) % 2 == 0)[..., None], own.shape)
+    dark = np.broadcast_to(((rr + cc) % 2 == 0)[..., None], own.shape) & np.isfinite(own)
     e_own, e_dem = (np.abs(x / expect - 1)[dark] for x in (own, demosaiced))
     assert np.median(e_own) < 0.02 and np.median(e_dem) > 2 * np.median(e_own), \
         (np.median(e_own), np.median(e_dem))
