@@ -654,4 +654,12 @@ def test_a_measured_area_light_through_the_stage_the_map_and_the_viewer(tmp_path
     points, group = expand_lights(centre[None], [found[0]["extent"]], target)
     assert np.allclose(evaluate("svbrdf", prm, d, at, pm.lights),
                        svbrdf_eval(prm, at, d, points, group @ pm.lamps[1]), rtol=1e-4)
+    # relit under two new lamps (72 points): the viewer draws the two lamps
+    lamps = (np.array([[-150.0, 80.0, 500.0], [300.0, 200.0, 400.0]]),
+             np.array([[1.0, 0.9, 0.8], [0.5, 0.5, 0.6]]), [found[0]["extent"]] * 2)
+    new, group = expand_lights(lamps[0], lamps[2], target)
+    q = pm.relit(new, group @ lamps[1], lamps=lamps)
+    assert q.lights.position_mm.shape == (72, 6)
+    assert layer_info(q)[0]["lights"] == lamps[0].tolist()
+    assert layer_info(q)[0]["light_weights"] == lamps[1].tolist()
 

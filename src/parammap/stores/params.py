@@ -118,16 +118,19 @@ class ParamMap:
         return self.params.shape[:2]
 
     def relit(self, position_mm: np.ndarray, intensity: np.ndarray,
-              ambient: np.ndarray | None | str = "same") -> ParamMap:
+              ambient: np.ndarray | None | str = "same",
+              lamps: tuple[np.ndarray, np.ndarray, list] | None = None) -> ParamMap:
         """This svbrdf map under other lights: positions (J, 3) mm (or (P, 6), area
         lights' points, :func:`parammap.models.lights.expand_lights`) and relative RGB
         intensities (J, 3) in its own lights' units, in the same room (``ambient``
         "same": the room's ambient light it was fitted under stays) or another (3,)
-        ambient irradiance (None: a dark room)."""
+        ambient irradiance (None: a dark room). Area lights' points name the ``lamps``
+        they make (centres (L, 3) mm, RGB intensities (L, 3), extents), as the fitted
+        map's header does: the viewer draws a lamp at its centre."""
         if isinstance(ambient, str):
             ambient = (self.lights or (None,) * 4)[3]
         return replace(self, attrs={**self.attrs, "lights": json.dumps(
-            light_doc(position_mm, intensity, ambient=ambient))})
+            light_doc(position_mm, intensity, ambient=ambient, lamps=lamps))})
 
     @property
     def radiometry(self) -> dict[str, str]:

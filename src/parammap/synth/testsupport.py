@@ -272,11 +272,13 @@ def relit_against_truth(capture: str | Path, truth: str | Path, processed: str |
             unit = np.mean([w[j] / _power(scene["lights"][k]) for j, k in enumerate(near)], 0)
             at = np.array([centre + np.asarray(L["position_mm"]) for L in new])
             power = np.array([unit * _power(L) for L in new])
+            lamps = None
             if pm.lamps is not None:  # the new lamps drawn with their shapes too
-                at, group = expand_lights(at, [light_extent(L["shape"], L["size_mm"])
-                                               for L in new], centre)
+                extents = [light_extent(L["shape"], L["size_mm"]) for L in new]
+                lamps = (at, power, extents)
+                at, group = expand_lights(at, extents, centre)
                 power = group @ power
-            pm = pm.relit(at, power)
+            pm = pm.relit(at, power, lamps=lamps)
         maps[m] = pm
     return {vid: {m: compare(ref, img, mask, gamma)["mean_diff_8bit"]
                   for m, img in images.items()}
