@@ -9,7 +9,15 @@ import json
 import numpy as np
 import pytest
 
-from parammap.conventions import LUMINANCE, SV_ALPHA, SV_COAT, SV_KD, SV_KS, SV_SIZE
+from parammap.conventions import (
+    LUMINANCE,
+    SV_ALPHA,
+    SV_COAT,
+    SV_KD,
+    SV_KS,
+    SV_SIZE,
+    FitArray,
+)
 from parammap.models.svbrdf import (
     fit_svbrdf_batch,
     light_terms,
@@ -663,3 +671,48 @@ def test_a_measured_area_light_through_the_stage_the_map_and_the_viewer(tmp_path
     assert layer_info(q)[0]["lights"] == lamps[0].tolist()
     assert layer_info(q)[0]["light_weights"] == lamps[1].tolist()
 
+
+
+
+def test_an_undetermined_lobe_takes_the_neighbours_width():
+    """The repair pass (:func:`pool_svbrdf_tile`) on a uniform glossy patch (GGX alpha
+    0.08, Ks 0.1, 2 % noise): a texel whose tile fit is a spike (alpha 0.008, ln alpha
+    sd 0.7, Ks 2.4 with sd 3.4, as pbr-mirror's plastic had where one view caught a
+    firefly) takes the neighbours' lobe, its amplitude being undetermined; the same
+    spike with a determined amplitude (a scratch) keeps its own."""
+    from parammap.models.svbrdf import fit_svbrdf_tile, pool_svbrdf_tile
+
+    rng = np.random.default_rng(11)
+    S = T = 16
+    W = H = 48.0
+    N = 60
+    target = np.array([W / 2, H / 2, 0.0])
+    k = np.arange(N) + 0.5
+    z = 1 - (1 - np.cos(np.radians(70))) * k / N
+    phi = k * np.pi * (3 - np.sqrt(5))
+    cams = target + 500 * np.c_[np.sqrt(1 - z * z) * np.cos(phi),
+                                np.sqrt(1 - z * z) * np.sin(phi), z]
+    xs, ys = (np.arange(S) + 0.5) * W / S, H - (np.arange(T) + 0.5) * H / T
+    pts = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
+    pts = np.c_[pts, np.zeros(len(pts))]
+    V = cams[None] - pts[:, None]
+    V /= np.linalg.norm(V, axis=-1, keepdims=True)
+    light, w = (target + np.array([60.0, 40.0, 450.0]))[None], np.ones((1, 3))
+    P = np.tile([0.3, 0.3, 0.3, 0.1, 0.1, 0.1, 0.08, 0.0], (len(pts), 1))
+    y = _render(P, pts, V, light, w) * (1 + 0.02 * rng.standard_normal((len(pts), N, 1)))
+    rad, dirs = y.reshape(T, S, N, 3), V.reshape(T, S, N, 3)
+    valid = np.ones((T, S, N), bool)
+    geom = {"origin": (0, 0), "grid": (S, T, W, H), "lights_mm": light, "weights": w}
+    fields = fit_svbrdf_tile(rad, dirs, valid, **geom)
+    assert np.all(np.abs(fields[FitArray.PARAMS][..., SV_ALPHA] / 0.08 - 1) < 0.2)
+    spike, scratch = (5, 6), (10, 9)
+    for at, sd_ks in ((spike, 3.4), (scratch, 0.05)):
+        fields[FitArray.PARAMS][at][SV_KS] = 2.4
+        fields[FitArray.PARAMS][at][SV_ALPHA] = 0.008
+        fields[FitArray.SD][at][SV_KS] = sd_ks
+        fields[FitArray.SD][at][SV_ALPHA] = 0.0056
+    out = pool_svbrdf_tile(fields, rad, dirs, valid, (0, 0), **geom)
+    got = out[FitArray.PARAMS]
+    assert abs(got[spike][SV_ALPHA] / 0.08 - 1) < 0.1 and out[FitArray.CHANGED][spike]
+    assert abs(got[spike][SV_KS] @ LUMINANCE / 0.1 - 1) < 0.1
+    assert got[scratch][SV_ALPHA] == pytest.approx(0.008) and not out[FitArray.CHANGED][scratch]
