@@ -46,6 +46,24 @@ def _render(P, pts, V, lights, w):
                        w).reshape(B, N, 3)
 
 
+def _map_rig(S: int, T: int, W: float, H: float, N: int, max_zenith_deg: float,
+             distance: float):
+    """The centres (S T, 3) of an S x T texel map over a W x H mm surface and their
+    directions (S T, N, 3) to N cameras ``distance`` mm from the surface's centre on a
+    spiral over a cap; and that centre."""
+    target = np.array([W / 2, H / 2, 0.0])
+    k = np.arange(N) + 0.5
+    z = 1 - (1 - np.cos(np.radians(max_zenith_deg))) * k / N
+    phi = k * np.pi * (3 - np.sqrt(5))
+    cams = target + distance * np.c_[np.sqrt(1 - z * z) * np.cos(phi),
+                                     np.sqrt(1 - z * z) * np.sin(phi), z]
+    xs, ys = (np.arange(S) + 0.5) * W / S, H - (np.arange(T) + 0.5) * H / T
+    pts = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
+    pts = np.c_[pts, np.zeros(len(pts))]
+    V = cams[None] - pts[:, None]
+    return pts, V / np.linalg.norm(V, axis=-1, keepdims=True), target
+
+
 @pytest.mark.parametrize(("lights", "N", "zenith", "coat_tol"), [
     ([[-100.0, 200.0, 400.0]], 80, 70.0, 0.08),
     ([[300.0, -50.0, 350.0], [-80.0, 160.0, 500.0]], 50, 60.0, 0.25),
@@ -622,18 +640,8 @@ def test_a_measured_area_light_through_the_stage_the_map_and_the_viewer(tmp_path
 
     rng = np.random.default_rng(8)
     S, T, N, W, H = 10, 8, 40, 200.0, 150.0
-    target = np.array([W / 2, H / 2, 0.0])
     centre = np.array([250.0, 175.0, 550.0])
-    k = np.arange(N) + 0.5
-    z = 1 - (1 - np.cos(np.radians(65))) * k / N
-    phi = k * np.pi * (3 - np.sqrt(5))
-    cams = target + 600 * np.c_[np.sqrt(1 - z * z) * np.cos(phi),
-                                np.sqrt(1 - z * z) * np.sin(phi), z]
-    xs, ys = (np.arange(S) + 0.5) * W / S, H - (np.arange(T) + 0.5) * H / T
-    pts = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
-    pts = np.c_[pts, np.zeros(len(pts))]
-    V = cams[None] - pts[:, None]
-    V /= np.linalg.norm(V, axis=-1, keepdims=True)
+    pts, V, target = _map_rig(S, T, W, H, N, 65.0, 600.0)
     P = np.tile([0.2, 0.25, 0.3, 1.0, 1.0, 1.0, 0.12, 0.0], (len(pts), 1))
     fine, wf = _facing_grid(centre, target, (300.0, 200.0), 20)
     y = _render(P, pts, V, fine, wf) * (1 + 0.01 * rng.standard_normal((len(pts), N, 3)))
@@ -686,17 +694,7 @@ def test_an_undetermined_lobe_takes_the_neighbours_width():
     S = T = 16
     W = H = 48.0
     N = 60
-    target = np.array([W / 2, H / 2, 0.0])
-    k = np.arange(N) + 0.5
-    z = 1 - (1 - np.cos(np.radians(70))) * k / N
-    phi = k * np.pi * (3 - np.sqrt(5))
-    cams = target + 500 * np.c_[np.sqrt(1 - z * z) * np.cos(phi),
-                                np.sqrt(1 - z * z) * np.sin(phi), z]
-    xs, ys = (np.arange(S) + 0.5) * W / S, H - (np.arange(T) + 0.5) * H / T
-    pts = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
-    pts = np.c_[pts, np.zeros(len(pts))]
-    V = cams[None] - pts[:, None]
-    V /= np.linalg.norm(V, axis=-1, keepdims=True)
+    pts, V, target = _map_rig(S, T, W, H, N, 70.0, 500.0)
     light, w = (target + np.array([60.0, 40.0, 450.0]))[None], np.ones((1, 3))
     P = np.tile([0.3, 0.3, 0.3, 0.1, 0.1, 0.1, 0.08, 0.0], (len(pts), 1))
     y = _render(P, pts, V, light, w) * (1 + 0.02 * rng.standard_normal((len(pts), N, 1)))
