@@ -610,7 +610,7 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
         (:func:`parammap.models.lights.expand_lights`), for ``weights`` None; None: each
         point its own light.
     grid : the alphas searched (:func:`alpha_grid`); sd : False: only ``alpha``,
-        ``coat``, ``coeffs`` (B, 1 + Q, 3) and ``rss``.
+        ``coat``, ``amplitudes`` (B, 1 + Q, 3) and ``rss``.
     with_coat : False: every texel matte (the coat's share 0).
     evidence : return, for :func:`coat_evidence`, each texel's ``coat_f`` (the F statistic
         of its coat), ``alpha`` and ``coat`` (the coated model's), ``alpha_matte`` (the
@@ -630,8 +630,10 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
     -------
     dict: ``estimate`` (B, ``SV_SIZE``) (with ``weights`` None, ``Ks`` of the first
     light), ``ks`` (B, J, 3) the specular amplitude per light (``Ks w_j``), ``stdev``
-    (B, ``SV_SIZE``) standard deviations (HC3 sandwich; with ``prior``, the
-    posterior's; the coat's NaN where the texel is matte), ``stdev_ks`` (B, J, 3),
+    (B, ``SV_SIZE``) standard deviations (HC3 sandwich, those of alpha and Ks at least
+    their change when a view of leverage over :data:`JACKKNIFE_LEVERAGE` is left out;
+    with ``prior``, the posterior's; the coat's NaN where the texel is matte),
+    ``stdev_ks`` (B, J, 3),
     ``rss`` (B,) the weighted residual sum, ``dof`` (B,) degrees of freedom, ``coat_f``
     (B,) the coat's F statistic (0 where not tested).
     """
@@ -749,7 +751,7 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
         coat = coat_share(c[:, :2]) if with_coat else np.zeros(B)
         if not sd:
             c, rss, G, _ = objective(alpha, _diffuse_moments(y, omega, [mixed(coat, every)]))
-            return {"alpha": alpha, "coat": coat, "coeffs": c, "rss": rss.sum(1)}
+            return {"alpha": alpha, "coat": coat, "amplitudes": c, "rss": rss.sum(1)}
         # the coat is kept where it explains the data better than a matte texel does, by
         # an F test of its one parameter: on a matte texel its fall-off toward grazing
         # trades against a broad lobe's rise (alpha near 1) and fits noise (with priors,
@@ -811,13 +813,29 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
         alpha = np.where(lobe, alpha, ALPHA_RANGE[1])
     # a matte texel's coat is not a parameter of its fit (the F test fixed it)
     d_coat = np.where(keep[:, None, None], coated - e_w[:, None, :], 0.0)
-    sd_all = _sandwich_sd(y, omega, dif, d_coat, c, bases, alpha)
+    sd_all, lev = _sandwich_sd(y, omega, dif, d_coat, c, bases, alpha)
     sd_all[:, -2] = np.where(keep, sd_all[:, -2], np.nan)
     sd_all[~lobe, -1] = np.nan
     Q = c.shape[1] - 1
     dof = np.maximum(3 * nobs - (3 * (1 + Q) + 1 + keep), 1)
     sd_c = sd_all[:, :-2].reshape(B, 3, 1 + Q)  # per channel: Kd, amplitudes
     sd_coat, sd_u = sd_all[:, -2], sd_all[:, -1]
+    if shared:
+        # a lobe one view draws passes through it and leaves it no residual for the
+        # sandwich to see (HC3 divides that residual by 1 - h): its sds are at least
+        # what leaving that view out changes
+        lev = lev.reshape(B, N, 3).mean(-1)
+        top = lev.argmax(1)
+        idx = np.flatnonzero(lobe & (lev[every, top] > JACKKNIFE_LEVERAGE))
+        if idx.size:
+            om = omega[idx].copy()
+            om[np.arange(idx.size), top[idx]] = 0.0
+            r = fit_svbrdf_batch(y[idx], views[idx], om, points[idx], lights_mm, weights,
+                                 grid, sd=False, with_coat=with_coat, ambient=ambient,
+                                 prior=None if prior is None else
+                                 {k: v[idx] for k, v in prior.items()})
+            sd_u[idx] = np.fmax(sd_u[idx], np.abs(np.log(r["alpha"] / alpha[idx])))
+            sd_c[idx, :, 1] = np.fmax(sd_c[idx, :, 1], np.abs(r["amplitudes"][:, 1] - c[idx, 1]))
     if prior is not None:  # the posterior's: data and prior combined
         with np.errstate(divide="ignore"):
             has = np.isfinite(prior["u_mean"])
@@ -842,9 +860,10 @@ def fit_svbrdf_batch(y: np.ndarray, views: np.ndarray, omega: np.ndarray,
 
 
 def _sandwich_sd(y, omega, diffuse, d_coat, c, bases, alpha, rel_step: float = 1e-3,
-                 ) -> np.ndarray:
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """(B, 3 (1 + Q) + 2) standard deviations of each channel's amplitudes (Kd, then the
-    Q specular ones), of the coat's share and of ln alpha: the sandwich
+    Q specular ones), of the coat's share and of ln alpha, and (B, 3 N) the
+    observations' leverages (view-major, then channel): the sandwich
     ``A^-1 (J^T W diag(r^2) W J) A^-1``, ``A = J^T W J``, robust to noise that grows with
     the radiance (a highlight's views are noisier than the rest), with MacKinnon and
     White's HC3 leverage correction ``r_i / (1 - h_ii)``. ``diffuse`` (B, N, 3) is the
@@ -874,7 +893,7 @@ def _sandwich_sd(y, omega, diffuse, d_coat, c, bases, alpha, rel_step: float = 1
     h = np.clip(np.einsum("bkp,bpq,bkq->bk", Jm, Ai, Jm) * wv, 0.0, 0.99)
     M = np.einsum("bkp,bk,bkq->bpq", Jm, wv * wv * (rv / (1 - h)) ** 2, Jm)
     cov = Ai @ M @ Ai
-    return np.sqrt(np.clip(np.diagonal(cov, axis1=1, axis2=2), 0, None))
+    return np.sqrt(np.clip(np.diagonal(cov, axis1=1, axis2=2), 0, None)), h
 
 
 def _profile_objective(y, views, omega, points, lights_mm, grid, group=None) -> float:
@@ -1145,6 +1164,10 @@ POOL_RADIUS = 4  # texels: the (2 r + 1)^2 window the neighbours' values come fr
 POOL_MIN = 5  # determined neighbours needed
 WALD_Z = 2.576  # two-sided 99 %: a texel's own value this far from the neighbours' stays
 KS_MIN_Z = 3.0  # a determined highlight: Ks (luminance) this many sds above zero
+# a view whose own observation sets more than half of its fitted value (leverage, the
+# channels' mean; Huber's bound for a point the fit cannot be trusted on) is left out
+# once to bound the lobe's sds (fit_svbrdf_batch)
+JACKKNIFE_LEVERAGE = 0.5
 
 
 def _windows(a: np.ndarray, r: int) -> np.ndarray:
