@@ -67,7 +67,8 @@ def reduced_chi2(radiance: np.ndarray, fitted: np.ndarray, noise: np.ndarray | N
     sd_rel = np.where(valid, np.asarray(noise, float), np.nan)
     scale = np.nanmean(np.where(valid[..., None], np.abs(fitted), np.nan), axis=(1, 2))
     level = np.maximum(np.abs(fitted), 0.01 * scale[:, None, None])
-    z2 = ((radiance - fitted) / (sd_rel[..., None] * level)) ** 2
+    with np.errstate(divide="ignore", invalid="ignore"):  # a black texel: NaN, below
+        z2 = ((radiance - fitted) / (sd_rel[..., None] * level)) ** 2
     z2 = np.where(valid[..., None], z2, 0.0)
     dof = 3 * valid.sum(1) - np.asarray(n_params)
     known = np.isfinite(z2).all((1, 2)) & (dof > 0)
