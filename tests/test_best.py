@@ -215,6 +215,43 @@ def test_sh_is_judged_by_its_own_projection_not_a_plain_refit(tmp_path):
     assert np.median(plain[fin, 0]) > 1.1 * np.median(exact[:, 0])  # 1.18 measured
 
 
+def test_an_sh_fit_records_the_tone_map_it_fitted_and_a_refit_from_the_store_repeats_it(
+        tmp_path):
+    """The display-weighted SH fit's gamma is the observation map's display gamma, kept
+    in the store: the best stage's rerun (and any reader) gets the stored coefficients
+    from it, and not from a fit of the radiance."""
+    from parammap.models.sh import fit_sh_tile
+    from parammap.stages.fit import fit_sh_map
+    from parammap.stores.fit import open_fit
+    from parammap.stores.observation import open_observation_map
+
+    case, _ = patches_case(texels=12, noise=0.01, seed=3)
+    write_observation_arrays(tmp_path / "observation.zarr", case.radiance, case.direction,
+                             case.valid, 1000.0, 1000.0, tile=6)
+    obs = open_observation_map(tmp_path / "observation.zarr")
+    fits = {}
+    for on in (True, False):
+        cfg = validate_config({"captures": {"x": "."},
+                               "fit": {"sh": {"display_weights": on}}})
+        store = tmp_path / f"sh-{on}.zarr"
+        fit_sh_map(tmp_path / "observation.zarr", store, "rlsop", 4, cfg["fit"]["sh"],
+                   "synchronous", 1)
+        fits[on] = open_fit(store)
+    g = fits[True]
+    assert g.display_gamma == pytest.approx(obs.display_gamma())
+    assert fits[False].display_gamma is None
+    assert "display_gamma" in g.describe()  # carried into the EXR header
+    rows, cols = slice(0, 6), slice(6, 12)
+    again = fit_sh_tile(obs.radiance[rows, cols], obs.direction[rows, cols],
+                        obs.valid[rows, cols], 4, "rlsop", sampled_cap=True,
+                        shrink=g.shrink, robust=g.robust, display_gamma=g.display_gamma,
+                        noise=obs.noise[rows, cols] if obs.noise is not None else None)
+    stored = g["coeffs"][rows, cols]
+    assert np.allclose(again["coeffs"], stored, rtol=1e-4, atol=1e-6)
+    plain = fits[False]["coeffs"][rows, cols]
+    assert not np.allclose(plain, stored, rtol=1e-2, atol=1e-4)
+
+
 def test_the_mean_of_two_models_is_judged_exactly_and_taken_where_their_errors_cancel(
         tmp_path):
     """Two maps biased in opposite directions (Kd 30 % high and 30 % low): each alone

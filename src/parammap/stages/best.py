@@ -156,7 +156,8 @@ def _sh_loo(g, obs, rows: slice, cols: slice) -> tuple[np.ndarray, np.ndarray] |
     out = fit_sh_tile(obs.radiance[rows, cols], obs.direction[rows, cols],
                       obs.valid[rows, cols], int(g.n_bands), str(g.hemisphere),
                       g.regularisation or "auto", sampled_cap=True, areas=g.solid_angles,
-                      loo=True, shrink=g.shrink, robust=g.robust, **kw)
+                      loo=True, shrink=g.shrink, robust=g.robust,
+                      display_gamma=g.display_gamma, **kw)
     e = out[FitArray.LOO].reshape(-1, *out[FitArray.LOO].shape[2:])
     fitted = out[FitArray.STATUS].ravel() == FitStatus.OK
     W = np.isfinite(e).all(-1)

@@ -502,12 +502,16 @@ def fit_sh_map(obs_path: str | Path, out_path: str | Path, hemisphere: str, n: i
     areas = cfg.get("solid_angles", default("fit.sh.solid_angles"))
     shrink = cap and bool(cfg.get("shrink", default("fit.sh.shrink")))
     robust = cap and bool(cfg.get("robust", default("fit.sh.robust")))
+    gamma = open_observation_map(obs_path).display_gamma() \
+        if cap and cfg.get("display_weights", default("fit.sh.display_weights")) else None
     res = fit_map(obs_path, out_path,
                   partial(fit_sh_tile, n=n, hemisphere=hemisphere, reg=reg,
-                          sampled_cap=cap, areas=areas, shrink=shrink, robust=robust),
+                          sampled_cap=cap, areas=areas, shrink=shrink, robust=robust,
+                          display_gamma=gamma),
                   sh_outputs(n),
                   sh_attrs(hemisphere, n, cap, areas,
-                           reg if hemisphere in ("rlsop", "wls") else None, shrink, robust),
+                           reg if hemisphere in ("rlsop", "wls") else None, shrink, robust,
+                           gamma),
                   scheduler, workers, start_method=start_method)
     extra = {}
     if cap:

@@ -75,6 +75,7 @@ _MATERIAL_UNITS = {FitArray.LABEL: "basis material (0: diffuse only)",
 
 _RESUME_ATTR = "parammap_resume_key"  # the key of the fit that wrote a partial store
 _MODEL, _LAYOUT, _LIGHTS = "model", "layout", "lights"
+_DISPLAY_GAMMA = "display_gamma"
 
 
 class FitError(InputError):
@@ -99,14 +100,16 @@ def mh_attrs(K: int | str, K_max: int, **settings: Any) -> dict[str, Any]:
 
 def sh_attrs(hemisphere: str, n: int, sampled_cap: bool, solid_angles: str,
              regularisation: float | str | None, shrink: bool = False,
-             robust: bool = False) -> dict[str, Any]:
+             robust: bool = False, display_gamma: float | None = None) -> dict[str, Any]:
     """The attributes that describe an SH fit of ``n`` bands (``robust``: stacked with a
-    robust refit, ``shrink``: blended with its DC term per texel; see
+    robust refit, ``shrink``: blended with its DC term per texel, ``display_gamma``: the
+    tone map whose shown values it fitted, None: the radiance; see
     :func:`parammap.models.sh.fit_sh_tile`)."""
     # "bands": the store's n (its array of that name: the bands each texel resolves)
     return {_MODEL: "sh", "model_version": 2, "hemisphere": hemisphere, FitArray.BANDS: n,
             "coefficients": n * n, "sampled_cap": sampled_cap, "solid_angles": solid_angles,
             "regularisation": regularisation, "shrunk_to_mean": shrink, "robust_refit": robust,
+            _DISPLAY_GAMMA: None if display_gamma is None else float(display_gamma),
             _LAYOUT: SH_LAYOUT}
 
 
@@ -206,13 +209,20 @@ class FitStore(MapStore):
         return bool(self.group.attrs.get("robust_refit", False))
 
     @property
+    def display_gamma(self) -> float | None:
+        """The tone map's gamma an SH fit weighted its views by (the shown values'
+        error), None where it fitted the radiance (and in stores from before)."""
+        g = self.group.attrs.get(_DISPLAY_GAMMA)
+        return None if g is None else float(g)
+
+    @property
     def regularisation(self) -> float | str | None:
         return self.group.attrs.get("regularisation")
 
     def describe(self) -> dict[str, Any]:
         """The model settings a parameter map carries into its EXR header."""
         keys = ("lobes", "K_max", FitArray.BANDS, "coefficients", "regularisation",
-                "shrunk_to_mean", "robust_refit", *RADIOMETRY_KEYS)
+                "shrunk_to_mean", "robust_refit", _DISPLAY_GAMMA, *RADIOMETRY_KEYS)
         out = {k: self.group.attrs[k] for k in keys if self.group.attrs.get(k) is not None}
         if _LIGHTS in self.group.attrs:  # an EXR header holds strings, not mappings
             out[_LIGHTS] = json.dumps(self.group.attrs[_LIGHTS])

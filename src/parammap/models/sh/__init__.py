@@ -45,6 +45,7 @@ from ...conventions import (
     FitStatus,
 )
 from ...errors import InputError
+from ..display import display_weights
 from ..residuals import mean_percentage_residual
 from ..weights import noise_weights, reduced_chi2
 from .basis import hemisphere_gram, planar_solid_angles, project, sh_basis, sh_eval, solid_angles
@@ -98,7 +99,8 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
                 min_obs: int | None = None, sampled_cap: bool = default("fit.sh.sampled_cap"),
                 noise: np.ndarray | None = None, areas: str = "spherical",
                 loo: bool = False, shrink: bool = default("fit.sh.shrink"),
-                robust: bool = default("fit.sh.robust")) -> dict[str, np.ndarray]:
+                robust: bool = default("fit.sh.robust"),
+                display_gamma: float | None = None) -> dict[str, np.ndarray]:
     """Project every texel of a tile, batched (texels sharing one validity pattern
     share one triangulation and one :class:`SampledCap`). (t, u, N, 3) inputs; outputs
     as :func:`sh_outputs`. ``sampled_cap`` (default) fits lsop, rlsop and wls with
@@ -115,7 +117,11 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
     refit (:func:`robust_weights`, ``ROBUST_ROUNDS`` rounds; the robust share in
     ``robust``) and ``shrink`` (default) then blends the result with its DC term
     (:func:`shrink_to_mean`; the share kept in ``shrink``), both by leave-one-view-out
-    error; coefficients, ``sd`` and ``loo`` are the final blend's."""
+    error; coefficients, ``sd`` and ``loo`` are the final blend's. ``display_gamma``
+    (on the sampled cap): the fit minimises the error of the values shown with that
+    tone map's gamma instead of the radiance's, each view's weight multiplied by
+    :func:`parammap.models.display.display_weights` and refitted ``DISPLAY_ROUNDS``
+    times."""
     t, u, N, _ = radiance.shape
     outputs = sh_outputs(n) | ({FitArray.LOO: ((N, 3), "float64", float("nan"))} if loo else {})
     out = {k: np.full((t, u) + shp, fill, dtype) for k, (shp, dtype, fill) in
@@ -147,6 +153,9 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
                 Y = sh_basis(v, n)
                 if sampled_cap and hemisphere in SH_CAP_AWARE:
                     cap = batch_cap(v, n)[1]  # one per batch: the robust refits share it
+                    if display_gamma is not None:
+                        omega = _display_omega(y, v, omega, n, hemisphere, reg, Y, cap,
+                                               display_gamma)
                     c, lam, esc, bands, M, om = guarded_project(y, v, omega, n, hemisphere,
                                                                 reg, Y, system=True, cap=cap)
                     flat[FitArray.REG][sel], flat[FitArray.GUARD][sel] = lam, esc
@@ -190,6 +199,24 @@ def fit_sh_tile(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, 
             flat[FitArray.STATUS][sel] = np.where(np.isfinite(c).all((1, 2)), FitStatus.OK,
                                            FitStatus.FAILED)
     return out
+
+
+DISPLAY_ROUNDS = 3  # reweightings of a display-weighted fit (it moves < 0.1 % after)
+
+
+def _display_omega(y, v, omega, n, hemisphere, reg, Y, cap, gamma):
+    """(B, N) the cell weights ``omega`` times the display weights of the fit they give,
+    reweighted ``DISPLAY_ROUNDS`` times from the tone map's slope at the observations;
+    each texel's total weight kept, so that the prior and lambda keep their strength."""
+    def scaled(k):
+        w = omega * k
+        return w * (omega.sum(1, keepdims=True) / np.maximum(w.sum(1, keepdims=True), 1e-300))
+
+    w = scaled(display_weights(y, gamma))
+    for _ in range(DISPLAY_ROUNDS):
+        c = guarded_project(y, v, w, n, hemisphere, reg, Y, system=True, cap=cap)[0]
+        w = scaled(display_weights(y, gamma, np.matmul(Y, c.transpose(0, 2, 1))))
+    return w
 
 
 def parse_sh_model(name: str) -> tuple[str, int]:
