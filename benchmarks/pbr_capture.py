@@ -48,14 +48,17 @@ def run(preset: str, root: Path, models: list[str], seed: int, reuse_hdr: bool =
             assert main(["synth", "--preset", preset, "--seed", str(seed), "--out", str(cap),
                          "--truth", str(truth)]) == 0
         times["synth"] = time.perf_counter() - t0
+    baked = [m for m in models if m.startswith("sh-mh-")]  # after the MH fit they bake
     fits = [["fit-mh", "--lobes", m.split("-")[1]] if m.startswith("mh-") else
-            ["fit-sh", "--model", m] for m in models]
+            ["fit-sh", "--model", m] for m in models if m not in baked]
     extra = ["mh-materials"] if materials else []
     named = [x for m in models + extra + ["diffuse"] for x in ("--model", m)]
     merged = reuse_hdr and any((out / "hdr").glob("*.exr"))
     stages = [] if merged else [["response"], ["hdr"]]
     source = "mh-auto" if "mh-auto" in models else next(m for m in models if m.startswith("mh-"))
     fits += [["materials", "--set", f"materials.source={source}"]] if materials else []
+    fits += [["fit-sh", "--model", m, "--set",
+              f"fit.sh.source={'mh-materials' if materials else source}"] for m in baked]
     best = [["best", *named]] if materials else []
     compared = named + (["--model", "best"] if materials else [])
     stages += [["calibrate"], ["poses"], ["observe"], *fits, ["export", *named], *best,

@@ -34,6 +34,9 @@ def compare(capture: Path, processed: Path, model: str, sets: list[str],
     on the held-out views; returns the per-view means and the fit's seconds."""
     out = scratch_processed(processed, scratch, ("hdr", "observation.zarr", "capture.ok"))
     (out / "metrics").mkdir()
+    (out / "fit").mkdir()
+    for f in (processed / "fit").glob("mh-*.zarr"):  # the MH fits sh-mh-<n^2> bakes
+        (out / "fit" / f.name).symlink_to(f.resolve())
     for f in (processed / "metrics").glob("*.json"):  # the stages' records they read
         (out / "metrics" / f.name).write_bytes(f.read_bytes())
     t0 = time.perf_counter()

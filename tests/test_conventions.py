@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from parammap.config import schema
+from parammap.conventions import SH_BAKED
 from parammap.conventions import SH_HEMISPHERES as HEMISPHERES
 from parammap.stages.hdr import recover_response
 
@@ -23,7 +24,10 @@ def test_sh_hemisphere_modes_agree():
     assert re.search(r"\(([a-z|]+)\)", pattern).group(1).split("|") == list(HEMISPHERES)
     smk = (ROOT / "workflow" / "rules" / "fit.smk").read_text()
     hemi = re.search(r'hemi="([a-z|]+)"', smk).group(1).split("|")
-    assert hemi == list(HEMISPHERES)
+    # the projections' rule, and the bake's for SH baked from an MH fit
+    assert hemi == [h for h in HEMISPHERES if h not in SH_BAKED]
+    for h in SH_BAKED:
+        assert f'fit/sh-{h}-{{{{nc}}}}.zarr' in smk
 
 
 def test_debevec_smoothness_default_agrees():

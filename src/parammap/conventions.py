@@ -200,8 +200,11 @@ BEST_CHANNELS = ("choice", "partner")
 
 # --- Spherical harmonics (docs/reference/conventions.md, 004 eqs. 12.1-12.5) ---
 #: Hemisphere handling of an SH fit: the published zero hemisphere, mirror and
-#: least-squares-optimal projection, and ours (regularised LSOP, noise-weighted LS).
-SH_HEMISPHERES = ("zh", "mirror", "lsop", "rlsop", "wls")
+#: least-squares-optimal projection, and ours (regularised LSOP, noise-weighted LS, and
+#: the MH fit's function over the sampled cap).
+SH_HEMISPHERES = ("zh", "mirror", "lsop", "rlsop", "wls", "mh")
+#: SH baked from an MH fit (parammap.models.sh.bake) rather than projected from the views.
+SH_BAKED = ("mh",)
 #: Projections that can be restricted to the sampled cap of the hemisphere.
 SH_CAP_AWARE = ("lsop", "rlsop", "wls")
 

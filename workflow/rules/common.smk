@@ -82,6 +82,14 @@ def mh_source(section):
     return want if want in fitted or not fitted else fitted[-1]
 
 
+def sh_source():
+    """The MH fit sh-mh-<n^2> bakes: ``fit.sh.source`` where the workflow makes it (the
+    basis materials where enabled), else the last MH fit it makes."""
+    want = config["fit"]["sh"]["source"]
+    made = mh_models() + (["mh-materials"] if config["materials"]["enabled"] else [])
+    return want if want in made or not made else mh_models()[-1]
+
+
 def compared_models():
     """The maps the held-out comparison scores: every model, the best-per-texel map
     where enabled, and the diffuse baseline."""

@@ -1,6 +1,7 @@
 # Model fits: one job per model writes fit/<model>.zarr (dask over texel tiles inside
 # the job; scheduler from config.fit.scheduler) and its metrics; then the parameter-map
 # EXR. Model names follow outputs.md: mh-<K> and sh-<hemisphere>-<coefficients>; the
+# SH baked from an MH fit is sh-mh-<coefficients>; the
 # basis materials (003) are the MH map mh-materials, refitted from another MH fit;
 # svbrdf-ggx is fitted under the lights the lights rule found (report.smk).
 
@@ -52,6 +53,32 @@ rule fit_sh:
     shell:
         "{params.cli} fit-sh --out {params.out}"
         " --model sh-{wildcards.hemi}-{wildcards.nc} {params.cfg} --workers {threads} 2> {log}"
+
+
+rule bake_sh:
+    input:
+        obs=f"{PROC}/{{sid}}/observation.zarr",
+        source=lambda wc: f"{PROC}/{wc.sid}/fit/{sh_source()}.zarr",
+    output:
+        store=directory(f"{PROC}/{{sid}}/fit/sh-mh-{{nc}}.zarr"),
+        metrics=f"{PROC}/{{sid}}/metrics/fit-sh-mh-{{nc}}.json",
+    params:
+        cli=PARAMMAP,
+        cfg=config_arg("fit"),
+        source=lambda wc: sh_source(),
+        out=lambda wc: f"{PROC}/{wc.sid}",
+    wildcard_constraints:
+        nc="[0-9]+",
+    threads: WORKERS
+    log:
+        "logs/fit/{sid}/sh-mh-{nc}.log",
+    benchmark:
+        "logs/benchmarks/{sid}/fit-sh-mh-{nc}.tsv"
+    conda:
+        "../envs/parammap.yaml"
+    shell:
+        "{params.cli} fit-sh --out {params.out} --model sh-mh-{wildcards.nc} {params.cfg}"
+        " --set fit.sh.source={params.source} --workers {threads} 2> {log}"
 
 
 rule fit_svbrdf:

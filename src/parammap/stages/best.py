@@ -74,7 +74,7 @@ from scipy.ndimage import uniform_filter
 from scipy.stats import norm
 
 from ..config import default
-from ..conventions import FitArray, FitStatus, mh_ks, mh_lobes
+from ..conventions import SH_BAKED, FitArray, FitStatus, mh_ks, mh_lobes
 from ..errors import InputError
 from ..geometry import texel_centres
 from ..models.mh.uncertainty import loo_residuals
@@ -409,6 +409,10 @@ def run_best(source: str | Path, processed: str | Path, config: dict[str, Any], 
         pm = read_param_map(src.params(name), with_sd=False)
         if pm.model == "best":
             raise InputError(f"best: {name} is itself a best map")
+        if pm.model == "sh" and pm.hemisphere in SH_BAKED:
+            # its views' errors are its MH source's, re-encoded: not a choice of its own
+            logger.info(f"best: {name} is baked from an MH fit; left out")
+            continue
         g = _fit_store(src.fit(name)) if pm.model == "sh" else None
         if g is not None and g.sampled_cap \
                 and tuple(g[FitArray.COEFFS].shape) == pm.params.shape:
@@ -416,6 +420,8 @@ def run_best(source: str | Path, processed: str | Path, config: dict[str, Any], 
             # held whole (a lab map's three SH maps are 1.2 GB of its nine's 1.6)
             pm = replace(pm, params=np.broadcast_to(np.float32(np.nan), pm.params.shape))
         maps[name] = pm
+    if len(maps) < 2:
+        raise InputError(f"best: needs at least two candidate models (got {list(maps)})")
     obs = open_observation_map(src.observation)
     T, S, N = obs.shape
     for name, pm in maps.items():

@@ -40,7 +40,7 @@ from dask.callbacks import Callback
 
 from .. import __version__
 from ..config import default
-from ..conventions import SH_CAP_AWARE, SV_ALPHA, SVBRDF_MODEL, FitArray, FitStatus
+from ..conventions import SH_BAKED, SH_CAP_AWARE, SV_ALPHA, SVBRDF_MODEL, FitArray, FitStatus
 from ..errors import InputError
 from ..geometry import texel_centres
 from ..models.lights import expand_lights
@@ -59,6 +59,7 @@ from ..models.mh import (
 )
 from ..models.radiometry import IrradianceGrid
 from ..models.sh import fit_sh_tile, parse_sh_model, sh_outputs
+from ..models.sh.bake import bake_outputs, bake_tile
 from ..models.sh.cap import guard_steps
 from ..models.svbrdf import MIN_OBS as SVBRDF_MIN_OBS
 from ..models.svbrdf import (
@@ -534,6 +535,39 @@ def fit_sh_map(obs_path: str | Path, out_path: str | Path, hemisphere: str, n: i
                        workers=workers, **extra)
 
 
+def _bake_block(radiance: np.ndarray, direction: np.ndarray, valid: np.ndarray, *,
+                origin: tuple[int, int], source: str, n: int, gamma: float,
+                noise: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """:func:`parammap.models.sh.bake.bake_tile` of one tile, its MH parameters read
+    from the ``source`` fit store."""
+    (r0, c0), (t, u) = origin, radiance.shape[:2]
+    src = open_fit(source)
+    P = np.asarray(src[FitArray.PARAMS][r0:r0 + t, c0:c0 + u])
+    ok = np.asarray(src[FitArray.STATUS][r0:r0 + t, c0:c0 + u]) == FitStatus.OK
+    return bake_tile(radiance, direction, valid, P, ok, n, gamma)
+
+
+def bake_sh_map(obs_path: str | Path, out_path: str | Path, source_path: str | Path,
+                n: int, scheduler: str = default("fit.scheduler"),
+                workers: int = default("workers"),
+                start_method: str = default("fit.start_method")) -> dict:
+    """Bake every texel's MH fit (the store at ``source_path``) onto n SH bands over its
+    sampled cap, in the values shown (:mod:`parammap.models.sh.bake`), into
+    ``fit/sh-mh-<n^2>.zarr``; returns the figures for its metrics file."""
+    src = open_fit(source_path)
+    if src.model != "mh":
+        raise InputError(f"fit.sh.source: {Path(source_path).name} is not an MH fit")
+    gamma = open_observation_map(obs_path).display_gamma()
+    res = fit_map(obs_path, out_path,
+                  partial(_bake_block, source=str(source_path), n=n, gamma=gamma),
+                  bake_outputs(n),
+                  sh_attrs("mh", n, True, "spherical", None, display_gamma=gamma)
+                  | {"source": Path(source_path).stem},
+                  scheduler, workers, start_method=start_method)
+    return fit_summary(out_path, res, f"sh-mh-{n * n}", scheduler=scheduler,
+                       workers=workers, source=Path(source_path).stem)
+
+
 REFINE_TEXELS = 1024  # of the pilot's, drawn at random: the texels that place the lights
 REFINE_OBSERVATIONS = 50_000  # and at most this many texel views (the refinement's cost)
 PILOT_TILES = 128  # tiles the pilot's texels come from
@@ -691,8 +725,12 @@ def run_fit(source: str | Path, processed: str | Path, config: dict[str, Any], *
     else:
         hemi, n = parse_sh_model(model)
         name, fit, args, family = f"sh-{hemi}-{n * n}", fit_sh_map, (hemi, n), "sh"
-    m = fit(src.observation, proc.fit(name), *args, cfg[family], cfg["scheduler"], workers,
-            cfg["start_method"])
+    if model.startswith("sh-") and hemi in SH_BAKED:
+        m = bake_sh_map(src.observation, proc.fit(name), proc.fit(cfg["sh"]["source"]), n,
+                        cfg["scheduler"], workers, cfg["start_method"])
+    else:
+        m = fit(src.observation, proc.fit(name), *args, cfg[family], cfg["scheduler"],
+                workers, cfg["start_method"])
     write_metrics(proc.metrics(f"fit-{name}"), m)
     logger.info(f"fit: {name} mean % residual {m['mean_percentage_residual']}, "
                 f"{m['failed']} failed, {m['texels_per_second']:.1f} texels/s")
