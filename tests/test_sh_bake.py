@@ -42,6 +42,18 @@ def test_a_diffuse_texel_bakes_to_its_colour_alone():
     assert rmse[0] < 1e-6
 
 
+def test_the_bands_do_not_cancel_each_other_in_large_coefficients():
+    """Over a cap the bands could cancel each other in coefficients of hundreds, which
+    a half-float EXR cannot hold: a lobe's baked coefficients stay of the order of its
+    own values."""
+    v = _views(60)
+    p = _mh((0.3, 0.2, 0.1), (0.6, 0.6, 0.6), 40, (0.3, -0.2, 0.93))
+    c, _ = bake_mh(p[None], v[None], np.ones((1, len(v)), bool), 8, gamma=2.0)
+    g, _ = hemisphere_grid(4.0)
+    peak = mh_eval(p[None], g[None])[0].max()
+    assert np.abs(c).max() < 5 * peak
+
+
 @pytest.mark.parametrize("m", [20.0, 80.0])
 def test_a_lobe_between_the_views_is_drawn_and_more_bands_draw_it_closer(m):
     """Between sparse views the baked SH follows the MH lobe: the lobe's peak, which no
@@ -59,8 +71,8 @@ def test_a_lobe_between_the_views_is_drawn_and_more_bands_draw_it_closer(m):
         errs[n] = (_shown_error(p, c[0], g[inside], gamma),
                    _shown_error(p, c[0], (d / np.linalg.norm(d))[None], gamma))
     assert errs[8][0] < errs[4][0] and errs[8][1] < errs[4][1], errs
-    if m <= 20:  # a lobe 8 bands resolve (half width 15 deg): 2.5 levels of 255 at most
-        assert errs[8][0] < 0.01, errs
+    if m <= 20:  # a lobe 8 bands resolve (half width 15 deg): 4 levels of 255 at most
+        assert errs[8][0] < 0.015, errs
     # never worse than the texel's mean level over the cap (a diffuse texture)
     mean = mh_eval(p[None], g[inside][None])[0].mean(0)
     flat = np.zeros((3, 64))

@@ -24,13 +24,17 @@ from ..mh.model import mh_eval
 from ..residuals import mean_percentage_residual
 from . import sh_outputs
 from .basis import sh_basis
-from .cap import cap_radius, hemisphere_grid, roughness
+from .cap import cap_radius, hemisphere_grid
 
 __all__ = ["BAKE_GRID_DEG", "BAKE_ROUNDS", "bake_mh", "bake_outputs", "bake_tile", "baked_cap"]
 
 BAKE_GRID_DEG = 4.0  # sampling step of the MH model: ~45 samples per period of band 9
 BAKE_ROUNDS = 3  # secant reweightings (session 52: the shown error settles by then)
-BAKE_RIDGE = 1e-9  # relative roughness damping: keeps a texel's system invertible
+# damping of the coefficients above the constant, relative to the mean of the normal
+# matrix's diagonal: over a cap, bands left free cancel each other in coefficients of
+# hundreds (which a half-float EXR or the viewer's 8-bit planes cannot hold); the sphere
+# energy of a texel's bands is what is damped, and a constant is never
+BAKE_RIDGE = 1e-4
 # weight of the directions outside the cap, relative to those inside: only enough to
 # hold the bands there to the MH model's extrapolation (the cap alone leaves them free
 # to take any value where nobody looked, which the viewer would show at grazing)
@@ -81,7 +85,7 @@ def bake_mh(params: np.ndarray, directions: np.ndarray, valid: np.ndarray, n: in
                                 np.broadcast_to(g, (B,) + g.shape)), 0.0)  # (B, G, 3)
     Y = sh_basis(g, n)  # (G, n2)
     area = w[None] * np.where(inside, 1.0, BAKE_OUTSIDE)  # (B, G)
-    ridge = BAKE_RIDGE * roughness(n)  # the constant is never damped
+    ridge = np.diag(np.r_[0.0, np.full(n * n - 1, BAKE_RIDGE / (n * n))])
     k = display_weights(target, gamma)
     for _ in range(rounds + 1):
         om = area * k
