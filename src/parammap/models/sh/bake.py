@@ -15,6 +15,7 @@ highlight's peak radiance.
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numpy as np
 
@@ -39,6 +40,18 @@ BAKE_RIDGE = 1e-4
 # hold the bands there to the MH model's extrapolation (the cap alone leaves them free
 # to take any value where nobody looked, which the viewer would show at grazing)
 BAKE_OUTSIDE = 0.01
+
+
+@lru_cache(maxsize=4)
+def _grid_products(n: int) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """The basis on the bake grid (G, n^2), the products of its pairs
+    of functions (G, n^2 (n^2 + 1) / 2) and the upper triangle's indices they fill."""
+    Y = sh_basis(hemisphere_grid(BAKE_GRID_DEG)[0], n)
+    iu = np.triu_indices(n * n)
+    YY = np.ascontiguousarray(Y[:, iu[0]] * Y[:, iu[1]])
+    for a in (Y, YY, *iu):
+        a.setflags(write=False)
+    return Y, YY, iu
 
 
 def baked_cap(directions: np.ndarray, valid: np.ndarray, grid: np.ndarray) -> np.ndarray:
@@ -83,17 +96,18 @@ def bake_mh(params: np.ndarray, directions: np.ndarray, valid: np.ndarray, n: in
     B = len(params)
     target = np.maximum(mh_eval(np.asarray(params, float),
                                 np.broadcast_to(g, (B,) + g.shape)), 0.0)  # (B, G, 3)
-    Y = sh_basis(g, n)  # (G, n2)
+    Y, YY, iu = _grid_products(n)  # (G, n2), (G, n2 (n2 + 1) / 2), upper triangle
     area = w[None] * np.where(inside, 1.0, BAKE_OUTSIDE)  # (B, G)
     ridge = np.diag(np.r_[0.0, np.full(n * n - 1, BAKE_RIDGE / (n * n))])
     k = display_weights(target, gamma)
     for _ in range(rounds + 1):
         om = area * k
         om *= area.sum(1, keepdims=True) / np.maximum(om.sum(1, keepdims=True), 1e-300)
-        Yw = Y.T[None] * om[:, None, :]  # (B, n2, G)
-        A = Yw @ Y
+        A = np.empty((B, n * n, n * n))
+        A[:, iu[0], iu[1]] = om @ YY  # one product for every texel's normal matrix
+        A[:, iu[1], iu[0]] = A[:, iu[0], iu[1]]
         A += ridge * np.maximum(np.trace(A, axis1=1, axis2=2), 1e-300)[:, None, None]
-        rhs = Yw @ target
+        rhs = np.matmul(Y.T, om[..., None] * target)  # (B, n2, 3)
         c = np.linalg.solve(A, rhs)  # (B, n2, 3)
         fitted = Y @ c  # (B, G, 3)
         k = display_weights(target, gamma, fitted)
